@@ -1,0 +1,66 @@
+"""The one place where pdem configures numba.
+
+* ``fastmath`` is off everywhere: bitwise determinism across rank counts needs IEEE arithmetic
+  in the order the source states.
+* Kernels are cached on disk (``cache=True``) so that a warm start does not recompile. The cache
+  lives in a directory keyed by a hash of pdem's kernel sources: numba checks only the timestamp of
+  the file that defines a cached function, so a law plugin whose cached wrapper inlines pdem's
+  generic loops would otherwise keep running a stale loop after pdem changed. Set
+  ``PDEM_NUMBA_CACHE_DIR`` (or numba's own ``NUMBA_CACHE_DIR``) to choose the base directory.
+
+Import :data:`njit` from here, never decorate with numba directly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import numba
+
+__all__ = ["njit", "njit_nocache", "cache_dir"]
+
+_PKG = Path(__file__).resolve().parent
+
+
+def _kernel_source_hash() -> str:
+    h = hashlib.sha256()
+    for path in sorted(_PKG.rglob("*.py")):
+        h.update(path.relative_to(_PKG).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _choose_cache_dir() -> str:
+    base = os.environ.get("PDEM_NUMBA_CACHE_DIR") or os.environ.get("NUMBA_CACHE_DIR")
+    if not base:
+        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        base = os.path.join(xdg, "pdem", "numba")
+    return os.path.join(base, f"{numba.__version__}-{_kernel_source_hash()}")
+
+
+cache_dir = _choose_cache_dir()
+numba.config.CACHE_DIR = cache_dir
+
+_FLAGS = dict(cache=True, fastmath=False, nogil=True, error_model="numpy", boundscheck=False)
+
+
+def njit(*args, **kwargs):
+    """``numba.njit`` with pdem's flags (cached, no fastmath, numpy error model)."""
+    opts = {**_FLAGS, **kwargs}
+    if args and callable(args[0]) and len(args) == 1:
+        return numba.njit(**opts)(args[0])
+    return numba.njit(*args, **opts)
+
+
+def njit_nocache(*args, **kwargs):
+    """Like :func:`njit` but never cached: for generic loops that take a function argument.
+
+    They are compiled into (and cached with) the small module-level wrappers that call them with a
+    concrete law, see :mod:`pdem.contact.law`.
+    """
+    opts = {**_FLAGS, **kwargs, "cache": False}
+    if args and callable(args[0]) and len(args) == 1:
+        return numba.njit(**opts)(args[0])
+    return numba.njit(*args, **opts)

@@ -1,0 +1,127 @@
+"""Walls: a geometric shape (:mod:`pdem.boundaries.shapes`), a material and a prescribed motion.
+
+A wall is an infinite-mass, infinite-radius contact partner that uses the simulation's contact
+law. Its motion is a translation of the whole shape (``offset``, m) at velocity ``velocity``
+(m/s) plus an optional spin ``omega`` (rad/s) about its reference point, which only gives the
+surface a velocity (a rotating drum): the shape itself does not rotate.
+
+After every step ``Wall.force`` [N] and ``Wall.torque`` [N m] (about the wall's current reference
+point) hold the total load the particles put on it, summed exactly (correctly rounded, hence
+independent of summation order and of the number of MPI ranks).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["Wall", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
+           "Controlled"]
+
+
+class Motion:
+    """Prescribed translation of a wall. ``advance`` returns (new offset, velocity over the step)."""
+
+    def advance(self, t: float, dt: float, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class Fixed(Motion):
+    def advance(self, t, dt, offset):
+        return offset, np.zeros(3)
+
+
+@dataclass
+class ConstantVelocity(Motion):
+    """Constant translational velocity [m/s]."""
+
+    velocity: tuple[float, float, float]
+
+    def advance(self, t, dt, offset):
+        v = np.asarray(self.velocity, dtype=float)
+        return offset + v * dt, v
+
+
+@dataclass
+class VelocityFunction(Motion):
+    """Velocity [m/s] as a function of time [s], sampled at mid-step."""
+
+    function: Callable[[float], tuple[float, float, float]]
+
+    def advance(self, t, dt, offset):
+        v = np.asarray(self.function(t + 0.5 * dt), dtype=float)
+        return offset + v * dt, v
+
+
+@dataclass
+class PositionFunction(Motion):
+    """Displacement [m] from the initial placement as a function of time [s]."""
+
+    function: Callable[[float], tuple[float, float, float]]
+    _origin: np.ndarray | None = field(default=None, repr=False)
+
+    def advance(self, t, dt, offset):
+        if self._origin is None:
+            self._origin = np.asarray(self.function(0.0), dtype=float)
+        new = np.asarray(self.function(t + dt), dtype=float) - self._origin
+        return new, (new - offset) / dt
+
+
+@dataclass
+class Controlled(Motion):
+    """Velocity set from outside each step (servo controllers, boundary plugins)."""
+
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def advance(self, t, dt, offset):
+        v = np.asarray(self.velocity, dtype=float)
+        return offset + v * dt, v
+
+
+class Wall:
+    """A wall in a simulation (created by :meth:`pdem.Simulation.add_wall`)."""
+
+    def __init__(self, shape, material: int, name: str, motion: Motion | None = None,
+                 omega=(0.0, 0.0, 0.0)) -> None:
+        self.shape = shape
+        self.material = material
+        self.name = name
+        self.motion = motion or Fixed()
+        self.omega = np.asarray(omega, dtype=float)
+        if self.omega.shape != (3,) or not np.all(np.isfinite(self.omega)):
+            raise InputError(f"wall '{name}': omega = {omega!r} must be three finite numbers [rad/s]")
+        self.offset = np.zeros(3)
+        self.velocity = np.zeros(3)
+        self.offset_build = np.zeros(3)
+        self.force = np.zeros(3)
+        self.torque = np.zeros(3)
+        self.n_contacts = 0
+        self.candidates = np.zeros(0, dtype=np.int64)
+        self.hist: np.ndarray | None = None
+        self._buf_idx = np.zeros(1, dtype=np.int64)
+        self._buf_val = np.zeros((1, 6))
+        self.params = shape.params(self.offset)
+
+    @property
+    def reference_point(self) -> np.ndarray:
+        return np.asarray(self.shape.reference_point, dtype=float) + self.offset
+
+    def advance(self, t: float, dt: float) -> None:
+        self.offset, self.velocity = self.motion.advance(t, dt, self.offset)
+        self.params = self.shape.params(self.offset)
+
+    def displacement_since_build(self) -> float:
+        return float(np.linalg.norm(self.offset - self.offset_build))
+
+    def reduce_load(self, count: int) -> None:
+        """Exact (correctly rounded) sums of the per-contact contributions of the last step."""
+        self.n_contacts = count
+        vals = self._buf_val[:count]
+        sums = [math.fsum(vals[:, c]) for c in range(6)] if count else [0.0] * 6
+        self.force = np.array(sums[:3])
+        self.torque = np.array(sums[3:])

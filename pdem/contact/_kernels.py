@@ -1,0 +1,172 @@
+"""The generic contact loops: the only neighbour loops in pdem.
+
+They are written once and specialised for each contact law by the law's own cached wrappers
+(see :mod:`pdem.contact.law`). A law is a small ``@njit`` function
+
+    law(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, hist, dt)
+        -> (Fx, Fy, Fz, Mx, My, Mz)
+
+of the contact geometry: overlap ``delta`` [m] > 0, unit normal n from i to j, relative velocity
+v = v_j − v_i at the contact point [m/s], relative angular velocity w = ω_j − ω_i [rad/s], effective
+radius, mass and moment of inertia, its row of pre-mixed coefficients and its history slot
+(updated in place). It returns the force F on j [N] (−F acts on i) and a pure torque M on j
+[N m] (−M on i), e.g. rolling resistance. The loops add the lever-arm torques: with
+a_i = (r_i − δ/2) n and a_j = −(r_j − δ/2) n, τ_i += a_i × (−F) − M and τ_j += a_j × F + M.
+
+Determinism: pairs are visited in the order of the pair list, which is sorted by
+(lower id, higher id). Each particle therefore receives its pair contributions in partner-id
+order; wall contributions are added afterwards, wall by wall in deck order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._jit import njit_nocache
+from ..boundaries._geometry import wall_contact
+
+FLAG_OVERLAP = 1
+FLAG_NONFINITE = 2
+FLAG_COINCIDENT = 4
+
+
+@njit_nocache(inline="always")
+def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap):
+    """Accumulate pair forces and torques into ``f`` and ``t``; return a flag word.
+
+    ``fpair[k]`` receives the force on the higher-id particle of pair k (zero when not touching).
+    ``max_overlap`` is the largest allowed δ / min(r_i, r_j) before the step is flagged.
+    """
+    flags = 0
+    hsize = hist.shape[1]
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        rsum = r[i] + r[j]
+        if d2 >= rsum * rsum or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
+            for h in range(hsize):
+                hist[k, h] = 0.0
+            fpair[k, 0] = 0.0
+            fpair[k, 1] = 0.0
+            fpair[k, 2] = 0.0
+            continue
+        dist = math.sqrt(d2)
+        if dist == 0.0:
+            flags |= FLAG_COINCIDENT
+            continue
+        nx = dx / dist
+        ny = dy / dist
+        nz = dz / dist
+        delta = rsum - dist
+        if delta > max_overlap * min(r[i], r[j]):
+            flags |= FLAG_OVERLAP
+        ai = r[i] - 0.5 * delta
+        aj = r[j] - 0.5 * delta
+        # contact-point velocities: v + ω × a, with a_i = ai n and a_j = −aj n
+        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+        vjx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
+        vjy = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
+        vjz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
+        r_eff = r[i] * r[j] / rsum
+        m_eff = 1.0 / (inv_m[i] + inv_m[j])
+        i_eff = 1.0 / (inv_i[i] + inv_i[j])
+        fx, fy, fz, mx, my, mz = law(
+            delta, nx, ny, nz, vjx - vix, vjy - viy, vjz - viz,
+            w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2],
+            r_eff, m_eff, i_eff, coef[mat[i], mat[j]], hist[k], dt,
+        )
+        f[i, 0] -= fx
+        f[i, 1] -= fy
+        f[i, 2] -= fz
+        f[j, 0] += fx
+        f[j, 1] += fy
+        f[j, 2] += fz
+        # n × F
+        cx = ny * fz - nz * fy
+        cy = nz * fx - nx * fz
+        cz = nx * fy - ny * fx
+        t[i, 0] += -ai * cx - mx
+        t[i, 1] += -ai * cy - my
+        t[i, 2] += -ai * cz - mz
+        t[j, 0] += -aj * cx + mx
+        t[j, 1] += -aj * cy + my
+        t[j, 2] += -aj * cz + mz
+        fpair[k, 0] = fx
+        fpair[k, 1] = fy
+        fpair[k, 2] = fz
+    return flags
+
+
+@njit_nocache(inline="always")
+def wall_forces(law, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
+                coef, f, t, dt, max_overlap, out_idx, out_val):
+    """Contacts of the candidate particles ``cand`` with one wall.
+
+    The wall is the partner j (infinite mass and radius: R* = r_i, m* = m_i, I* = I_i); the law's
+    force F acts on the wall and −F on the particle. ``vel``/``omega`` are the wall's translational
+    and angular velocity, ``centre`` the point it rotates about and about which its torque is
+    reported. ``hist`` is the per-particle history slot array of this wall, shape (n, H).
+    Each touching particle's contribution to the wall's force and torque is written to
+    ``out_val[c] = (Fx, Fy, Fz, Tx, Ty, Tz)`` with its index in ``out_idx[c]``; returns
+    (number of contacts, flags).
+    """
+    flags = 0
+    count = 0
+    hsize = hist.shape[1]
+    for q in range(cand.shape[0]):
+        i = cand[q]
+        gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
+        if gap >= 0.0 or inv_m[i] == 0.0:
+            for h in range(hsize):
+                hist[i, h] = 0.0
+            continue
+        delta = -gap
+        if delta > max_overlap * r[i]:
+            flags |= FLAG_OVERLAP
+        ai = r[i] - 0.5 * delta
+        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+        # wall velocity at the contact point: V + Ω × (p − centre)
+        qx = px - centre[0]
+        qy = py - centre[1]
+        qz = pz - centre[2]
+        vwx = vel[0] + omega[1] * qz - omega[2] * qy
+        vwy = vel[1] + omega[2] * qx - omega[0] * qz
+        vwz = vel[2] + omega[0] * qy - omega[1] * qx
+        fx, fy, fz, mx, my, mz = law(
+            delta, nx, ny, nz, vwx - vix, vwy - viy, vwz - viz,
+            omega[0] - w[i, 0], omega[1] - w[i, 1], omega[2] - w[i, 2],
+            r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef[mat[i], wmat], hist[i], dt,
+        )
+        f[i, 0] -= fx
+        f[i, 1] -= fy
+        f[i, 2] -= fz
+        cx = ny * fz - nz * fy
+        cy = nz * fx - nx * fz
+        cz = nx * fy - ny * fx
+        t[i, 0] += -ai * cx - mx
+        t[i, 1] += -ai * cy - my
+        t[i, 2] += -ai * cz - mz
+        out_idx[count] = i
+        out_val[count, 0] = fx
+        out_val[count, 1] = fy
+        out_val[count, 2] = fz
+        out_val[count, 3] = qy * fz - qz * fy + mx
+        out_val[count, 4] = qz * fx - qx * fz + my
+        out_val[count, 5] = qx * fy - qy * fx + mz
+        count += 1
+    return count, flags
+
+
+def empty_wall_buffers(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Output buffers for :func:`wall_forces` able to hold ``n`` contacts."""
+    return np.empty(max(n, 1), dtype=np.int64), np.empty((max(n, 1), 6), dtype=np.float64)

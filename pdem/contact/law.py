@@ -1,0 +1,111 @@
+"""The contact-law contract.
+
+A **penalty law** (DEM-P) is a class deriving from :class:`ContactLaw`, registered under the entry
+point group ``pdem.contact_laws`` (the entry-point name is the value written in a deck). It
+declares, as class data:
+
+* ``name`` and ``kind`` (``"penalty"``; complementarity methods bring their own stepper);
+* ``history_size`` — floats of history per contact (0 for memoryless laws);
+* ``Params`` — a pydantic model of its parameters (validated before anything runs);
+* ``pair_kernel`` / ``wall_kernel`` — the generic loops of :mod:`pdem.contact._kernels`
+  specialised with the law's ``@njit`` force function.
+
+The specialisation is two small module-level wrappers in the law's own module, so that numba
+caches them with the law inlined (numba cannot cache a function that receives another jitted
+function as an argument across processes, but it can cache one that calls it as a global)::
+
+    @njit
+    def my_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, c, hist, dt):
+        ...
+        return fx, fy, fz, mx, my, mz
+
+    @njit
+    def my_pair_kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap):
+        return pair_forces(my_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair,
+                           dt, max_overlap)
+
+    @njit
+    def my_wall_kernel(kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
+                       coef, f, t, dt, max_overlap, out_idx, out_val):
+        return wall_forces(my_force, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i,
+                           mat, wmat, coef, f, t, dt, max_overlap, out_idx, out_val)
+
+(explicit argument lists: with ``*args`` numba falls back to an uncacheable first-class function).
+
+A law never writes a neighbour loop: the generic loops own neighbour iteration, canonical
+orientation (lower id first), accumulation order and flags. Each law also ships a plain-Python
+twin of its force function (``force_numpy``), used by contract tests.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from ..errors import InputError
+from ..materials import MaterialTable
+
+__all__ = ["ContactLaw", "LawParams"]
+
+
+class LawParams(BaseModel):
+    """Base of every law's parameter model: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ContactLaw:
+    """Base class of penalty contact laws. See the module docstring for the contract."""
+
+    name: ClassVar[str] = "abstract"
+    kind: ClassVar[str] = "penalty"
+    history_size: ClassVar[int] = 0
+    n_coef: ClassVar[int] = 1
+    Params: ClassVar[type[LawParams]] = LawParams
+    pair_kernel: ClassVar[Any] = None
+    wall_kernel: ClassVar[Any] = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # numba dispatchers are descriptors: stored on a class they would bind like methods
+        for attr in ("pair_kernel", "wall_kernel"):
+            val = cls.__dict__.get(attr)
+            if val is not None and not isinstance(val, staticmethod):
+                setattr(cls, attr, staticmethod(val))
+
+    def __init__(self, **params: Any) -> None:
+        try:
+            self.params = self.Params(**params)
+        except ValidationError as exc:
+            lines = []
+            for err in exc.errors():
+                loc = ".".join(str(p) for p in err["loc"])
+                lines.append(f"law '{self.name}' parameter '{loc}': {err['msg']} (got {err.get('input')!r})")
+            raise InputError("\n".join(lines)) from None
+
+    def coefficients(self, materials: MaterialTable) -> np.ndarray:
+        """Return the pre-mixed coefficient table, shape (M, M, n_coef), for all material pairs."""
+        m = len(materials)
+        table = np.zeros((m, m, self.n_coef), dtype=np.float64)
+        for a in range(m):
+            for b in range(m):
+                table[a, b] = self.pair_coefficients(materials, a, b)
+        return table
+
+    def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def critical_dt(self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray,
+                    masses: np.ndarray) -> float:
+        """Largest time step [s] the law considers stable for these particles."""
+        raise NotImplementedError
+
+    def suggested_dt(self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray,
+                     masses: np.ndarray) -> float:
+        """Time step [s] used when the user gives none (a fraction of :meth:`critical_dt`)."""
+        return 0.2 * self.critical_dt(materials, radii, mat_index, masses)
+
+    def describe(self) -> str:
+        return f"{self.name}({self.params.model_dump()})"

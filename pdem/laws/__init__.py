@@ -1,0 +1,1 @@
+"""Built-in contact laws, registered through pdem's own entry points like any plugin."""

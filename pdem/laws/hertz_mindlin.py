@@ -1,0 +1,253 @@
+"""Hertz–Mindlin viscoelastic contact with tangential history and a Coulomb cap (DEM-P).
+
+Physics reference §2 (the form of Chrono's SMC Hertz model, LIGGGHTS ``hertz`` and LAMMPS
+``hertz/material`` + ``mindlin``). With a = sqrt(R* δ):
+
+* from materials (``parameterisation = "material"``, default)::
+
+      k_n = 4/3 E* a     S_n = 2 E* a     k_t = 8 G* a
+      β = ln e / sqrt(ln² e + π²)
+      c_n = −2 sqrt(5/6) β sqrt(S_n m*)    c_t = −2 sqrt(5/6) β sqrt(k_t m*)
+      F_n = k_n δ − c_n v_n
+
+* from user coefficients (``parameterisation = "coefficients"``, the study's equation 1)::
+
+      F_n = a (K_n δ − C_n m* v_n)         k_t = a K_t,  c_t = a C_t m*
+
+Tangential spring ξ (per contact, global frame, zero when the contact starts): rotated onto the
+current tangent plane keeping its length, then ξ += v_t dt, F_t = −k_t ξ − c_t v_t on j; if
+|F_t| > μ max(F_n, 0) it is scaled to the cap and the spring follows the slider,
+ξ = −(F_t + c_t v_t)/k_t.
+
+**Normal force sign.** By default the damped normal force is *not* clamped: it may become briefly
+attractive at the end of a contact (as in LAMMPS ``pair_style granular`` without
+``limit_damping``). ``clamp_normal = true`` clamps F_n ≥ 0, which raises the realised restitution
+above the input e (tested in ``tests/test_physics_impacts.py``).
+
+**Rolling resistance** (off unless a material has ``rolling_friction`` > 0): a torque on j of
+−μ_r R* max(F_n, 0) ω_roll/|ω_roll|, with ω_roll the tangential part of ω_j − ω_i, limited in
+magnitude to I* |ω_roll| / dt so that it cannot reverse the relative rolling within a step.
+
+Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, C_t, μ, μ_r, clamp]``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from .._jit import njit
+from ..contact._kernels import pair_forces, wall_forces
+from ..contact.law import ContactLaw, LawParams
+from ..errors import InputError
+from ..materials import MaterialTable, effective_moduli, rayleigh_time
+
+__all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]
+
+SQRT56 = math.sqrt(5.0 / 6.0)
+
+
+def damping_ratio(e: float) -> float:
+    """β = ln e / sqrt(ln² e + π²) (−1 for e = 0, 0 for e = 1)."""
+    if e <= 0.0:
+        return -1.0
+    le = math.log(e)
+    return le / math.sqrt(le * le + math.pi * math.pi)
+
+
+@njit
+def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, c, hist, dt):
+    a = math.sqrt(r_eff * delta)
+    vn = vx * nx + vy * ny + vz * nz
+    vtx = vx - vn * nx
+    vty = vy - vn * ny
+    vtz = vz - vn * nz
+    if c[0] == 0.0:
+        e_star = c[1]
+        s_n = 2.0 * e_star * a
+        k_t = 8.0 * c[2] * a
+        fn = (4.0 / 3.0) * e_star * a * delta + 2.0 * SQRT56 * c[3] * math.sqrt(s_n * m_eff) * vn
+        c_t = -2.0 * SQRT56 * c[3] * math.sqrt(k_t * m_eff)
+    else:
+        fn = a * (c[1] * delta - c[3] * m_eff * vn)
+        k_t = a * c[2]
+        c_t = a * c[4] * m_eff
+    if c[7] != 0.0 and fn < 0.0:
+        fn = 0.0
+    # tangential spring: rotate onto the tangent plane keeping its length, then increment
+    sx = hist[0]
+    sy = hist[1]
+    sz = hist[2]
+    old2 = sx * sx + sy * sy + sz * sz
+    if old2 > 0.0:
+        sn = sx * nx + sy * ny + sz * nz
+        sx -= sn * nx
+        sy -= sn * ny
+        sz -= sn * nz
+        new2 = sx * sx + sy * sy + sz * sz
+        if new2 > 0.0:
+            scale = math.sqrt(old2 / new2)
+            sx *= scale
+            sy *= scale
+            sz *= scale
+    sx += vtx * dt
+    sy += vty * dt
+    sz += vtz * dt
+    ftx = -k_t * sx - c_t * vtx
+    fty = -k_t * sy - c_t * vty
+    ftz = -k_t * sz - c_t * vtz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    fcap = c[5] * fn if fn > 0.0 else 0.0
+    if ft2 > fcap * fcap:
+        ft = math.sqrt(ft2)
+        scale = fcap / ft
+        ftx *= scale
+        fty *= scale
+        ftz *= scale
+        sx = -(ftx + c_t * vtx) / k_t
+        sy = -(fty + c_t * vty) / k_t
+        sz = -(ftz + c_t * vtz) / k_t
+    hist[0] = sx
+    hist[1] = sy
+    hist[2] = sz
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    if c[6] > 0.0 and fn > 0.0:
+        wn = wx * nx + wy * ny + wz * nz
+        rx = wx - wn * nx
+        ry = wy - wn * ny
+        rz = wz - wn * nz
+        wr = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if wr > 0.0:
+            mag = min(c[6] * r_eff * fn, i_eff * wr / dt)
+            mx = -mag * rx / wr
+            my = -mag * ry / wr
+            mz = -mag * rz / wr
+    return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, mx, my, mz)
+
+
+@njit
+def hertz_mindlin_pair_kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt,
+                              max_overlap):
+    return pair_forces(hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair,
+                       dt, max_overlap)
+
+
+@njit
+def hertz_mindlin_wall_kernel(kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
+                              coef, f, t, dt, max_overlap, out_idx, out_val):
+    return wall_forces(hertz_mindlin_force, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i,
+                       mat, wmat, coef, f, t, dt, max_overlap, out_idx, out_val)
+
+
+def force_numpy(delta, n, vrel, wrel, r_eff, m_eff, i_eff, c, hist, dt):
+    """Plain-Python twin of :func:`hertz_mindlin_force` (vectors as arrays), for contract tests."""
+    n = np.asarray(n, float)
+    vrel = np.asarray(vrel, float)
+    wrel = np.asarray(wrel, float)
+    a = math.sqrt(r_eff * delta)
+    vn = float(vrel @ n)
+    vt = vrel - vn * n
+    if c[0] == 0.0:
+        s_n = 2 * c[1] * a
+        k_t = 8 * c[2] * a
+        fn = 4 / 3 * c[1] * a * delta + 2 * SQRT56 * c[3] * math.sqrt(s_n * m_eff) * vn
+        c_t = -2 * SQRT56 * c[3] * math.sqrt(k_t * m_eff)
+    else:
+        fn = a * (c[1] * delta - c[3] * m_eff * vn)
+        k_t = a * c[2]
+        c_t = a * c[4] * m_eff
+    if c[7] != 0.0:
+        fn = max(fn, 0.0)
+    s = np.array(hist[:3], float)
+    old = np.linalg.norm(s)
+    if old > 0:
+        s = s - (s @ n) * n
+        new = np.linalg.norm(s)
+        if new > 0:
+            s *= old / new
+    s = s + vt * dt
+    ft = -k_t * s - c_t * vt
+    cap = c[5] * max(fn, 0.0)
+    if np.linalg.norm(ft) > cap:
+        ft = ft * (cap / np.linalg.norm(ft))
+        s = -(ft + c_t * vt) / k_t
+    hist[:3] = s
+    m = np.zeros(3)
+    if c[6] > 0 and fn > 0:
+        wr = wrel - (wrel @ n) * n
+        if np.linalg.norm(wr) > 0:
+            mag = min(c[6] * r_eff * fn, i_eff * np.linalg.norm(wr) / dt)
+            m = -mag * wr / np.linalg.norm(wr)
+    return fn * n + ft, m
+
+
+class HertzMindlinParams(LawParams):
+    """Parameters of :class:`HertzMindlin`.
+
+    ``parameterisation``: ``"material"`` (E, ν, e, μ from the materials) or ``"coefficients"``
+    (the study's equation 1 with ``kn`` [Pa], ``kt`` [Pa], ``cn`` [1/(m s)], ``ct`` [1/(m s)]).
+    ``clamp_normal``: forbid an attractive damped normal force.
+    """
+
+    parameterisation: Literal["material", "coefficients"] = "material"
+    kn: float | None = Field(default=None, gt=0)
+    kt: float | None = Field(default=None, gt=0)
+    cn: float | None = Field(default=None, ge=0)
+    ct: float | None = Field(default=None, ge=0)
+    clamp_normal: bool = False
+
+
+class HertzMindlin(ContactLaw):
+    """Hertz–Mindlin viscoelastic law with tangential history (see module docstring)."""
+
+    name = "hertz_mindlin"
+    kind = "penalty"
+    history_size = 3
+    n_coef = 8
+    Params = HertzMindlinParams
+    pair_kernel = hertz_mindlin_pair_kernel
+    wall_kernel = hertz_mindlin_wall_kernel
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        p = self.params
+        if p.parameterisation == "coefficients":
+            missing = [k for k in ("kn", "kt", "cn", "ct") if getattr(p, k) is None]
+            if missing:
+                raise InputError(
+                    f"law 'hertz_mindlin' with parameterisation = 'coefficients' needs {', '.join(missing)}; "
+                    "give kn, kt [Pa] and cn, ct [1/(m s)], or use parameterisation = 'material'"
+                )
+
+    def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
+        p = self.params
+        clamp = 1.0 if p.clamp_normal else 0.0
+        mu = materials.mixed(a, b, "friction")
+        mu_r = materials.mixed(a, b, "rolling_friction")
+        if p.parameterisation == "material":
+            e_star, g_star = effective_moduli(materials[a], materials[b])
+            beta = damping_ratio(materials.mixed(a, b, "restitution"))
+            return np.array([0.0, e_star, g_star, beta, 0.0, mu, mu_r, clamp])
+        return np.array([1.0, p.kn, p.kt, p.cn, p.ct, mu, mu_r, clamp])
+
+    def critical_dt(self, materials, radii, mat_index, masses) -> float:
+        """Material form: the Rayleigh time min T_R. Coefficient form: 2 sqrt(m*/S_n) with the
+        contact stiffness S_n = 1.5 K_n sqrt(R* δ) at δ = 0.1 r for two equal spheres (for the material
+        form this estimate and T_R agree within ~10 %)."""
+        if len(radii) == 0:
+            return math.inf
+        best = math.inf
+        if self.params.parameterisation == "material":
+            for k in np.unique(mat_index):
+                sel = mat_index == k
+                best = min(best, rayleigh_time(float(radii[sel].min()), materials[int(k)]))
+            return best
+        kn = self.params.kn
+        r = radii
+        s_n = 1.5 * kn * np.sqrt(0.5 * r * 0.1 * r)
+        return float(np.min(2.0 * np.sqrt(0.5 * masses / s_n)))

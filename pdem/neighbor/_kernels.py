@@ -1,0 +1,155 @@
+"""Cell-grid + Verlet-list kernels (arrays in, arrays out; problems reported, never raised).
+
+The pair list holds each pair once, as local indices (i, j) with id[i] < id[j], sorted by
+(id[i], id[j]). A pair is listed when the centre distance is below r_i + r_j + skin and at least one
+of the two particles is owned (local index < n_owned); ghosts follow the owned particles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._jit import njit
+
+
+@njit
+def bin_particles(x, n, lo, inv_cell, dims):
+    """Counting sort of particles 0..n-1 into cells: returns (cell_start, cell_items)."""
+    ncell = dims[0] * dims[1] * dims[2]
+    cell_of = np.empty(n, dtype=np.int64)
+    counts = np.zeros(ncell + 1, dtype=np.int64)
+    for i in range(n):
+        cx = min(max(int((x[i, 0] - lo[0]) * inv_cell), 0), dims[0] - 1)
+        cy = min(max(int((x[i, 1] - lo[1]) * inv_cell), 0), dims[1] - 1)
+        cz = min(max(int((x[i, 2] - lo[2]) * inv_cell), 0), dims[2] - 1)
+        c = (cz * dims[1] + cy) * dims[0] + cx
+        cell_of[i] = c
+        counts[c + 1] += 1
+    for c in range(ncell):
+        counts[c + 1] += counts[c]
+    fill = counts[:-1].copy()
+    items = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        c = cell_of[i]
+        items[fill[c]] = i
+        fill[c] += 1
+    return counts, items
+
+
+@njit
+def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
+    """Verlet pair list sorted by (lower id, higher id).
+
+    Returns (pi, pj, count). If ``count > capacity`` the arrays are incomplete and the caller must
+    retry with a capacity of at least ``count``.
+    """
+    cell_start, cell_items = bin_particles(x, n, lo, inv_cell, dims)
+    order = np.argsort(ids[:n])
+    pi = np.empty(capacity, dtype=np.int64)
+    pj = np.empty(capacity, dtype=np.int64)
+    cand = np.empty(64, dtype=np.int64)
+    cand_id = np.empty(64, dtype=np.int64)
+    count = 0
+    for q in range(n):
+        i = order[q]
+        idi = ids[i]
+        cx = min(max(int((x[i, 0] - lo[0]) * inv_cell), 0), dims[0] - 1)
+        cy = min(max(int((x[i, 1] - lo[1]) * inv_cell), 0), dims[1] - 1)
+        cz = min(max(int((x[i, 2] - lo[2]) * inv_cell), 0), dims[2] - 1)
+        nc = 0
+        for ez in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+            for ey in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+                for ex in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+                    c = (ez * dims[1] + ey) * dims[0] + ex
+                    for s in range(cell_start[c], cell_start[c + 1]):
+                        j = cell_items[s]
+                        if ids[j] <= idi or (i >= n_owned and j >= n_owned):
+                            continue
+                        dx = x[j, 0] - x[i, 0]
+                        dy = x[j, 1] - x[i, 1]
+                        dz = x[j, 2] - x[i, 2]
+                        cut = r[i] + r[j] + skin
+                        if dx * dx + dy * dy + dz * dz < cut * cut:
+                            if nc == cand.shape[0]:
+                                bigger = np.empty(2 * nc, dtype=np.int64)
+                                bigger[:nc] = cand
+                                cand = bigger
+                                bigger_id = np.empty(2 * nc, dtype=np.int64)
+                                bigger_id[:nc] = cand_id
+                                cand_id = bigger_id
+                            # insertion by id keeps the candidates sorted
+                            idj = ids[j]
+                            p = nc
+                            while p > 0 and cand_id[p - 1] > idj:
+                                cand_id[p] = cand_id[p - 1]
+                                cand[p] = cand[p - 1]
+                                p -= 1
+                            cand_id[p] = idj
+                            cand[p] = j
+                            nc += 1
+        for s in range(nc):
+            if count < capacity:
+                pi[count] = i
+                pj[count] = cand[s]
+            count += 1
+    return pi, pj, count
+
+
+@njit
+def pair_keys(pi, pj, ids):
+    """Key of each pair: id_lo · 2³² + id_hi (ids must be < 2³¹)."""
+    k = np.empty(pi.shape[0], dtype=np.int64)
+    for p in range(pi.shape[0]):
+        k[p] = (ids[pi[p]] << 32) | ids[pj[p]]
+    return k
+
+
+@njit
+def carry_history(old_keys, old_hist, new_keys, new_hist):
+    """Copy history rows of pairs present in both sorted key lists (a linear merge); zero the rest."""
+    a = 0
+    na = old_keys.shape[0]
+    h = new_hist.shape[1]
+    for b in range(new_keys.shape[0]):
+        key = new_keys[b]
+        while a < na and old_keys[a] < key:
+            a += 1
+        if a < na and old_keys[a] == key:
+            for c in range(h):
+                new_hist[b, c] = old_hist[a, c]
+        else:
+            for c in range(h):
+                new_hist[b, c] = 0.0
+
+
+@njit
+def max_displacement2(x, x_ref, n):
+    """Largest squared displacement of particles 0..n-1 since ``x_ref``."""
+    best = 0.0
+    for i in range(n):
+        dx = x[i, 0] - x_ref[i, 0]
+        dy = x[i, 1] - x_ref[i, 1]
+        dz = x[i, 2] - x_ref[i, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > best or d2 != d2:
+            best = d2 if d2 == d2 else math.inf
+    return best
+
+
+@njit
+def brute_force_pairs(x, r, ids, n, skin):
+    """All pairs within r_i + r_j + skin by an O(n²) loop (the oracle of the tests)."""
+    out_i = []
+    out_j = []
+    for i in range(n):
+        for j in range(n):
+            if ids[j] <= ids[i]:
+                continue
+            d = x[j] - x[i]
+            cut = r[i] + r[j] + skin
+            if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < cut * cut:
+                out_i.append(i)
+                out_j.append(j)
+    return np.array(out_i, dtype=np.int64), np.array(out_j, dtype=np.int64)

@@ -1,0 +1,1 @@
+"""MPI layer: communicator helpers, decomposition and ghost exchange."""

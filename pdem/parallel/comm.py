@@ -1,0 +1,71 @@
+"""Communicator helpers. The only module (with the CLI) that touches ``MPI.COMM_WORLD``.
+
+A serial run is a 1-rank run of the same code path: :func:`default_comm` returns
+``MPI.COMM_WORLD`` when mpi4py imports, else :class:`SerialComm`, a stand-in with the handful
+of collective operations pdem uses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["SerialComm", "default_comm", "any_rank", "all_max"]
+
+
+class SerialComm:
+    """A one-rank communicator with the mpi4py lowercase API that pdem uses."""
+
+    rank = 0
+    size = 1
+
+    def Get_rank(self) -> int:  # noqa: N802 (mpi4py naming)
+        return 0
+
+    def Get_size(self) -> int:  # noqa: N802
+        return 1
+
+    def allreduce(self, value: Any, op: Any = None) -> Any:
+        return value
+
+    def allgather(self, value: Any) -> list[Any]:
+        return [value]
+
+    def bcast(self, value: Any, root: int = 0) -> Any:
+        return value
+
+    def Barrier(self) -> None:  # noqa: N802
+        return None
+
+    barrier = Barrier
+
+    def Abort(self, code: int = 1) -> None:  # noqa: N802
+        raise SystemExit(code)
+
+
+def default_comm():
+    """``MPI.COMM_WORLD`` if mpi4py is importable, else a :class:`SerialComm`."""
+    try:
+        from mpi4py import MPI
+    except ImportError:  # pragma: no cover - mpi4py is a dependency, but stay usable without
+        return SerialComm()
+    return MPI.COMM_WORLD
+
+
+def any_rank(comm, flag: bool) -> bool:
+    """True on every rank if ``flag`` is true on at least one (a collective call)."""
+    if comm.size == 1:
+        return bool(flag)
+    return bool(comm.allreduce(int(bool(flag)), op=_mpi_op("MAX")))
+
+
+def all_max(comm, value: float) -> float:
+    """Maximum of ``value`` over ranks (exact, hence partition-independent)."""
+    if comm.size == 1:
+        return value
+    return comm.allreduce(value, op=_mpi_op("MAX"))
+
+
+def _mpi_op(name: str):
+    from mpi4py import MPI
+
+    return getattr(MPI, name)

@@ -1,0 +1,414 @@
+"""The simulation: particles, walls, a contact law, and the time step written once.
+
+Python API (SI units throughout)::
+
+    import pdem
+    sim = pdem.Simulation()
+    sim.add_material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3,
+                     restitution=0.5, friction=0.5)
+    sim.add_particles(positions, radii, material="glass")
+    sim.add_wall(pdem.shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
+    sim.gravity = (0, 0, -9.81)
+    sim.run(steps=1000)            # or sim.run(until=0.1)
+    p = sim.get_particles()        # arrays ordered by particle id
+    sim.walls["floor"].force       # load on the floor [N]
+
+The DEM-P time step (velocity Verlet, architecture §3)::
+
+    initial_integrate   v += a dt/2; x += v dt; ω half step
+    move walls
+    if max displacement (particles + walls) > skin/2 → rebuild neighbours, carry history
+    forces              pairs (sorted by id pair) → walls (in order) → body forces
+    final_integrate     v += a dt/2; ω
+    check flags         overlap runaway, non-finite state → InstabilityError
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .boundaries.walls import Motion, Wall
+from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
+from .contact.law import ContactLaw
+from .errors import GeometryError, InputError, InstabilityError
+from .integrate import _kernels as integ
+from .materials import Material, MaterialTable
+from .neighbor import _kernels as nk
+from .parallel.comm import SerialComm, any_rank
+from .plugins import load_contact_law
+from .state.particles import FREE, MOTION_NAMES, ParticleStore
+
+__all__ = ["Simulation"]
+
+
+class Simulation:
+    """A DEM simulation. See the module docstring for the API and the time step.
+
+    Parameters
+    ----------
+    comm:
+        MPI communicator (default: a one-rank serial communicator). Only one rank is supported by
+        this version of the engine; decomposition comes with the parallel layer.
+    law:
+        Contact-law name (an entry point of ``pdem.contact_laws``) or a :class:`ContactLaw`.
+    """
+
+    def __init__(self, comm=None, law: str | ContactLaw = "hertz_mindlin", **law_params: Any) -> None:
+        self.comm = comm if comm is not None else SerialComm()
+        if self.comm.size != 1:
+            raise InputError("this build of the engine runs on one rank; the MPI decomposition is not "
+                             "implemented yet (run without mpirun)")
+        self.materials = MaterialTable()
+        self.particles = ParticleStore()
+        self.walls: dict[str, Wall] = {}
+        self._wall_list: list[Wall] = []
+        self.set_law(law, **law_params)
+        self.gravity = (0.0, 0.0, 0.0)
+        self.dt: float | None = None
+        self.force_dt = False
+        self.skin: float | None = None
+        self.max_overlap = 0.25
+        self.time = 0.0
+        self.step_count = 0
+        self.n_rebuilds = 0
+        self._next_id = 0
+        self._prepared = False
+        self.dt_critical = math.nan
+
+    # ------------------------------------------------------------------ setup
+    def set_law(self, law: str | ContactLaw, **params: Any) -> None:
+        """Choose the contact law by entry-point name (``"hertz_mindlin"``) or instance."""
+        self.law = load_contact_law(law, **params) if isinstance(law, str) else law
+        self._prepared = False
+
+    def add_material(self, material: Material | str, **props: float) -> int:
+        """Add a :class:`Material` (or build one from a name and keyword properties)."""
+        mat = material if isinstance(material, Material) else Material(material, **props)
+        self._prepared = False
+        return self.materials.add(mat)
+
+    def add_particles(self, positions, radii, material: str = None, velocities=None,
+                      angular_velocities=None, motion: str = "free") -> np.ndarray:
+        """Add spheres; returns their ids (consecutive, in the order given).
+
+        ``radii`` may be a scalar. ``motion``: ``"free"`` (integrated), ``"fixed"`` (never moves) or
+        ``"prescribed"`` (moves with its given velocity, unaffected by forces). Fixed and prescribed
+        particles act as infinitely massive in contacts.
+        """
+        x = np.array(positions, dtype=np.float64, ndmin=2)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise GeometryError(f"positions must have shape (n, 3); got {np.shape(positions)}")
+        n = x.shape[0]
+        r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
+        if not np.all(np.isfinite(x)):
+            raise GeometryError("positions contain non-finite values")
+        if not np.all((r > 0) & np.isfinite(r)):
+            bad = r[~((r > 0) & np.isfinite(r))][0]
+            raise GeometryError(f"radius = {bad!r} is invalid; radii must be positive and finite (metres)")
+        if material is None:
+            if len(self.materials) != 1:
+                raise InputError("add_particles: name the material (several or no materials are defined)")
+            mat_idx = 0
+        else:
+            mat_idx = self.materials.index(material)
+        if motion not in MOTION_NAMES:
+            raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
+        mo = MOTION_NAMES[motion]
+        v = np.zeros((n, 3)) if velocities is None else np.broadcast_to(
+            np.asarray(velocities, dtype=float), (n, 3)).copy()
+        w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
+            np.asarray(angular_velocities, dtype=float), (n, 3)).copy()
+        rho = self.materials[mat_idx].density
+        mass = rho * 4.0 / 3.0 * math.pi * r**3
+        inertia = 0.4 * mass * r**2
+        free = mo == FREE
+        inv_m = 1.0 / mass if free else np.zeros(n)
+        inv_i = 1.0 / inertia if free else np.zeros(n)
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        if ids.size and ids[-1] >= 2**31:
+            raise InputError("more than 2**31 particles are not supported")
+        self._next_id += n
+        self.particles.append_owned(ids, x, v, w, r, mass, inv_m, inv_i,
+                                    np.full(n, mat_idx, np.int32), np.full(n, mo, np.int8))
+        self._prepared = False
+        return ids
+
+    def add_wall(self, shape, material: str = None, name: str | None = None,
+                 motion: Motion | None = None, omega=(0.0, 0.0, 0.0)) -> Wall:
+        """Add a wall of the given shape; ``motion`` prescribes its translation."""
+        if name is None:
+            name = f"{getattr(shape, 'name_hint', 'wall')}{len(self._wall_list)}"
+        if name in self.walls:
+            raise InputError(f"wall name '{name}' is used twice; give each wall a unique name")
+        if material is None:
+            if len(self.materials) != 1:
+                raise InputError(f"wall '{name}': name its material (several or no materials are defined)")
+            mat_idx = 0
+        else:
+            mat_idx = self.materials.index(material)
+        wall = Wall(shape, mat_idx, name, motion, omega)
+        self.walls[name] = wall
+        self._wall_list.append(wall)
+        self._prepared = False
+        return wall
+
+    # ------------------------------------------------------------------ preparation
+    def _prepare(self) -> None:
+        p = self.particles
+        n = p.n_owned
+        if len(self.materials) == 0:
+            raise InputError("no material defined; add one with add_material()")
+        self._coef = self.law.coefficients(self.materials)
+        self.dt_critical = self.law.critical_dt(self.materials, p.r, p.mat, p.mass)
+        if self.dt is None:
+            self.dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
+            if not math.isfinite(self.dt):
+                raise InputError("no time step given and none can be estimated without particles; set dt")
+        if not (self.dt > 0 and math.isfinite(self.dt)):
+            raise InputError(f"dt = {self.dt!r} is invalid; give a positive time step in seconds")
+        if self.dt > self.dt_critical and not self.force_dt:
+            raise InputError(
+                f"dt = {self.dt:.4g} s exceeds the stability estimate {self.dt_critical:.4g} s of law "
+                f"'{self.law.name}'; use dt ≤ {self.dt_critical:.4g} s (practice: 0.1–0.3 of it), or set "
+                "force_dt = true to run anyway"
+            )
+        if self.skin is None:
+            self.skin = 0.1 * 2.0 * float(np.mean(p.r)) if n else 0.0
+        if not (self.skin >= 0 and math.isfinite(self.skin)):
+            raise InputError(f"skin = {self.skin!r} is invalid; give a non-negative distance in metres")
+        self._g = np.asarray(self.gravity, dtype=float)
+        if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
+            raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
+        hsize = max(self.law.history_size, 1)
+        self._pair_keys = np.zeros(0, dtype=np.int64)
+        self._pair_hist = np.zeros((0, hsize))
+        self._pi = np.zeros(0, dtype=np.int64)
+        self._pj = np.zeros(0, dtype=np.int64)
+        self._fpair = np.zeros((0, 3))
+        self._pair_capacity = max(8 * n, 64)
+        for wall in self._wall_list:
+            if wall.hist is None or wall.hist.shape[0] < n:
+                old = wall.hist
+                wall.hist = np.zeros((max(n, 1), hsize))
+                if old is not None:
+                    wall.hist[: old.shape[0]] = old
+            wall.params = wall.shape.params(wall.offset)
+        self._prepared = True
+        self._rebuild()
+        self._check_initial_overlaps()
+        # forces at t = 0 for the first half kick; like LAMMPS's setup, this evaluation must not
+        # advance the contact history (the first step does)
+        saved = [self._pair_hist.copy()] + [w.hist.copy() for w in self._wall_list]
+        self._compute_forces()
+        self._pair_hist[:] = saved[0]
+        for wall, h in zip(self._wall_list, saved[1:], strict=True):
+            wall.hist[:] = h
+        self._add_body_forces_only()
+
+    def _check_initial_overlaps(self) -> None:
+        if self._pi.size == 0:
+            return
+        p = self.particles
+        d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
+        ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
+        k = int(np.argmax(ratio))
+        if ratio[k] > self.max_overlap:
+            raise GeometryError(
+                f"particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]} overlap by {ratio[k]:.3g} of the "
+                f"smaller radius at the start (limit {self.max_overlap}); separate them or fill with a "
+                "random-fill or lattice source"
+            )
+
+    # ------------------------------------------------------------------ neighbours
+    def _rebuild(self) -> None:
+        p = self.particles
+        n = p.n
+        x = p.x
+        r = p.r
+        if n:
+            lo = x.min(axis=0) - 1e-12
+            hi = x.max(axis=0) + 1e-12
+            cell = 2.0 * float(r.max()) + self.skin
+            ext = np.maximum(hi - lo, cell)
+            while True:
+                dims = np.maximum((ext / cell).astype(np.int64), 1)
+                if int(np.prod(dims)) <= 4 * n + 1000:
+                    break
+                cell *= 1.26
+            inv_cell = 1.0 / cell
+            while True:
+                pi, pj, count = nk.build_pairs(x, r, p.id, p.n_owned, n, self.skin, lo, inv_cell, dims,
+                                               self._pair_capacity)
+                if count <= self._pair_capacity:
+                    break
+                self._pair_capacity = int(count * 1.3) + 64
+            pi = pi[:count].copy()
+            pj = pj[:count].copy()
+        else:
+            pi = pj = np.zeros(0, dtype=np.int64)
+        keys = nk.pair_keys(pi, pj, p.id)
+        hist = np.empty((keys.shape[0], self._pair_hist.shape[1]))
+        nk.carry_history(self._pair_keys, self._pair_hist, keys, hist)
+        self._pi, self._pj, self._pair_keys, self._pair_hist = pi, pj, keys, hist
+        self._fpair = np.zeros((keys.shape[0], 3))
+        p.x_build[:] = x
+        # wall candidates: particles within the skin of each wall
+        from .boundaries._geometry import wall_contact_numpy
+
+        for wall in self._wall_list:
+            if p.n_owned:
+                gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
+                wall.candidates = np.flatnonzero(gap < self.skin).astype(np.int64)
+            else:
+                wall.candidates = np.zeros(0, dtype=np.int64)
+            if wall._buf_idx.shape[0] < wall.candidates.shape[0]:
+                wall._buf_idx = np.empty(wall.candidates.shape[0], dtype=np.int64)
+                wall._buf_val = np.empty((wall.candidates.shape[0], 6))
+            wall.offset_build = wall.offset.copy()
+        self.n_rebuilds += 1
+
+    def _needs_rebuild(self) -> bool:
+        p = self.particles
+        disp = math.sqrt(nk.max_displacement2(p.x, p.x_build, p.n_owned))
+        wall_disp = max((w.displacement_since_build() for w in self._wall_list), default=0.0)
+        return any_rank(self.comm, 2.0 * disp > self.skin or disp + wall_disp > self.skin)
+
+    # ------------------------------------------------------------------ forces
+    def _compute_forces(self) -> int:
+        p = self.particles
+        integ.zero_forces(p.f, p.t, p.n)
+        flags = self.law.pair_kernel(self._pi, self._pj, self._pair_hist, p.x, p.v, p.w, p.r, p.inv_m,
+                                     p.inv_i, p.mat, self._coef, p.f, p.t, self._fpair, self.dt,
+                                     self.max_overlap)
+        for wall in self._wall_list:
+            count, wflags = self.law.wall_kernel(
+                wall.shape.kind, wall.params, wall.velocity, wall.omega, wall.reference_point,
+                wall.candidates, wall.hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, wall.material,
+                self._coef, p.f, p.t, self.dt, self.max_overlap, wall._buf_idx, wall._buf_val)
+            wall.reduce_load(count)
+            flags |= wflags
+        return flags
+
+    def _add_body_forces_only(self) -> None:
+        p = self.particles
+        free = p.motion == FREE
+        p.f[free] += p.mass[free, None] * self._g
+
+    # ------------------------------------------------------------------ the time step
+    def step(self) -> None:
+        """Advance one time step (DEM-P velocity Verlet)."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        dt = self.dt
+        integ.initial_integrate(p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned)
+        for wall in self._wall_list:
+            wall.advance(self.time, dt)
+        if self._needs_rebuild():
+            self._rebuild()
+        flags = self._compute_forces()
+        g = self._g
+        flags |= integ.add_body_force_and_final_integrate(p.v, p.w, p.f, p.t, p.mass, p.inv_m, p.inv_i,
+                                                          p.motion, g[0], g[1], g[2], dt, p.n_owned)
+        self.time += dt
+        self.step_count += 1
+        if any_rank(self.comm, flags != 0):
+            self._raise_for_flags(flags)
+
+    def run(self, steps: int | None = None, until: float | None = None,
+            callback: Callable[[Simulation], Any] | None = None, every: int = 1) -> Simulation:
+        """Run ``steps`` steps, or until simulated time ``until`` [s]. ``callback(sim)`` runs every
+        ``every`` steps."""
+        if not self._prepared:
+            self._prepare()
+        if (steps is None) == (until is None):
+            raise InputError("run: give exactly one of steps= or until=")
+        if steps is None:
+            steps = max(0, int(math.ceil((until - self.time) / self.dt - 1e-9)))
+        if steps < 0:
+            raise InputError(f"run: steps = {steps} must be ≥ 0")
+        for k in range(steps):
+            self.step()
+            if callback is not None and (k + 1) % every == 0:
+                callback(self)
+        return self
+
+    def _raise_for_flags(self, flags: int) -> None:
+        p = self.particles
+        where = ""
+        if self._pi.size:
+            d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
+            ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
+            ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+            k = int(np.argmax(ratio))
+            where = (f" largest pair overlap: particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]}, "
+                     f"{ratio[k]:.3g} of the smaller radius.")
+        causes = []
+        if flags & FLAG_OVERLAP:
+            causes.append(f"an overlap exceeded {self.max_overlap} of a radius")
+        if flags & FLAG_NONFINITE:
+            causes.append("a velocity became non-finite")
+        if flags & FLAG_COINCIDENT:
+            causes.append("two particle centres coincide")
+        raise InstabilityError(
+            f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
+            f"{' and '.join(causes)}.{where} dt = {self.dt:.4g} s, stability estimate "
+            f"{self.dt_critical:.4g} s; reduce dt (0.1–0.3 of the estimate), soften the material, or "
+            "check the initial overlaps and prescribed velocities"
+        )
+
+    # ------------------------------------------------------------------ inspection
+    def get_particles(self) -> dict[str, np.ndarray]:
+        """Copies of the owned particle arrays, ordered by id: id, x, v, w, r, mass, f, t, material,
+        motion."""
+        p = self.particles
+        n = p.n_owned
+        order = np.argsort(p.id[:n], kind="stable")
+        out = {name: getattr(p, name)[:n][order].copy() for name in
+               ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")}
+        out["material"] = out.pop("mat")
+        return out
+
+    def contacts(self) -> dict[str, np.ndarray]:
+        """Touching particle pairs of the last force evaluation: ``id_i < id_j``, overlap [m],
+        normal force [N] (positive = repulsive) and force on j [N] (on i: its negative)."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        pi, pj = self._pi, self._pj
+        d = p.x[pj] - p.x[pi]
+        dist = np.linalg.norm(d, axis=1)
+        overlap = p.r[pi] + p.r[pj] - dist
+        touching = (overlap > 0) & np.any(self._fpair != 0, axis=1)
+        n = d[touching] / dist[touching, None]
+        force = self._fpair[touching]
+        return {
+            "id_i": p.id[pi[touching]].copy(),
+            "id_j": p.id[pj[touching]].copy(),
+            "overlap": overlap[touching],
+            "normal_force": np.einsum("ij,ij->i", force, n),
+            "force": force.copy(),
+        }
+
+    def kinetic_energy(self) -> tuple[float, float]:
+        """(translational, rotational) kinetic energy of the free particles [J]."""
+        p = self.particles
+        n = p.n_owned
+        free = p.motion[:n] == FREE
+        m = p.mass[:n][free]
+        et = 0.5 * math.fsum(m * np.einsum("ij,ij->i", p.v[:n][free], p.v[:n][free]))
+        er = 0.5 * math.fsum(0.4 * m * p.r[:n][free] ** 2 * np.einsum("ij,ij->i", p.w[:n][free],
+                                                                      p.w[:n][free]))
+        return et, er
+
+    @property
+    def n_particles(self) -> int:
+        return self.particles.n_owned
+
+    def __repr__(self) -> str:
+        return (f"Simulation({self.n_particles} particles, {len(self._wall_list)} walls, "
+                f"law={self.law.name}, dt={self.dt}, t={self.time:.6g} s, step={self.step_count})")

@@ -1,0 +1,245 @@
+"""Read and write sphere packings.
+
+Text format (any suffix except ``.h5``/``.hdf5``): one sphere per line, columns separated by
+whitespace and/or commas, ``#`` starts a comment, blank lines are ignored. Columns are
+``x y z diameter`` with optional ``vx vy vz`` (SI units). The first non-comment line may be a
+header naming the columns; with a header the columns may come in any order and ``radius`` may
+replace ``diameter``.
+
+HDF5 format: root datasets ``x`` or ``position`` (n,3), ``diameter`` or ``radius`` (n,), optional
+``velocity`` (n,3). Plural spellings (``positions``, ``radii``, ``diameters``, ``velocities``) are
+accepted too.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from pdem.errors import InputError
+
+__all__ = ["read_spheres", "write_spheres_text"]
+
+_SPLIT = re.compile(r"[,\s]+")
+_HDF5_SUFFIXES = (".h5", ".hdf5")
+_KNOWN_COLUMNS = ("x", "y", "z", "diameter", "radius", "vx", "vy", "vz")
+
+
+def read_spheres(path: str | os.PathLike[str]) -> dict[str, NDArray[np.float64] | None]:
+    """Read a sphere packing from a text or HDF5 file (see the module docstring for the formats).
+
+    Returns ``{"positions": (n,3), "radii": (n,), "velocities": (n,3) or None}`` (float64, file
+    order). Raises :class:`~pdem.errors.InputError` naming the file (and line) for a missing file,
+    a malformed line, a non-positive diameter, non-finite values or missing datasets.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"sphere file {str(p)!r} does not exist or is not a file; check the path")
+    if p.suffix.lower() in _HDF5_SUFFIXES:
+        out = _read_hdf5(p)
+    else:
+        out = _read_text(p)
+    _validate(p, out)
+    return out
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _header_columns(p: Path, lineno: int, tokens: list[str]) -> dict[str, int]:
+    names = [t.lower() for t in tokens]
+    for t in names:
+        if t not in _KNOWN_COLUMNS:
+            raise InputError(
+                f"{p}: line {lineno}: unknown column {t!r} in header; expected the columns "
+                "'x y z diameter' (or radius), optionally followed by 'vx vy vz'"
+            )
+    if len(set(names)) != len(names):
+        raise InputError(f"{p}: line {lineno}: header {' '.join(tokens)!r} repeats a column name")
+    cols = {t: i for i, t in enumerate(names)}
+    missing = [c for c in ("x", "y", "z") if c not in cols]
+    if missing or ("diameter" in cols) == ("radius" in cols):
+        raise InputError(
+            f"{p}: line {lineno}: header {' '.join(tokens)!r} must name x, y, z and exactly one of "
+            "diameter or radius"
+        )
+    nv = sum(c in cols for c in ("vx", "vy", "vz"))
+    if nv not in (0, 3):
+        raise InputError(f"{p}: line {lineno}: header names {nv} of vx vy vz; give all three or none")
+    return cols
+
+
+def _read_text(p: Path) -> dict[str, NDArray[np.float64] | None]:
+    cols: dict[str, int] | None = None
+    ncol: int | None = None
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    with p.open("r", encoding="utf-8", errors="replace") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            line = raw.split("#", 1)[0].strip().strip(",")
+            if not line:
+                continue
+            tokens = [t for t in _SPLIT.split(line) if t]
+            if cols is None and not rows and not all(_is_number(t) for t in tokens):
+                cols = _header_columns(p, lineno, tokens)
+                ncol = len(tokens)
+                continue
+            if ncol is None:
+                if len(tokens) not in (4, 7):
+                    raise InputError(
+                        f"{p}: line {lineno}: expected 4 columns 'x y z diameter' or 7 columns "
+                        f"'x y z diameter vx vy vz', found {len(tokens)}"
+                    )
+                ncol = len(tokens)
+            elif len(tokens) != ncol:
+                raise InputError(
+                    f"{p}: line {lineno}: expected {ncol} columns like the "
+                    f"{'header' if cols is not None else 'first data line'}, found {len(tokens)}"
+                )
+            try:
+                rows.append([float(t) for t in tokens])
+                linenos.append(lineno)
+            except ValueError:
+                bad = next(t for t in tokens if not _is_number(t))
+                raise InputError(
+                    f"{p}: line {lineno}: cannot read {bad!r} as a number; expected numeric "
+                    "columns x y z diameter [vx vy vz]"
+                ) from None
+    if not rows:
+        raise InputError(f"{p}: no sphere rows found; expected lines 'x y z diameter [vx vy vz]'")
+    data = np.asarray(rows, dtype=np.float64)
+    bad_rows = ~np.all(np.isfinite(data), axis=1)
+    if np.any(bad_rows):
+        i = int(np.argmax(bad_rows))
+        raise InputError(f"{p}: line {linenos[i]}: non-finite value in {data[i].tolist()}; fix the file")
+    if cols is None:
+        cols = {"x": 0, "y": 1, "z": 2, "diameter": 3}
+        if ncol == 7:
+            cols.update(vx=4, vy=5, vz=6)
+    positions = np.ascontiguousarray(data[:, [cols["x"], cols["y"], cols["z"]]])
+    if "diameter" in cols:
+        radii = 0.5 * data[:, cols["diameter"]]
+    else:
+        radii = data[:, cols["radius"]].copy()
+    if np.any(radii <= 0.0):
+        i = int(np.argmax(radii <= 0.0))
+        what = "diameter" if "diameter" in cols else "radius"
+        raise InputError(
+            f"{p}: line {linenos[i]}: {what} {float(data[i, cols[what]])!r} is not > 0; expected a positive "
+            f"sphere {what} in metres"
+        )
+    velocities = None
+    if "vx" in cols:
+        velocities = np.ascontiguousarray(data[:, [cols["vx"], cols["vy"], cols["vz"]]])
+    return {"positions": positions, "radii": np.ascontiguousarray(radii), "velocities": velocities}
+
+
+def _dataset(f, p: Path, names: tuple[str, ...]) -> NDArray[np.float64] | None:
+    found = [n for n in names if n in f]
+    if len(found) > 1:
+        raise InputError(f"{p}: datasets {found} all present; keep only one of {list(names)}")
+    if not found:
+        return None
+    try:
+        return np.asarray(f[found[0]][()], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{p}: dataset {found[0]!r} is not numeric ({exc})") from None
+
+
+def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
+    import h5py
+
+    try:
+        fh = h5py.File(p, "r")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot open as HDF5 ({exc}); is it really an HDF5 file?") from None
+    with fh as f:
+        pos = _dataset(f, p, ("x", "position", "positions"))
+        diam = _dataset(f, p, ("diameter", "diameters"))
+        rad = _dataset(f, p, ("radius", "radii"))
+        vel = _dataset(f, p, ("velocity", "velocities"))
+    if pos is None:
+        raise InputError(f"{p}: no dataset 'x' or 'position' of shape (n, 3) holding sphere centres")
+    if diam is None and rad is None:
+        raise InputError(f"{p}: no dataset 'diameter' or 'radius' of shape (n,)")
+    if diam is not None and rad is not None:
+        raise InputError(f"{p}: both 'diameter' and 'radius' datasets present; keep only one")
+    radii = 0.5 * diam if diam is not None else rad
+    assert radii is not None
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise InputError(f"{p}: position dataset has shape {pos.shape}, expected (n, 3)")
+    n = pos.shape[0]
+    if radii.shape != (n,):
+        raise InputError(
+            f"{p}: {'diameter' if diam is not None else 'radius'} dataset has shape {radii.shape}, "
+            f"expected ({n},) to match the positions"
+        )
+    if vel is not None and vel.shape != (n, 3):
+        raise InputError(f"{p}: velocity dataset has shape {vel.shape}, expected ({n}, 3)")
+    return {
+        "positions": np.ascontiguousarray(pos),
+        "radii": np.ascontiguousarray(radii),
+        "velocities": None if vel is None else np.ascontiguousarray(vel),
+    }
+
+
+def _validate(p: Path, out: dict[str, NDArray[np.float64] | None]) -> None:
+    for key in ("positions", "radii", "velocities"):
+        arr = out[key]
+        if arr is not None and not np.all(np.isfinite(arr)):
+            i = int(np.argmax(~np.all(np.isfinite(arr.reshape(arr.shape[0], -1)), axis=1)))
+            raise InputError(f"{p}: sphere {i} (0-based) has a non-finite {key}; fix the file")
+    radii = out["radii"]
+    assert radii is not None
+    if np.any(radii <= 0.0):
+        i = int(np.argmax(radii <= 0.0))
+        raise InputError(
+            f"{p}: sphere {i} (0-based) has diameter {float(2.0 * radii[i])!r}; diameters must be > 0"
+        )
+
+
+def write_spheres_text(
+    path: str | os.PathLike[str],
+    positions: ArrayLike,
+    radii: ArrayLike,
+    velocities: ArrayLike | None = None,
+) -> None:
+    """Write spheres as text: header ``x y z diameter`` (``+ vx vy vz``), values as ``%.17g``.
+
+    The values read back bitwise identical with :func:`read_spheres`.
+    """
+    x = np.asarray(positions, dtype=np.float64)
+    r = np.asarray(radii, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise InputError(f"write_spheres_text: positions has shape {x.shape}, expected (n, 3)")
+    if r.shape != (x.shape[0],):
+        raise InputError(
+            f"write_spheres_text: radii has shape {r.shape}, expected ({x.shape[0]},) to match positions"
+        )
+    cols = [x, (2.0 * r)[:, None]]
+    header = "x y z diameter"
+    if velocities is not None:
+        v = np.asarray(velocities, dtype=np.float64)
+        if v.shape != x.shape:
+            raise InputError(
+                f"write_spheres_text: velocities has shape {v.shape}, expected {x.shape} like positions"
+            )
+        cols.append(v)
+        header += " vx vy vz"
+    data = np.hstack(cols)
+    if not np.all(np.isfinite(data)):
+        raise InputError("write_spheres_text: positions, radii or velocities contain non-finite values")
+    if np.any(r <= 0.0):
+        raise InputError(f"write_spheres_text: radius {float(r[np.argmax(r <= 0.0)])!r} is not > 0")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(header + "\n")
+        np.savetxt(fh, data, fmt="%.17g", delimiter=" ")
