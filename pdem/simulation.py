@@ -289,7 +289,7 @@ class Simulation:
                 wall.shape.kind, wall.params, wall.velocity, wall.omega, wall.reference_point,
                 wall.candidates, wall.hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, wall.material,
                 self._coef, p.f, p.t, self.dt, self.max_overlap, wall._buf_idx, wall._buf_val)
-            wall.reduce_load(count)
+            wall.record_load(count)
             flags |= wflags
         return flags
 

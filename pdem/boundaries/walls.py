@@ -98,8 +98,7 @@ class Wall:
         self.offset = np.zeros(3)
         self.velocity = np.zeros(3)
         self.offset_build = np.zeros(3)
-        self.force = np.zeros(3)
-        self.torque = np.zeros(3)
+        self._load: np.ndarray | None = np.zeros(6)
         self.n_contacts = 0
         self.candidates = np.zeros(0, dtype=np.int64)
         self.hist: np.ndarray | None = None
@@ -118,10 +117,23 @@ class Wall:
     def displacement_since_build(self) -> float:
         return float(np.linalg.norm(self.offset - self.offset_build))
 
-    def reduce_load(self, count: int) -> None:
-        """Exact (correctly rounded) sums of the per-contact contributions of the last step."""
+    def record_load(self, count: int) -> None:
+        """Note that the contact buffers hold this step's ``count`` contributions (summed lazily)."""
         self.n_contacts = count
-        vals = self._buf_val[:count]
-        sums = [math.fsum(vals[:, c]) for c in range(6)] if count else [0.0] * 6
-        self.force = np.array(sums[:3])
-        self.torque = np.array(sums[3:])
+        self._load = None
+
+    def _reduced(self) -> np.ndarray:
+        if self._load is None:
+            vals = self._buf_val[: self.n_contacts]
+            self._load = np.array([math.fsum(vals[:, c]) for c in range(6)])
+        return self._load
+
+    @property
+    def force(self) -> np.ndarray:
+        """Total force the particles exert on the wall in the last step [N] (exact sum)."""
+        return self._reduced()[:3].copy()
+
+    @property
+    def torque(self) -> np.ndarray:
+        """Total torque on the wall about its reference point in the last step [N m] (exact sum)."""
+        return self._reduced()[3:].copy()

@@ -3,14 +3,15 @@
 They are written once and specialised for each contact law by the law's own cached wrappers
 (see :mod:`pdem.contact.law`). A law is a small ``@njit`` function
 
-    law(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, hist, dt)
+    law(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj, hist, k, dt)
         -> (Fx, Fy, Fz, Mx, My, Mz)
 
 of the contact geometry: overlap ``delta`` [m] > 0, unit normal n from i to j, relative velocity
 v = v_j − v_i at the contact point [m/s], relative angular velocity w = ω_j − ω_i [rad/s], effective
-radius, mass and moment of inertia, its row of pre-mixed coefficients and its history slot
-(updated in place). It returns the force F on j [N] (−F acts on i) and a pure torque M on j
-[N m] (−M on i), e.g. rolling resistance. The loops add the lever-arm torques: with
+radius, mass and moment of inertia, its pre-mixed coefficients ``coef[mi, mj, :]`` and its history
+slot ``hist[k, :]`` (updated in place; arrays and indices, so no per-pair view objects). It returns
+the force F on j [N] (−F acts on i) and a pure torque M on j [N m] (−M on i), e.g. rolling
+resistance. The loops add the lever-arm torques: with
 a_i = (r_i − δ/2) n and a_j = −(r_j − δ/2) n, τ_i += a_i × (−F) − M and τ_j += a_j × F + M.
 
 Determinism: pairs are visited in the order of the pair list, which is sorted by
@@ -60,9 +61,10 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
         if dist == 0.0:
             flags |= FLAG_COINCIDENT
             continue
-        nx = dx / dist
-        ny = dy / dist
-        nz = dz / dist
+        inv_dist = 1.0 / dist
+        nx = dx * inv_dist
+        ny = dy * inv_dist
+        nz = dz * inv_dist
         delta = rsum - dist
         if delta > max_overlap * min(r[i], r[j]):
             flags |= FLAG_OVERLAP
@@ -81,7 +83,7 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
         fx, fy, fz, mx, my, mz = law(
             delta, nx, ny, nz, vjx - vix, vjy - viy, vjz - viz,
             w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2],
-            r_eff, m_eff, i_eff, coef[mat[i], mat[j]], hist[k], dt,
+            r_eff, m_eff, i_eff, coef, mat[i], mat[j], hist, k, dt,
         )
         f[i, 0] -= fx
         f[i, 1] -= fy
@@ -145,7 +147,7 @@ def wall_forces(law, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m,
         fx, fy, fz, mx, my, mz = law(
             delta, nx, ny, nz, vwx - vix, vwy - viy, vwz - viz,
             omega[0] - w[i, 0], omega[1] - w[i, 1], omega[2] - w[i, 2],
-            r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef[mat[i], wmat], hist[i], dt,
+            r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef, mat[i], wmat, hist, i, dt,
         )
         f[i, 0] -= fx
         f[i, 1] -= fy

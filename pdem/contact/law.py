@@ -14,8 +14,9 @@ The specialisation is two small module-level wrappers in the law's own module, s
 caches them with the law inlined (numba cannot cache a function that receives another jitted
 function as an argument across processes, but it can cache one that calls it as a global)::
 
-    @njit
-    def my_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, c, hist, dt):
+    @njit(inline="always")
+    def my_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj, hist, k, dt):
+        # coefficients coef[mi, mj, :], history hist[k, :]
         ...
         return fx, fy, fz, mx, my, mz
 

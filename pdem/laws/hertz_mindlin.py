@@ -28,7 +28,7 @@ above the input e (tested in ``tests/test_physics_impacts.py``).
 −μ_r R* max(F_n, 0) ω_roll/|ω_roll|, with ω_roll the tangential part of ω_j − ω_i, limited in
 magnitude to I* |ω_roll| / dt so that it cannot reverse the relative rolling within a step.
 
-Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, C_t, μ, μ_r, clamp]``.
+Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ, μ_r, clamp]``.
 """
 
 from __future__ import annotations
@@ -58,29 +58,31 @@ def damping_ratio(e: float) -> float:
     return le / math.sqrt(le * le + math.pi * math.pi)
 
 
-@njit
-def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, c, hist, dt):
+@njit(inline="always")
+def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj,
+                        hist, k, dt):
     a = math.sqrt(r_eff * delta)
     vn = vx * nx + vy * ny + vz * nz
     vtx = vx - vn * nx
     vty = vy - vn * ny
     vtz = vz - vn * nz
-    if c[0] == 0.0:
-        e_star = c[1]
-        s_n = 2.0 * e_star * a
-        k_t = 8.0 * c[2] * a
-        fn = (4.0 / 3.0) * e_star * a * delta + 2.0 * SQRT56 * c[3] * math.sqrt(s_n * m_eff) * vn
-        c_t = -2.0 * SQRT56 * c[3] * math.sqrt(k_t * m_eff)
+    if coef[mi, mj, 0] == 0.0:
+        e_star = coef[mi, mj, 1]
+        k_t = 8.0 * coef[mi, mj, 2] * a
+        # c_n = −2 sqrt(5/6) β sqrt(S_n m*), S_n = 2 E* a; c_t = c_n sqrt(k_t/S_n) = c_n sqrt(4 G*/E*)
+        c_n = -2.0 * SQRT56 * coef[mi, mj, 3] * math.sqrt(2.0 * e_star * a * m_eff)
+        fn = (4.0 / 3.0) * e_star * a * delta - c_n * vn
+        c_t = c_n * coef[mi, mj, 4]
     else:
-        fn = a * (c[1] * delta - c[3] * m_eff * vn)
-        k_t = a * c[2]
-        c_t = a * c[4] * m_eff
-    if c[7] != 0.0 and fn < 0.0:
+        fn = a * (coef[mi, mj, 1] * delta - coef[mi, mj, 3] * m_eff * vn)
+        k_t = a * coef[mi, mj, 2]
+        c_t = a * coef[mi, mj, 4] * m_eff
+    if coef[mi, mj, 7] != 0.0 and fn < 0.0:
         fn = 0.0
     # tangential spring: rotate onto the tangent plane keeping its length, then increment
-    sx = hist[0]
-    sy = hist[1]
-    sz = hist[2]
+    sx = hist[k, 0]
+    sy = hist[k, 1]
+    sz = hist[k, 2]
     old2 = sx * sx + sy * sy + sz * sz
     if old2 > 0.0:
         sn = sx * nx + sy * ny + sz * nz
@@ -100,7 +102,7 @@ def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff,
     fty = -k_t * sy - c_t * vty
     ftz = -k_t * sz - c_t * vtz
     ft2 = ftx * ftx + fty * fty + ftz * ftz
-    fcap = c[5] * fn if fn > 0.0 else 0.0
+    fcap = coef[mi, mj, 5] * fn if fn > 0.0 else 0.0
     if ft2 > fcap * fcap:
         ft = math.sqrt(ft2)
         scale = fcap / ft
@@ -110,20 +112,20 @@ def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff,
         sx = -(ftx + c_t * vtx) / k_t
         sy = -(fty + c_t * vty) / k_t
         sz = -(ftz + c_t * vtz) / k_t
-    hist[0] = sx
-    hist[1] = sy
-    hist[2] = sz
+    hist[k, 0] = sx
+    hist[k, 1] = sy
+    hist[k, 2] = sz
     mx = 0.0
     my = 0.0
     mz = 0.0
-    if c[6] > 0.0 and fn > 0.0:
+    if coef[mi, mj, 6] > 0.0 and fn > 0.0:
         wn = wx * nx + wy * ny + wz * nz
         rx = wx - wn * nx
         ry = wy - wn * ny
         rz = wz - wn * nz
         wr = math.sqrt(rx * rx + ry * ry + rz * rz)
         if wr > 0.0:
-            mag = min(c[6] * r_eff * fn, i_eff * wr / dt)
+            mag = min(coef[mi, mj, 6] * r_eff * fn, i_eff * wr / dt)
             mx = -mag * rx / wr
             my = -mag * ry / wr
             mz = -mag * rz / wr
@@ -232,7 +234,7 @@ class HertzMindlin(ContactLaw):
         if p.parameterisation == "material":
             e_star, g_star = effective_moduli(materials[a], materials[b])
             beta = damping_ratio(materials.mixed(a, b, "restitution"))
-            return np.array([0.0, e_star, g_star, beta, 0.0, mu, mu_r, clamp])
+            return np.array([0.0, e_star, g_star, beta, math.sqrt(4.0 * g_star / e_star), mu, mu_r, clamp])
         return np.array([1.0, p.kn, p.kt, p.cn, p.ct, mu, mu_r, clamp])
 
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
