@@ -209,21 +209,56 @@ class Simulation:
             wall.hist[:] = h
         self._add_body_forces_only()
 
-    def _check_initial_overlaps(self) -> None:
-        if self._pi.size == 0:
-            return
+    def _worst_overlap(self) -> tuple[float, str]:
+        """Largest overlap / radius over pairs and walls, and who has it (for messages)."""
+        from .boundaries._geometry import wall_contact_numpy
+
         p = self.particles
-        d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
-        ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
-        k = int(np.argmax(ratio))
-        if ratio[k] > self.max_overlap:
+        worst, who = -math.inf, "nobody"
+        if self._pi.size:
+            d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
+            ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
+            ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+            k = int(np.argmax(ratio))
+            worst, who = float(ratio[k]), f"particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]}"
+        n = p.n_owned
+        for wall in self._wall_list:
+            if n == 0:
+                break
+            gap = wall_contact_numpy(wall.shape.kind, wall.params, p.x[:n], p.r[:n])[0]
+            ratio = np.where(np.isfinite(gap), -gap / p.r[:n], np.inf)
+            k = int(np.argmax(ratio))
+            if ratio[k] > worst:
+                worst, who = float(ratio[k]), f"particle {p.id[k]} and wall '{wall.name}'"
+        return worst, who
+
+    def _check_initial_overlaps(self) -> None:
+        worst, who = self._worst_overlap()
+        if worst > self.max_overlap:
             raise GeometryError(
-                f"particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]} overlap by {ratio[k]:.3g} of the "
-                f"smaller radius at the start (limit {self.max_overlap}); separate them or fill with a "
-                "random-fill or lattice source"
+                f"{who} overlap by {worst:.3g} of the radius at the start (limit {self.max_overlap}); "
+                "separate them (fill regions clear of the walls, or use a random-fill or lattice source)"
             )
 
     # ------------------------------------------------------------------ neighbours
+    def _permute_storage(self, perm: np.ndarray) -> None:
+        """Reorder owned particles in memory (ids unchanged). Must be followed by a rebuild.
+
+        Results do not depend on the storage order: every sum is ordered by particle ids (this is what
+        MPI migration relies on). Memory locality comes from spatially coherent ids, which pdem's
+        sources produce, because the pair loop runs in id order.
+        """
+        p = self.particles
+        n = p.n_owned
+        if p.n_ghost:
+            raise RuntimeError("storage can only be permuted without ghosts")
+        for name in ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion",
+                     "x_build"):
+            arr = getattr(p, name)
+            arr[:n] = arr[:n][perm]
+        for wall in self._wall_list:
+            wall.hist[:n] = wall.hist[:n][perm]
+
     def _rebuild(self) -> None:
         p = self.particles
         n = p.n
@@ -338,15 +373,7 @@ class Simulation:
         return self
 
     def _raise_for_flags(self, flags: int) -> None:
-        p = self.particles
-        where = ""
-        if self._pi.size:
-            d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
-            ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
-            ratio = np.where(np.isfinite(ratio), ratio, np.inf)
-            k = int(np.argmax(ratio))
-            where = (f" largest pair overlap: particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]}, "
-                     f"{ratio[k]:.3g} of the smaller radius.")
+        worst, who = self._worst_overlap()
         causes = []
         if flags & FLAG_OVERLAP:
             causes.append(f"an overlap exceeded {self.max_overlap} of a radius")
@@ -356,9 +383,9 @@ class Simulation:
             causes.append("two particle centres coincide")
         raise InstabilityError(
             f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
-            f"{' and '.join(causes)}.{where} dt = {self.dt:.4g} s, stability estimate "
-            f"{self.dt_critical:.4g} s; reduce dt (0.1–0.3 of the estimate), soften the material, or "
-            "check the initial overlaps and prescribed velocities"
+            f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "
+            f"dt = {self.dt:.4g} s, stability estimate {self.dt_critical:.4g} s; reduce dt (0.1–0.3 of "
+            "the estimate), soften the material, or check the initial overlaps and prescribed velocities"
         )
 
     # ------------------------------------------------------------------ inspection

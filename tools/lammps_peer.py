@@ -731,6 +731,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
     data = Path(args.data)
+    if not data.is_file():
+        print(f"no such file: {data}", file=sys.stderr)
+        return 2
     with tempfile.TemporaryDirectory(prefix="pdem_lammps_data_") as tmpd:
         if _is_packing_text(data):
             data = data_from_packing(
