@@ -6,6 +6,7 @@ deterministic, spatially coherent order (particle ids are assigned in that order
 
 from .files import read_spheres, write_spheres_text
 from .lattice import fcc, hcp, hex2d, simple_cubic
+from .pluviation import pluviate
 from .random_fill import random_fill
 from .regions import BoxRegion, CylinderRegion, Region, spatial_order
 from .sizes import Normal, Single, SizeDistribution, Table, Uniform
@@ -25,6 +26,7 @@ __all__ = [
     "hcp",
     "hex2d",
     "random_fill",
+    "pluviate",
     "read_spheres",
     "write_spheres_text",
 ]
