@@ -16,8 +16,14 @@ Physics reference §2 (the form of Chrono's SMC Hertz model, LIGGGHTS ``hertz`` 
 
 Tangential spring ξ (per contact, global frame, zero when the contact starts): rotated onto the
 current tangent plane keeping its length, then ξ += v_t dt, F_t = −k_t ξ − c_t v_t on j; if
-|F_t| > μ max(F_n, 0) it is scaled to the cap and the spring follows the slider,
-ξ = −(F_t + c_t v_t)/k_t.
+|F_t| > μ max(F_n, 0) it is scaled to the cap and the spring follows the slider, ξ = −F_t/k_t
+(the spring alone carries the Coulomb force, as in LIGGGHTS).
+
+This departs on purpose from ξ = −(F_t + c_t v_t)/k_t (physics reference §2, LAMMPS ``mindlin``):
+early in a damped sliding contact c_t|v_t| > μF_n, so that rule stores a spring pointing against
+the slip; since k_t ∝ δ^½ grows faster than c_t ∝ δ^¼, the next trial force reverses and friction
+then *drives* the slip (measured: spin after an oblique impact 14 % low at e = 0.5, 32 % low at
+e = 0.3). With ξ = −F_t/k_t the gross-sliding closed forms hold (``tests/test_physics_impacts.py``).
 
 **Normal force sign.** By default the damped normal force is *not* clamped: it may become briefly
 attractive at the end of a contact (as in LAMMPS ``pair_style granular`` without
@@ -109,9 +115,10 @@ def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff,
         ftx *= scale
         fty *= scale
         ftz *= scale
-        sx = -(ftx + c_t * vtx) / k_t
-        sy = -(fty + c_t * vty) / k_t
-        sz = -(ftz + c_t * vtz) / k_t
+        # the spring alone carries the Coulomb force (damping is not stored, see module docstring)
+        sx = -ftx / k_t
+        sy = -fty / k_t
+        sz = -ftz / k_t
     hist[k, 0] = sx
     hist[k, 1] = sy
     hist[k, 2] = sz
@@ -177,7 +184,7 @@ def force_numpy(delta, n, vrel, wrel, r_eff, m_eff, i_eff, c, hist, dt):
     cap = c[5] * max(fn, 0.0)
     if np.linalg.norm(ft) > cap:
         ft = ft * (cap / np.linalg.norm(ft))
-        s = -(ft + c_t * vt) / k_t
+        s = -ft / k_t
     hist[:3] = s
     m = np.zeros(3)
     if c[6] > 0 and fn > 0:
