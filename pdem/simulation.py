@@ -77,6 +77,8 @@ class Simulation:
         self.n_rebuilds = 0
         self._next_id = 0
         self._prepared = False
+        self._force_rebuild = False
+        self._pair_keys: np.ndarray | None = None
         self.dt_critical = math.nan
 
     # ------------------------------------------------------------------ setup
@@ -156,6 +158,38 @@ class Simulation:
         self._prepared = False
         return wall
 
+    def set_wall_active(self, name: str, active: bool) -> None:
+        """Switch a wall on or off (an inactive wall exerts no force; its contact history is reset)."""
+        if name not in self.walls:
+            raise InputError(f"no wall named '{name}'; walls: {', '.join(self.walls) or '(none)'}")
+        wall = self.walls[name]
+        if wall.active == active:
+            return
+        wall.active = active
+        if wall.hist is not None:
+            wall.hist[:] = 0.0
+        wall.record_load(0)
+        self._force_rebuild = True
+
+    def remove_particles(self, mask: np.ndarray) -> tuple[int, float]:
+        """Remove the owned particles where ``mask`` is true (an outflow); returns (count, mass).
+
+        The neighbour list is rebuilt before the next force evaluation; contact history of the
+        remaining pairs is kept (it is keyed by particle ids).
+        """
+        p = self.particles
+        n = p.n_owned
+        mask = np.asarray(mask, dtype=bool)[:n]
+        count = int(mask.sum())
+        if count == 0:
+            return 0, 0.0
+        mass = math.fsum(p.mass[:n][mask])
+        keep = np.flatnonzero(~mask)
+        self._permute_storage(np.concatenate([keep, np.flatnonzero(mask)]))
+        p.n_owned = n - count
+        self._force_rebuild = True
+        return count, mass
+
     # ------------------------------------------------------------------ preparation
     def _prepare(self) -> None:
         p = self.particles
@@ -184,12 +218,13 @@ class Simulation:
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
             raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
         hsize = max(self.law.history_size, 1)
-        self._pair_keys = np.zeros(0, dtype=np.int64)
-        self._pair_hist = np.zeros((0, hsize))
-        self._pi = np.zeros(0, dtype=np.int64)
-        self._pj = np.zeros(0, dtype=np.int64)
-        self._fpair = np.zeros((0, 3))
-        self._pair_capacity = max(8 * n, 64)
+        if self._pair_keys is None:  # first preparation; later ones (particles or walls added) keep history
+            self._pair_keys = np.zeros(0, dtype=np.int64)
+            self._pair_hist = np.zeros((0, hsize))
+            self._pi = np.zeros(0, dtype=np.int64)
+            self._pj = np.zeros(0, dtype=np.int64)
+            self._fpair = np.zeros((0, 3))
+            self._pair_capacity = max(8 * n, 64)
         for wall in self._wall_list:
             if wall.hist is None or wall.hist.shape[0] < n:
                 old = wall.hist
@@ -200,14 +235,84 @@ class Simulation:
         self._prepared = True
         self._rebuild()
         self._check_initial_overlaps()
-        # forces at t = 0 for the first half kick; like LAMMPS's setup, this evaluation must not
-        # advance the contact history (the first step does)
+        # forces for the first half kick; like LAMMPS's setup, this evaluation must not advance the
+        # contact history (the next step does)
         saved = [self._pair_hist.copy()] + [w.hist.copy() for w in self._wall_list]
         self._compute_forces()
         self._pair_hist[:] = saved[0]
         for wall, h in zip(self._wall_list, saved[1:], strict=True):
             wall.hist[:] = h
         self._add_body_forces_only()
+
+    # ------------------------------------------------------------------ checkpoint state
+    _PARTICLE_FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion")
+
+    def state_dict(self) -> dict[str, object]:
+        """Everything needed to continue bitwise-identically: particles ordered by id (forces
+        included: velocity Verlet starts a step from them), contact history keyed by id pairs,
+        per-wall history by particle id, wall positions, time and step. Independent of the storage
+        order and (with MPI) of the number of ranks."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        n = p.n_owned
+        order = np.argsort(p.id[:n], kind="stable")
+        out: dict[str, object] = {f"particles/{k}": getattr(p, k)[:n][order].copy()
+                                  for k in self._PARTICLE_FIELDS}
+        live = np.any(self._pair_hist != 0.0, axis=1)
+        out["pairs/keys"] = self._pair_keys[live].copy()
+        out["pairs/hist"] = self._pair_hist[live].copy()
+        for wall in self._wall_list:
+            key = f"walls/{wall.name}/"
+            out[key + "hist"] = wall.hist[:n][order].copy()
+            out[key + "offset"] = wall.offset.copy()
+            out[key + "velocity"] = wall.velocity.copy()
+            out[key + "active"] = np.array(wall.active)
+            out[key + "motion_velocity"] = np.asarray(getattr(wall.motion, "velocity", np.zeros(3)), float)
+        out["scalars/time"] = np.array(self.time)
+        out["scalars/step"] = np.array(self.step_count)
+        out["scalars/dt"] = np.array(self.dt)
+        out["scalars/next_id"] = np.array(self._next_id)
+        return out
+
+    def load_state(self, state: dict[str, object]) -> None:
+        """Restore :meth:`state_dict` into a simulation built with the same materials, law and walls
+        but no particles."""
+        from .errors import CheckpointError
+
+        if self.particles.n_owned:
+            raise CheckpointError("load_state needs a simulation without particles (built from the deck "
+                                  "without running its particle sources)")
+        names = set(self.walls)
+        saved = {k.split("/")[1] for k in state if k.startswith("walls/")}
+        if names != saved:
+            raise CheckpointError(f"the checkpoint's walls {sorted(saved)} differ from the deck's "
+                                  f"{sorted(names)}; resume with the deck the checkpoint was written from")
+        g = {k: np.asarray(state[f"particles/{k}"]) for k in self._PARTICLE_FIELDS}
+        self.particles.append_owned(g["id"], g["x"], g["v"], g["w"], g["r"], g["mass"], g["inv_m"],
+                                    g["inv_i"], g["mat"], g["motion"])
+        hsize = max(self.law.history_size, 1)
+        self._pair_keys = np.asarray(state["pairs/keys"], dtype=np.int64)
+        self._pair_hist = np.asarray(state["pairs/hist"], dtype=np.float64).reshape(-1, hsize)
+        self._pi = self._pj = np.zeros(0, dtype=np.int64)
+        self._fpair = np.zeros((0, 3))
+        self._pair_capacity = max(8 * len(g["id"]), 64)
+        for wall in self._wall_list:
+            key = f"walls/{wall.name}/"
+            wall.hist = np.array(state[key + "hist"], dtype=np.float64).reshape(len(g["id"]), hsize)
+            wall.offset = np.array(state[key + "offset"], dtype=float)
+            wall.velocity = np.array(state[key + "velocity"], dtype=float)
+            wall.active = bool(state[key + "active"])
+            if hasattr(wall.motion, "velocity") and not isinstance(wall.motion.velocity, tuple):
+                wall.motion.velocity = np.array(state[key + "motion_velocity"], dtype=float)
+        self.time = float(state["scalars/time"])
+        self.step_count = int(state["scalars/step"])
+        self.dt = float(state["scalars/dt"])
+        self._next_id = int(state["scalars/next_id"])
+        self._prepare()
+        # the forces that start the next step are the saved ones, not a re-evaluation
+        self.particles.f[:] = g["f"]
+        self.particles.t[:] = g["t"]
 
     def _worst_overlap(self) -> tuple[float, str]:
         """Largest overlap / radius over pairs and walls, and who has it (for messages)."""
@@ -295,7 +400,7 @@ class Simulation:
         from .boundaries._geometry import wall_contact_numpy
 
         for wall in self._wall_list:
-            if p.n_owned:
+            if p.n_owned and wall.active:
                 gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
                 wall.candidates = np.flatnonzero(gap < self.skin).astype(np.int64)
             else:
@@ -320,6 +425,8 @@ class Simulation:
                                      p.inv_i, p.mat, self._coef, p.f, p.t, self._fpair, self.dt,
                                      self.max_overlap)
         for wall in self._wall_list:
+            if not wall.active:
+                continue
             count, wflags = self.law.wall_kernel(
                 wall.shape.kind, wall.params, wall.velocity, wall.omega, wall.reference_point,
                 wall.candidates, wall.hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, wall.material,
@@ -343,7 +450,8 @@ class Simulation:
         integ.initial_integrate(p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned)
         for wall in self._wall_list:
             wall.advance(self.time, dt)
-        if self._needs_rebuild():
+        if self._force_rebuild or self._needs_rebuild():
+            self._force_rebuild = False
             self._rebuild()
         flags = self._compute_forces()
         g = self._g

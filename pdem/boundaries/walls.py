@@ -92,6 +92,7 @@ class Wall:
         self.material = material
         self.name = name
         self.motion = motion or Fixed()
+        self.active = True
         self.omega = np.asarray(omega, dtype=float)
         if self.omega.shape != (3,) or not np.all(np.isfinite(self.omega)):
             raise InputError(f"wall '{name}': omega = {omega!r} must be three finite numbers [rad/s]")

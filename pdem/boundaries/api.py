@@ -1,0 +1,137 @@
+"""The boundary-plugin contract (entry-point group ``pdem.boundaries``).
+
+A boundary is anything a deck places around the particles: a wall of a given shape, a composite
+device (hopper, shear box, penetrometer, triaxial membrane), a servo controller, a particle sink, a
+measurement probe. The entry-point name is the deck's ``type``::
+
+    [boundaries.floor]
+    type = "plane"
+    point = [0, 0, 0]
+    normal = [0, 0, 1]
+    material = "steel"
+
+A boundary class declares a pydantic ``Params`` model (derived from :class:`BoundaryParams`; unknown
+keys are errors) and overrides the hooks it needs:
+
+* ``build(sim)`` — add walls (``sim.add_wall``) or particles; called once before the first stage;
+* ``set_active(sim, active)`` — called at the start of every stage with whether the boundary is
+  active in it (``stages`` key); the default switches the boundary's own walls on or off;
+* ``before_step(sim)`` / ``after_step(sim)`` — servo control, particle removal, probes;
+* ``measurements(sim) -> dict[str, float]`` — scalars recorded in the time series (as
+  ``<name>.<key>``) and usable in stage end conditions;
+* ``summary(series) -> dict`` — derived results at the end of the run (e.g. a steady flow rate).
+
+Boundaries never touch MPI or numba directly; the walls they create are evaluated by the generic
+wall loop with the simulation's contact law.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from .walls import ConstantVelocity, Fixed, Motion, Wall
+
+__all__ = ["Boundary", "BoundaryParams", "WallBoundaryParams", "MotionSpec", "Vec3", "make_motion"]
+
+Vec3 = Annotated[tuple[float, float, float], Field(description="three numbers (x, y, z)")]
+
+
+class FixedMotion(BaseModel):
+    """The wall does not move."""
+
+    model_config = ConfigDict(extra="forbid")
+    type: Literal["fixed"] = "fixed"
+
+
+class ConstantVelocityMotion(BaseModel):
+    """Translation at constant velocity [m/s]."""
+
+    model_config = ConfigDict(extra="forbid")
+    type: Literal["constant_velocity"]
+    velocity: Vec3
+
+
+MotionSpec = Annotated[FixedMotion | ConstantVelocityMotion, Field(discriminator="type")]
+
+
+def make_motion(spec: FixedMotion | ConstantVelocityMotion | None) -> Motion:
+    """The :class:`~pdem.boundaries.walls.Motion` a deck's ``motion`` table describes."""
+    if spec is None or isinstance(spec, FixedMotion):
+        return Fixed()
+    return ConstantVelocity(tuple(spec.velocity))
+
+
+class BoundaryParams(BaseModel):
+    """Keys every boundary accepts. ``stages``: names of the stages in which it is active (default:
+    all)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    type: str = Field(description="the boundary plugin (entry point of group pdem.boundaries)")
+    stages: list[str] | None = Field(default=None, description="stages in which it is active (default all)")
+
+
+class WallBoundaryParams(BoundaryParams):
+    """Keys of boundaries that are walls: material, prescribed motion and surface spin."""
+
+    material: str = Field(description="name of a material defined under [materials]")
+    motion: MotionSpec | None = Field(default=None, description="prescribed translation (default fixed)")
+    omega: Vec3 = Field(default=(0.0, 0.0, 0.0), description="surface spin about the reference point [rad/s]")
+
+
+class Boundary:
+    """Base class of boundary plugins; see the module docstring."""
+
+    Params: ClassVar[type[BoundaryParams]] = BoundaryParams
+
+    def __init__(self, name: str, params: BoundaryParams) -> None:
+        self.name = name
+        self.params = params
+        self.walls: list[Wall] = []
+        self.active = True
+
+    # hooks ----------------------------------------------------------------------------------
+    def build(self, sim: Any) -> None:
+        """Create walls/particles. Default: nothing."""
+
+    def set_active(self, sim: Any, active: bool) -> None:
+        self.active = active
+        for wall in self.walls:
+            sim.set_wall_active(wall.name, active)
+
+    def before_step(self, sim: Any) -> None:
+        """Called before every step of a stage in which the boundary is active."""
+
+    def after_step(self, sim: Any) -> None:
+        """Called after every step of a stage in which the boundary is active."""
+
+    def measurements(self, sim: Any) -> dict[str, float]:
+        """Scalars for the time series; default: force and contact count of each own wall."""
+        out: dict[str, float] = {}
+        for wall in self.walls:
+            prefix = "" if len(self.walls) == 1 else wall.name.split(".", 1)[-1] + "."
+            f = wall.force
+            out[prefix + "fx"], out[prefix + "fy"], out[prefix + "fz"] = (float(c) for c in f)
+            out[prefix + "contacts"] = float(wall.n_contacts)
+        return out
+
+    def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
+        """Derived results at the end of the run. Default: none."""
+        return {}
+
+    # helpers --------------------------------------------------------------------------------
+    def add_wall(self, sim: Any, shape: Any, suffix: str = "", *, material: str | None = None,
+                 motion: Motion | None = None, omega=None) -> Wall:
+        """Add a wall named ``<boundary>`` or ``<boundary>.<suffix>`` owned by this boundary."""
+        p = self.params
+        mat = material if material is not None else getattr(p, "material", None)
+        if motion is None:
+            motion = make_motion(getattr(p, "motion", None))
+        if omega is None:
+            omega = getattr(p, "omega", (0.0, 0.0, 0.0))
+        wall = sim.add_wall(shape, material=mat, name=self.name + (f".{suffix}" if suffix else ""),
+                            motion=motion, omega=omega)
+        self.walls.append(wall)
+        return wall

@@ -1,0 +1,270 @@
+"""Built-in boundary plugins, registered through pdem's own entry points (group ``pdem.boundaries``).
+
+Walls of every primitive shape (``plane``, ``rectangle``, ``disk``, ``annulus``, ``cylinder_tube``,
+``frustum``, ``cylinder``, ``box``), a particle sink (``outflow``) and a conical ``hopper`` with its
+discharge measurement. Lengths in m, angles in degrees where the key says so.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from . import shapes
+from .api import Boundary, BoundaryParams, Vec3, WallBoundaryParams
+
+__all__ = [
+    "PlaneBoundary", "RectangleBoundary", "DiskBoundary", "AnnulusBoundary", "CylinderTubeBoundary",
+    "FrustumBoundary", "CylinderBoundary", "BoxBoundary", "OutflowBoundary", "HopperBoundary",
+]
+
+
+class _ShapeBoundary(Boundary):
+    """A single wall of one primitive shape; the shape is built from the params' geometric keys."""
+
+    shape_cls: Any = None
+    geometric_keys: tuple[str, ...] = ()
+
+    def build(self, sim: Any) -> None:
+        p = self.params
+        kwargs = {k: getattr(p, k) for k in self.geometric_keys}
+        self.add_wall(sim, self.shape_cls(**kwargs))
+
+
+class PlaneParams(WallBoundaryParams):
+    point: Vec3 = Field(description="a point of the plane [m]")
+    normal: Vec3 = Field(description="normal pointing into the side where particles live")
+
+
+class PlaneBoundary(_ShapeBoundary):
+    """Infinite one-sided plane."""
+
+    Params = PlaneParams
+    shape_cls = shapes.Plane
+    geometric_keys = ("point", "normal")
+
+
+class RectangleParams(WallBoundaryParams):
+    center: Vec3
+    normal: Vec3
+    u_axis: Vec3 = Field(description="in-plane direction of the first half-extent")
+    half_extents: tuple[float, float] = Field(description="half-lengths along u and n × u [m]")
+
+
+class RectangleBoundary(_ShapeBoundary):
+    """Finite two-sided plate."""
+
+    Params = RectangleParams
+    shape_cls = shapes.Rectangle
+    geometric_keys = ("center", "normal", "u_axis", "half_extents")
+
+
+class DiskParams(WallBoundaryParams):
+    center: Vec3
+    normal: Vec3
+    radius: float = Field(gt=0)
+
+
+class DiskBoundary(_ShapeBoundary):
+    """Two-sided disk."""
+
+    Params = DiskParams
+    shape_cls = shapes.Disk
+    geometric_keys = ("center", "normal", "radius")
+
+
+class AnnulusParams(WallBoundaryParams):
+    center: Vec3
+    normal: Vec3
+    r_inner: float = Field(ge=0)
+    r_outer: float = Field(gt=0)
+
+
+class AnnulusBoundary(_ShapeBoundary):
+    """Two-sided flat ring."""
+
+    Params = AnnulusParams
+    shape_cls = shapes.Annulus
+    geometric_keys = ("center", "normal", "r_inner", "r_outer")
+
+
+class CylinderTubeParams(WallBoundaryParams):
+    base_center: Vec3
+    axis: Vec3
+    radius: float = Field(gt=0)
+    length: float = Field(gt=0)
+
+
+class CylinderTubeBoundary(_ShapeBoundary):
+    """Finite open tube (two-sided)."""
+
+    Params = CylinderTubeParams
+    shape_cls = shapes.CylinderTube
+    geometric_keys = ("base_center", "axis", "radius", "length")
+
+
+class FrustumParams(WallBoundaryParams):
+    apex_side_center: Vec3 = Field(description="centre of the r0 end (the apex of a cone) [m]")
+    axis: Vec3 = Field(description="from the r0 end towards the r1 end")
+    r0: float = Field(ge=0)
+    r1: float = Field(ge=0)
+    length: float = Field(gt=0)
+
+
+class FrustumBoundary(_ShapeBoundary):
+    """Cone or frustum surface (two-sided, open ends)."""
+
+    Params = FrustumParams
+    shape_cls = shapes.Frustum
+    geometric_keys = ("apex_side_center", "axis", "r0", "r1", "length")
+
+
+class CylinderParams(WallBoundaryParams):
+    point: Vec3
+    axis: Vec3
+    radius: float = Field(gt=0)
+    inside: bool = Field(default=True, description="particles live inside (true) or outside")
+
+
+class CylinderBoundary(_ShapeBoundary):
+    """Infinite one-sided cylinder."""
+
+    Params = CylinderParams
+    shape_cls = shapes.Cylinder
+    geometric_keys = ("point", "axis", "radius", "inside")
+
+
+class BoxParams(WallBoundaryParams):
+    lo: Vec3
+    hi: Vec3
+    open_faces: list[str] = Field(default_factory=list,
+                                  description="faces to leave out: any of xlo, xhi, ylo, yhi, zlo, zhi")
+
+    @model_validator(mode="after")
+    def _faces(self):
+        bad = sorted(set(self.open_faces) - set(_FACES))
+        if bad:
+            raise ValueError(f"unknown face(s) {bad}; allowed: {list(_FACES)}")
+        return self
+
+
+_FACES = ("xlo", "xhi", "ylo", "yhi", "zlo", "zhi")
+
+
+class BoxBoundary(Boundary):
+    """Six inward-facing planes of an axis-aligned box (walls ``<name>.xlo`` … ``<name>.zhi``)."""
+
+    Params = BoxParams
+
+    def build(self, sim: Any) -> None:
+        for face, plane in zip(_FACES, shapes.box_planes(self.params.lo, self.params.hi), strict=True):
+            if face not in self.params.open_faces:
+                self.add_wall(sim, plane, face)
+
+
+class OutflowParams(BoundaryParams):
+    point: Vec3 = Field(description="a point of the sink plane [m]")
+    normal: Vec3 = Field(description="normal pointing towards the particles; those behind are removed")
+
+
+class OutflowBoundary(Boundary):
+    """Removes particles whose centres cross a plane; counts them and their mass."""
+
+    Params = OutflowParams
+
+    def __init__(self, name: str, params: BoundaryParams) -> None:
+        super().__init__(name, params)
+        self.removed_count = 0
+        self.removed_mass = 0.0
+        n = np.asarray(params.normal, dtype=float)
+        self._n = n / np.linalg.norm(n)
+        self._p = np.asarray(params.point, dtype=float)
+
+    def after_step(self, sim: Any) -> None:
+        x = sim.particles.x[: sim.n_particles]
+        gone = (x - self._p) @ self._n < 0.0
+        if gone.any():
+            count, mass = sim.remove_particles(gone)
+            self.removed_count += count
+            self.removed_mass += mass
+
+    def measurements(self, sim: Any) -> dict[str, float]:
+        return {"removed_count": float(self.removed_count), "removed_mass": self.removed_mass}
+
+
+class HopperParams(WallBoundaryParams):
+    orifice_center: Vec3 = Field(description="centre of the circular orifice [m]; the axis is +z")
+    orifice_diameter: float = Field(gt=0, description="orifice diameter D [m]")
+    half_angle_deg: float = Field(gt=0, lt=90, description="cone half-angle from the vertical [deg]")
+    top_diameter: float = Field(gt=0, description="diameter of the cone's top and of the barrel [m]")
+    barrel_height: float = Field(ge=0, description="height of the cylindrical barrel above the cone [m]")
+    open_at_stage: str = Field(description="the orifice plug is removed when this stage starts")
+    outflow_depth: float = Field(gt=0, description="particles this far below the orifice are removed [m]")
+
+    @model_validator(mode="after")
+    def _geometry(self):
+        if self.top_diameter <= self.orifice_diameter:
+            raise ValueError(f"top_diameter = {self.top_diameter} must exceed orifice_diameter = "
+                             f"{self.orifice_diameter}")
+        return self
+
+
+class HopperBoundary(Boundary):
+    """Conical hopper: cone from the orifice up to ``top_diameter``, a barrel above it, a plug disk
+    that closes the orifice until stage ``open_at_stage``, and a sink ``outflow_depth`` below.
+
+    Measurements: ``discharged_mass`` [kg] (mass removed by the sink plus free particles below the
+    orifice plane) and ``discharged_count``. Summary: the steady flow rate W [kg/s], the slope of a
+    least-squares line through discharged mass vs time between 20 % and 80 % of the final discharged
+    mass (excludes the start transient and the final emptying).
+    """
+
+    Params = HopperParams
+
+    def build(self, sim: Any) -> None:
+        p = self.params
+        c = np.asarray(p.orifice_center, dtype=float)
+        r0, r1 = 0.5 * p.orifice_diameter, 0.5 * p.top_diameter
+        cone_h = (r1 - r0) / math.tan(math.radians(p.half_angle_deg))
+        self.add_wall(sim, shapes.Frustum(c, (0, 0, 1), r0, r1, cone_h), "cone")
+        if p.barrel_height > 0:
+            barrel = shapes.CylinderTube(c + (0, 0, cone_h), (0, 0, 1), r1, p.barrel_height)
+            self.add_wall(sim, barrel, "barrel")
+        self.plug = self.add_wall(sim, shapes.Disk(c, (0, 0, 1), r0 * 1.05), "plug")
+        self._z0 = float(c[2])
+        self._opened = False
+        self._sink = OutflowBoundary(self.name + ".outflow", OutflowParams(
+            type="outflow", point=tuple(c - (0, 0, p.outflow_depth)), normal=(0, 0, 1)))
+
+    def set_active(self, sim: Any, active: bool) -> None:
+        super().set_active(sim, active)
+        if getattr(sim, "stage_name", None) == self.params.open_at_stage:
+            self._opened = True
+        if self._opened:
+            sim.set_wall_active(self.plug.name, False)
+
+    def after_step(self, sim: Any) -> None:
+        self._sink.after_step(sim)
+
+    def measurements(self, sim: Any) -> dict[str, float]:
+        out = super().measurements(sim)
+        n = sim.n_particles
+        below = (sim.particles.x[:n, 2] < self._z0) & (sim.particles.inv_m[:n] > 0)
+        out["discharged_mass"] = self._sink.removed_mass + math.fsum(sim.particles.mass[:n][below])
+        out["discharged_count"] = float(self._sink.removed_count + int(below.sum()))
+        return out
+
+    def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
+        key = f"{self.name}.discharged_mass"
+        if key not in series or len(series[key]) < 3:
+            return {}
+        t, m = series["time"], series[key]
+        final = m[-1]
+        sel = (m >= 0.2 * final) & (m <= 0.8 * final)
+        if final <= 0 or sel.sum() < 3:
+            return {"discharged_mass": float(final)}
+        slope, _ = np.polyfit(t[sel], m[sel], 1)
+        return {"discharged_mass": float(final), "flow_rate": float(slope)}
