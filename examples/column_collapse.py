@@ -38,7 +38,7 @@ def main() -> None:
                           restitution=0.5, friction=0.5)
     t0 = time.perf_counter()
     x, r = pluviate(BoxRegion((0, 0, 0), (0.01, 0.01, 0.05)), Uniform(0.45e-3, 0.55e-3), args.n, glass,
-                    progress=lambda t, v: print(f"settling: t = {t:.3f} s, fastest sphere {v:.3g} m/s"))
+                    progress=lambda t, v: print(f"settling: t = {t:.3f} s, RMS speed {v:.3g} m/s"))
     print(f"column of {len(r)} spheres settled, height {x[:, 2].max() * 1e3:.1f} mm "
           f"({time.perf_counter() - t0:.1f} s)")
 

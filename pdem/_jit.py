@@ -3,9 +3,10 @@
 * ``fastmath`` is off everywhere: bitwise determinism across rank counts needs IEEE arithmetic
   in the order the source states.
 * Kernels are cached on disk (``cache=True``) so that a warm start does not recompile. The cache
-  lives in a directory keyed by a hash of pdem's kernel sources: numba checks only the timestamp of
-  the file that defines a cached function, so a law plugin whose cached wrapper inlines pdem's
-  generic loops would otherwise keep running a stale loop after pdem changed. Set
+  lives in a directory keyed by a hash of pdem's kernel sources (see :func:`_kernel_sources`):
+  numba checks only the timestamp of the file that defines a cached function, so a law plugin
+  whose cached wrapper inlines pdem's generic loops would otherwise keep running a stale loop after
+  pdem changed. Set
   ``PDEM_NUMBA_CACHE_DIR`` (or numba's own ``NUMBA_CACHE_DIR``) to choose the base directory.
 
 Import :data:`njit` from here, never decorate with numba directly.
@@ -24,9 +25,18 @@ __all__ = ["njit", "njit_nocache", "cache_dir"]
 _PKG = Path(__file__).resolve().parent
 
 
+def _kernel_sources() -> list[Path]:
+    """Files whose numba code can be inlined into cached functions defined in *other* files: the
+    kernel modules (``_*.py``, e.g. ``contact/_kernels.py``, ``boundaries/_geometry.py``) and the
+    built-in laws. Editing any other file cannot make a cached kernel stale."""
+    files = [p for p in _PKG.rglob("_*.py") if p.name != "__init__.py"]
+    files += list((_PKG / "laws").glob("*.py"))
+    return sorted(set(files))
+
+
 def _kernel_source_hash() -> str:
     h = hashlib.sha256()
-    for path in sorted(_PKG.rglob("*.py")):
+    for path in _kernel_sources():
         h.update(path.relative_to(_PKG).as_posix().encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:16]

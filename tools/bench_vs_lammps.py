@@ -60,7 +60,7 @@ def make_packing(n: int, seed: int) -> Path:
     t0 = time.perf_counter()
     x, r = pluviate(BoxRegion((0, 0, 0), (FOOT, FOOT, 0.1)), Uniform(0.45e-3, 0.55e-3), n,
                     pdem.Material("glass", **MATERIAL), seed=seed, fill_fraction=0.35,
-                    progress=lambda t, v: print(f"  settling: t = {t:.3f} s, v_max = {v:.3g} m/s",
+                    progress=lambda t, v: print(f"  settling: t = {t:.3f} s, v_rms = {v:.3g} m/s",
                                                 flush=True))
     tmp = path.with_suffix(".tmp")
     write_spheres_text(tmp, x, r)

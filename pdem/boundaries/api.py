@@ -19,7 +19,8 @@ keys are errors) and overrides the hooks it needs:
 * ``before_step(sim)`` / ``after_step(sim)`` — servo control, particle removal, probes;
 * ``measurements(sim) -> dict[str, float]`` — scalars recorded in the time series (as
   ``<name>.<key>``) and usable in stage end conditions;
-* ``summary(series) -> dict`` — derived results at the end of the run (e.g. a steady flow rate).
+* ``summary(series) -> dict`` — derived results at the end of the run (e.g. a steady flow rate);
+* ``state()`` / ``restore(state)`` — JSON-serialisable memory kept in checkpoints.
 
 Boundaries never touch MPI or numba directly; the walls they create are evaluated by the generic
 wall loop with the simulation's contact law.
@@ -120,6 +121,13 @@ class Boundary:
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
         """Derived results at the end of the run. Default: none."""
         return {}
+
+    def state(self) -> dict[str, Any]:
+        """JSON-serialisable state a checkpoint must keep (counters, controller memory). Default: none."""
+        return {}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state` returned."""
 
     # helpers --------------------------------------------------------------------------------
     def add_wall(self, sim: Any, shape: Any, suffix: str = "", *, material: str | None = None,

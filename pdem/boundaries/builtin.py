@@ -194,6 +194,13 @@ class OutflowBoundary(Boundary):
     def measurements(self, sim: Any) -> dict[str, float]:
         return {"removed_count": float(self.removed_count), "removed_mass": self.removed_mass}
 
+    def state(self) -> dict[str, Any]:
+        return {"removed_count": self.removed_count, "removed_mass": self.removed_mass}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.removed_count = int(state.get("removed_count", 0))
+        self.removed_mass = float(state.get("removed_mass", 0.0))
+
 
 class HopperParams(WallBoundaryParams):
     orifice_center: Vec3 = Field(description="centre of the circular orifice [m]; the axis is +z")
@@ -248,6 +255,13 @@ class HopperBoundary(Boundary):
 
     def after_step(self, sim: Any) -> None:
         self._sink.after_step(sim)
+
+    def state(self) -> dict[str, Any]:
+        return {"opened": self._opened, "sink": self._sink.state()}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self._opened = bool(state.get("opened", False))
+        self._sink.restore(state.get("sink", {}))
 
     def measurements(self, sim: Any) -> dict[str, float]:
         out = super().measurements(sim)

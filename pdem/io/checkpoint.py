@@ -41,8 +41,9 @@ def write_checkpoint(path: Path, state: dict[str, object], meta: dict[str, objec
         os.symlink(path.name, ltmp)
         os.replace(ltmp, latest)
     except OSError as exc:
-        raise CheckpointError(f"cannot write checkpoint {path}: {exc}; check disk space and "
-                              "permissions") from exc
+        raise CheckpointError(
+            f"cannot write checkpoint {path}: {exc}; check disk space and permissions"
+        ) from exc
     return path
 
 
@@ -50,14 +51,17 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object
     """Read a checkpoint back: (state arrays by key, metadata attributes)."""
     path = Path(path)
     if not path.exists():
-        raise CheckpointError(f"checkpoint {path} does not exist; give a checkpoint file written by pdem "
-                              "(e.g. OUTPUT/checkpoints/latest.h5)")
+        raise CheckpointError(
+            f"checkpoint {path} does not exist; give a checkpoint file written by pdem "
+            "(e.g. OUTPUT/checkpoints/latest.h5)"
+        )
     try:
         with h5py.File(path, "r") as fh:
             fmt = fh.attrs.get("pdem_checkpoint_format")
             if fmt != CHECKPOINT_FORMAT:
-                raise CheckpointError(f"{path} is not a pdem checkpoint of format {CHECKPOINT_FORMAT} "
-                                      f"(found {fmt!r})")
+                raise CheckpointError(
+                    f"{path} is not a pdem checkpoint of format {CHECKPOINT_FORMAT} (found {fmt!r})"
+                )
             meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in fh.attrs.items()}
             state: dict[str, np.ndarray] = {}
 

@@ -40,10 +40,11 @@ def pluviate(
     """Pour ``n`` spheres into ``container`` and let them settle; return (positions, radii).
 
     ``container`` gives the footprint and the floor (its lower z); its height is ignored, the pour
-    column is as tall as needed. Settling ends when the fastest sphere moves slower than
-    ``rest_speed`` [m/s] (default 0.01 sqrt(g d_mean)), checked every ``check_every`` steps; if that
-    does not happen within ``max_time`` simulated seconds a :class:`GeometryError` is raised.
-    ``progress(t, v_max)`` is called at each check. Output is spatially ordered.
+    column is as tall as needed. Settling ends when the root-mean-square speed of the spheres falls
+    below ``rest_speed`` [m/s] (default 0.01 sqrt(g d_mean)), checked every ``check_every`` steps (the
+    RMS, not the maximum: without rolling resistance a few surface spheres keep rolling for a long
+    time); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
+    is raised. ``progress(t, v_rms)`` is called at each check. Output is spatially ordered.
     """
     from ..boundaries.shapes import Cylinder, Plane
     from ..simulation import Simulation
@@ -81,14 +82,14 @@ def pluviate(
     v_rest = rest_speed if rest_speed is not None else 0.01 * math.sqrt(gravity * d_mean)
     while True:
         sim.run(steps=check_every)
-        v_max = float(np.sqrt(np.max(np.einsum("ij,ij->i", sim.particles.v, sim.particles.v))))
+        v_rms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", sim.particles.v, sim.particles.v))))
         if progress is not None:
-            progress(sim.time, v_max)
-        if v_max < v_rest:
+            progress(sim.time, v_rms)
+        if v_rms < v_rest:
             break
         if sim.time > max_time:
             raise GeometryError(
-                f"pluviate: not at rest after {sim.time:.3g} s (fastest sphere {v_max:.3g} m/s > "
+                f"pluviate: not at rest after {sim.time:.3g} s (RMS speed {v_rms:.3g} m/s > "
                 f"{v_rest:.3g} m/s); raise max_time, lower restitution, or raise rest_speed"
             )
     p = sim.get_particles()

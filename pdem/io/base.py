@@ -1,0 +1,248 @@
+"""Base class of output writers and the helpers they share (field selection, atomic writes).
+
+A writer is constructed once per run with an output ``directory``, writes one :class:`Frame`
+per :meth:`Writer.write` call and is closed with :meth:`Writer.close` (idempotent; writers are
+context managers). Each concrete writer is registered as an entry point of group
+``pdem.writers`` under its :attr:`Writer.name`.
+
+Field selection: ``fields=None`` writes every particle field present in the frame; otherwise only
+the listed ones, plus ``id`` and ``x`` (always written) and ``r`` when the frame has it (needed to
+draw the particles as spheres). A name that is not a particle field
+(:data:`pdem.io.frame.PARTICLE_FIELDS`) is an :class:`~pdem.errors.OutputError` at construction; a
+requested field missing from a frame is an :class:`~pdem.errors.OutputError` at :meth:`write`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import OutputError
+from .frame import PARTICLE_FIELDS, REQUIRED_FIELDS, Frame, WallState
+
+__all__ = ["Writer", "atomic_write_text", "safe_key", "write_metadata_json"]
+
+#: Fields written whatever ``fields`` says, when present in the frame.
+_ALWAYS = (*REQUIRED_FIELDS, "r")
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Replace ``path`` with ``text`` atomically (temp file in the same directory + ``os.replace``).
+
+    A reader sees either the previous content or the new one, never a partial file.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def write_metadata_json(path: Path, metadata: dict[str, str]) -> None:
+    """Write ``metadata`` as a JSON object (sorted keys, indented) atomically to ``path``."""
+    atomic_write_text(path, json.dumps(metadata, indent=2, sort_keys=True) + "\n")
+
+
+def safe_key(name: str) -> str:
+    """``name`` with every character outside ``[A-Za-z0-9_.-]`` replaced by ``_`` (file/HDF5/XDMF-safe)."""
+    key = re.sub(r"[^A-Za-z0-9_.\-]", "_", name)
+    return key if key.strip(".") else f"_{key}"
+
+
+class Writer:
+    """Base class of writers: validation, field selection, lifecycle.
+
+    Parameters
+    ----------
+    directory : output directory; created (with parents) if missing.
+    fields : particle fields to write (``None``: all present in each frame).
+    metadata : strings stored in every output file (e.g. ``{"deck": <TOML>, "pdem_version": ...}``).
+    overwrite : replace this writer's existing files in ``directory`` instead of refusing.
+
+    Subclasses implement :meth:`_write` (and optionally :meth:`_close`) and set :attr:`name`.
+    """
+
+    name: ClassVar[str] = ""
+
+    def __init__(
+        self,
+        directory: Path | str,
+        *,
+        fields: Sequence[str] | None = None,
+        metadata: dict[str, str] | None = None,
+        overwrite: bool = False,
+    ) -> None:
+        self.directory = Path(directory)
+        self.overwrite = bool(overwrite)
+        if fields is not None:
+            if isinstance(fields, str):
+                fields = [fields]
+            unknown = [f for f in fields if f not in PARTICLE_FIELDS]
+            if unknown:
+                raise OutputError(
+                    f"{type(self).__name__} for '{self.directory}': unknown particle field(s) "
+                    f"{', '.join(map(repr, unknown))}; valid fields: {', '.join(PARTICLE_FIELDS)}"
+                )
+            self.fields: tuple[str, ...] | None = tuple(dict.fromkeys(fields))
+        else:
+            self.fields = None
+        meta = dict(metadata or {})
+        bad = [k for k, v in meta.items() if not isinstance(k, str) or not isinstance(v, str)]
+        if bad:
+            raise OutputError(
+                f"{type(self).__name__} for '{self.directory}': metadata keys and values must be strings; "
+                f"offending keys: {', '.join(map(repr, bad))}; convert them with str() first"
+            )
+        self.metadata: dict[str, str] = meta
+        if self.directory.exists() and not self.directory.is_dir():
+            raise OutputError(
+                f"output directory '{self.directory}' exists and is not a directory; "
+                f"choose another output path or remove that file"
+            )
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(
+                f"cannot create output directory '{self.directory}': {exc}; check the path and permissions"
+            ) from exc
+        self.n_frames = 0
+        self._closed = False
+
+    # ---------------------------------------------------------------- lifecycle
+    def write(self, frame: Frame) -> None:
+        """Append one frame to the output (files are complete and readable when this returns)."""
+        if self._closed:
+            raise OutputError(
+                f"{type(self).__name__} for '{self.directory}' is closed; create a new writer to write more"
+            )
+        particles = self._select(frame)
+        walls = self._check_walls(frame)
+        try:
+            self._write(frame, particles, walls)
+        except OSError as exc:
+            raise OutputError(
+                f"{type(self).__name__}: writing frame {self.n_frames} (step {frame.step}) to "
+                f"'{self.directory}' failed: {exc}; check free disk space and permissions, and that no "
+                f"other program holds the files open"
+            ) from exc
+        self.n_frames += 1
+
+    def close(self) -> None:
+        """Finish the output; further calls do nothing."""
+        if self._closed:
+            return
+        self._closed = True
+        self._close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> Writer:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- for subclasses
+    def _write(self, frame: Frame, particles: dict[str, np.ndarray], walls: list[WallState]) -> None:
+        raise NotImplementedError  # pragma: no cover
+
+    def _close(self) -> None:
+        """Hook called once by :meth:`close`."""
+
+    def _claim(self, paths: Sequence[Path]) -> None:
+        """Refuse existing ``paths`` unless ``overwrite``; with ``overwrite`` delete them."""
+        existing = [p for p in paths if p.exists() or p.is_symlink()]
+        if not existing:
+            return
+        if not self.overwrite:
+            shown = ", ".join(f"'{p}'" for p in existing[:5]) + (" …" if len(existing) > 5 else "")
+            raise OutputError(
+                f"{type(self).__name__}: output file(s) already exist: {shown}; choose an empty output "
+                f"directory, remove them, or pass overwrite=True (--overwrite) to replace them"
+            )
+        for p in existing:
+            try:
+                p.unlink()
+            except OSError as exc:
+                raise OutputError(f"cannot remove existing output '{p}' to overwrite it: {exc}") from exc
+
+    def _select(self, frame: Frame) -> dict[str, np.ndarray]:
+        """Validated particle arrays to write, in :data:`PARTICLE_FIELDS` order then extra names."""
+        where = f"{type(self).__name__} frame {self.n_frames} (step {frame.step})"
+        parts = frame.particles
+        for req in REQUIRED_FIELDS:
+            if req not in parts:
+                raise OutputError(
+                    f"{where}: the frame has no particle field '{req}'; frames must carry 'id' and 'x'"
+                )
+        ids = np.asarray(parts["id"])
+        n = ids.shape[0] if ids.ndim == 1 else -1
+        if self.fields is None:
+            names = [k for k in PARTICLE_FIELDS if k in parts] + [
+                k for k in parts if k not in PARTICLE_FIELDS
+            ]
+        else:
+            missing = [k for k in self.fields if k not in parts]
+            if missing:
+                raise OutputError(
+                    f"{where}: requested field(s) {', '.join(map(repr, missing))} not in the frame "
+                    f"(it has {', '.join(parts)}); remove them from the output fields"
+                )
+            names = [k for k in PARTICLE_FIELDS if k in self.fields or (k in _ALWAYS and k in parts)]
+        out: dict[str, np.ndarray] = {}
+        for k in names:
+            if k not in PARTICLE_FIELDS and safe_key(k) != k:
+                raise OutputError(
+                    f"{where}: extra particle field name {k!r} is not file-safe; use letters, digits, _ . -"
+                )
+            a = np.asarray(parts[k])
+            if a.dtype == np.bool_:
+                a = a.astype(np.uint8)
+            if a.dtype.kind not in "iuf":
+                raise OutputError(f"{where}: particle field '{k}' has dtype {a.dtype}; give numbers")
+            if not (a.ndim in (1, 2) and a.shape[0] == n and (a.ndim == 1 or a.shape[1] == 3)):
+                raise OutputError(
+                    f"{where}: particle field '{k}' has shape {a.shape}; expected ({n},) or ({n}, 3) "
+                    f"for {n} particles ('id' has shape {ids.shape})"
+                )
+            if k == "x" and a.ndim != 2:
+                raise OutputError(f"{where}: particle positions 'x' have shape {a.shape}; expected ({n}, 3)")
+            out[k] = a
+        return out
+
+    def _check_walls(self, frame: Frame) -> list[WallState]:
+        where = f"{type(self).__name__} frame {self.n_frames} (step {frame.step})"
+        seen: dict[str, str] = {}
+        for w in frame.walls:
+            key = safe_key(w.name)
+            if key in seen:
+                raise OutputError(
+                    f"{where}: walls '{seen[key]}' and '{w.name}' have the same output name '{key}'; "
+                    f"give walls distinct names (letters, digits, _ . -)"
+                )
+            seen[key] = w.name
+            for attr in ("force", "torque"):
+                if np.asarray(getattr(w, attr)).shape != (3,):
+                    raise OutputError(f"{where}: wall '{w.name}' {attr} must have shape (3,)")
+        return list(frame.walls)

@@ -1,0 +1,153 @@
+"""CSV time series (wall loads, energies, … one row per output time).
+
+:class:`SeriesWriter` writes a header row and then one row per :meth:`SeriesWriter.append`,
+flushed at once, so the file is usable (``tail -f``, a plotting script) while the run goes on and
+complete up to the last row if the run is killed. Floats are written with ``repr`` (shortest
+string that round-trips exactly), integers as integers, strings quoted as CSV needs; a column
+missing from a row is left empty. :func:`read_series` reads the file back into one array per
+column: int64 when every value is an integer, float64 when every value is a number (empty cells
+→ NaN), str otherwise.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import numbers
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import IO
+
+import numpy as np
+
+from ..errors import OutputError
+
+__all__ = ["SeriesWriter", "read_series"]
+
+
+def _cell(column: str, value: object, path: Path) -> str:
+    if isinstance(value, bool | np.bool_):
+        return "1" if value else "0"
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        return repr(float(value))
+    if isinstance(value, str):
+        return value
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        return _cell(column, value.item(), path)
+    raise OutputError(
+        f"series '{path}': column '{column}' got {type(value).__name__} {value!r}; give a number or a string "
+        f"(one value per column per row: split vectors into columns such as fx, fy, fz)"
+    )
+
+
+class SeriesWriter:
+    """Append-only CSV time series.
+
+    Parameters
+    ----------
+    path : CSV file to create (parent directories are created).
+    columns : column names, in order (unique, non-empty).
+    overwrite : replace an existing file instead of raising :class:`~pdem.errors.OutputError`.
+    """
+
+    def __init__(self, path: Path | str, columns: Sequence[str], *, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        cols = [columns] if isinstance(columns, str) else list(columns)
+        if not cols or any(not isinstance(c, str) or not c for c in cols):
+            raise OutputError(f"series '{self.path}': columns must be non-empty strings, got {columns!r}")
+        dup = sorted({c for c in cols if cols.count(c) > 1})
+        if dup:
+            raise OutputError(f"series '{self.path}': duplicate column(s) {', '.join(dup)}; give each once")
+        self.columns: tuple[str, ...] = tuple(cols)
+        self._index = {c: i for i, c in enumerate(cols)}
+        if self.path.exists() and not overwrite:
+            raise OutputError(
+                f"series '{self.path}' already exists; remove it, choose another path or pass "
+                f"overwrite=True (--overwrite) to replace it"
+            )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fh: IO[str] | None = open(self.path, "w", newline="", encoding="utf-8")
+        except OSError as exc:
+            raise OutputError(
+                f"series '{self.path}': cannot create it: {exc}; check the path and permissions"
+            ) from exc
+        self._csv = csv.writer(self._fh, lineterminator="\n")
+        self._row(list(self.columns))
+        self.n_rows = 0
+
+    def _row(self, cells: list[str]) -> None:
+        assert self._fh is not None
+        try:
+            self._csv.writerow(cells)
+            self._fh.flush()
+        except OSError as exc:
+            raise OutputError(f"series '{self.path}': write failed: {exc}; check free disk space") from exc
+
+    def append(self, values: dict[str, object]) -> None:
+        """Write one row; ``values`` maps column names to numbers or strings (missing → empty cell)."""
+        if self._fh is None:
+            raise OutputError(f"series '{self.path}' is closed; create a new SeriesWriter to write more rows")
+        unknown = [k for k in values if k not in self._index]
+        if unknown:
+            raise OutputError(
+                f"series '{self.path}': unknown column(s) {', '.join(map(repr, unknown))}; "
+                f"the columns are {', '.join(self.columns)}"
+            )
+        cells = [""] * len(self.columns)
+        for k, v in values.items():
+            cells[self._index[k]] = _cell(k, v, self.path)
+        self._row(cells)
+        self.n_rows += 1
+
+    def close(self) -> None:
+        """Close the file; further calls do nothing."""
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    @property
+    def closed(self) -> bool:
+        return self._fh is None
+
+    def __enter__(self) -> SeriesWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def _convert(cells: list[str]) -> np.ndarray:
+    try:
+        return np.array([int(c) for c in cells], dtype=np.int64)
+    except (ValueError, OverflowError):
+        pass
+    try:
+        return np.array([float(c) if c != "" else math.nan for c in cells], dtype=np.float64)
+    except ValueError:
+        return np.array(cells, dtype=str)
+
+
+def read_series(path: Path | str) -> dict[str, np.ndarray]:
+    """Read a CSV written by :class:`SeriesWriter`: ``{column: values}`` (see the module doc for dtypes)."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise OutputError(f"cannot read series '{path}': {exc}; check the path") from exc
+    if not rows:
+        raise OutputError(f"series '{path}' is empty (no header row); it was not written by SeriesWriter")
+    header, body = rows[0], rows[1:]
+    bad = [i + 2 for i, r in enumerate(body) if len(r) != len(header)]
+    if bad:
+        raise OutputError(
+            f"series '{path}': row(s) at line(s) {bad[:5]} have a different number of cells than the "
+            f"header ({len(header)}); the file is damaged or not a SeriesWriter file"
+        )
+    return {name: _convert([r[i] for r in body]) for i, name in enumerate(header)}
