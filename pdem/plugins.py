@@ -17,6 +17,8 @@ from .errors import PluginError
 
 __all__ = ["GROUPS", "PluginInfo", "available", "load", "load_contact_law"]
 
+_SINGULAR = {"contact_laws": "contact law", "boundaries": "boundary", "writers": "writer"}
+
 GROUPS = {
     "contact_laws": "pdem.contact_laws",
     "boundaries": "pdem.boundaries",
@@ -50,14 +52,14 @@ def load(group: str, name: str) -> Any:
         hint = f" Did you mean '{close[0]}'?" if close else ""
         installed = ", ".join(names) or "(none)"
         raise PluginError(
-            f"unknown {group.replace('_', ' ')[:-1]} '{name}'.{hint} Installed: {installed}. "
+            f"unknown {_SINGULAR[group]} '{name}'.{hint} Installed: {installed}. "
             "Install the package that provides it (pip install …) or fix the name."
         )
     try:
         return eps[name].load()
     except Exception as exc:  # noqa: BLE001 - any import failure of a plugin is reported the same way
         raise PluginError(
-            f"{group.replace('_', ' ')[:-1]} '{name}' ({eps[name].value}) failed to import: "
+            f"{_SINGULAR[group]} '{name}' ({eps[name].value}) failed to import: "
             f"{type(exc).__name__}: {exc}. Reinstall or fix the plugin package."
         ) from exc
 

@@ -37,7 +37,10 @@ from .walls import ConstantVelocity, Fixed, Motion, Wall
 
 __all__ = ["Boundary", "BoundaryParams", "WallBoundaryParams", "MotionSpec", "Vec3", "make_motion"]
 
-Vec3 = Annotated[tuple[float, float, float], Field(description="three numbers (x, y, z)")]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = Annotated[
+    tuple[FiniteFloat, FiniteFloat, FiniteFloat], Field(description="three finite numbers (x, y, z)")
+]
 
 
 class FixedMotion(BaseModel):
@@ -130,8 +133,16 @@ class Boundary:
         """Restore what :meth:`state` returned."""
 
     # helpers --------------------------------------------------------------------------------
-    def add_wall(self, sim: Any, shape: Any, suffix: str = "", *, material: str | None = None,
-                 motion: Motion | None = None, omega=None) -> Wall:
+    def add_wall(
+        self,
+        sim: Any,
+        shape: Any,
+        suffix: str = "",
+        *,
+        material: str | None = None,
+        motion: Motion | None = None,
+        omega=None,
+    ) -> Wall:
         """Add a wall named ``<boundary>`` or ``<boundary>.<suffix>`` owned by this boundary."""
         p = self.params
         mat = material if material is not None else getattr(p, "material", None)
@@ -139,7 +150,8 @@ class Boundary:
             motion = make_motion(getattr(p, "motion", None))
         if omega is None:
             omega = getattr(p, "omega", (0.0, 0.0, 0.0))
-        wall = sim.add_wall(shape, material=mat, name=self.name + (f".{suffix}" if suffix else ""),
-                            motion=motion, omega=omega)
+        wall = sim.add_wall(
+            shape, material=mat, name=self.name + (f".{suffix}" if suffix else ""), motion=motion, omega=omega
+        )
         self.walls.append(wall)
         return wall

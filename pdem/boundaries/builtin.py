@@ -17,9 +17,27 @@ from . import shapes
 from .api import Boundary, BoundaryParams, Vec3, WallBoundaryParams
 
 __all__ = [
-    "PlaneBoundary", "RectangleBoundary", "DiskBoundary", "AnnulusBoundary", "CylinderTubeBoundary",
-    "FrustumBoundary", "CylinderBoundary", "BoxBoundary", "OutflowBoundary", "HopperBoundary",
+    "PlaneBoundary",
+    "RectangleBoundary",
+    "DiskBoundary",
+    "AnnulusBoundary",
+    "CylinderTubeBoundary",
+    "FrustumBoundary",
+    "CylinderBoundary",
+    "BoxBoundary",
+    "OutflowBoundary",
+    "HopperBoundary",
 ]
+
+
+def _check_shape(shape_cls: Any, params: Any, keys: tuple[str, ...]) -> None:
+    """Build the shape once so that geometry errors surface at deck validation, not at run time."""
+    from ..errors import GeometryError
+
+    try:
+        shape_cls(**{k: getattr(params, k) for k in keys})
+    except GeometryError as exc:
+        raise ValueError(str(exc)) from None
 
 
 class _ShapeBoundary(Boundary):
@@ -27,6 +45,20 @@ class _ShapeBoundary(Boundary):
 
     shape_cls: Any = None
     geometric_keys: tuple[str, ...] = ()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        shape_cls, keys, params_cls = cls.shape_cls, cls.geometric_keys, cls.Params
+
+        class Checked(params_cls):  # same keys, plus a geometry check
+            @model_validator(mode="after")
+            def _geometry(self):
+                _check_shape(shape_cls, self, keys)
+                return self
+
+        Checked.__name__ = Checked.__qualname__ = params_cls.__name__
+        Checked.__doc__ = params_cls.__doc__
+        cls.Params = Checked
 
     def build(self, sim: Any) -> None:
         p = self.params
@@ -140,14 +172,21 @@ class CylinderBoundary(_ShapeBoundary):
 class BoxParams(WallBoundaryParams):
     lo: Vec3
     hi: Vec3
-    open_faces: list[str] = Field(default_factory=list,
-                                  description="faces to leave out: any of xlo, xhi, ylo, yhi, zlo, zhi")
+    open_faces: list[str] = Field(
+        default_factory=list, description="faces to leave out: any of xlo, xhi, ylo, yhi, zlo, zhi"
+    )
 
     @model_validator(mode="after")
     def _faces(self):
         bad = sorted(set(self.open_faces) - set(_FACES))
         if bad:
             raise ValueError(f"unknown face(s) {bad}; allowed: {list(_FACES)}")
+        from ..errors import GeometryError
+
+        try:
+            shapes.box_planes(self.lo, self.hi)
+        except GeometryError as exc:
+            raise ValueError(str(exc)) from None
         return self
 
 
@@ -214,8 +253,9 @@ class HopperParams(WallBoundaryParams):
     @model_validator(mode="after")
     def _geometry(self):
         if self.top_diameter <= self.orifice_diameter:
-            raise ValueError(f"top_diameter = {self.top_diameter} must exceed orifice_diameter = "
-                             f"{self.orifice_diameter}")
+            raise ValueError(
+                f"top_diameter = {self.top_diameter} must exceed orifice_diameter = {self.orifice_diameter}"
+            )
         return self
 
 
@@ -231,6 +271,20 @@ class HopperBoundary(Boundary):
 
     Params = HopperParams
 
+    def __init__(self, name: str, params: BoundaryParams) -> None:
+        super().__init__(name, params)
+        self._z0 = float(params.orifice_center[2])
+        self._opened = False
+        self.plug = None
+        self._sink = OutflowBoundary(
+            name + ".outflow",
+            OutflowParams(
+                type="outflow",
+                point=tuple(np.asarray(params.orifice_center) - (0, 0, params.outflow_depth)),
+                normal=(0, 0, 1),
+            ),
+        )
+
     def build(self, sim: Any) -> None:
         p = self.params
         c = np.asarray(p.orifice_center, dtype=float)
@@ -241,16 +295,12 @@ class HopperBoundary(Boundary):
             barrel = shapes.CylinderTube(c + (0, 0, cone_h), (0, 0, 1), r1, p.barrel_height)
             self.add_wall(sim, barrel, "barrel")
         self.plug = self.add_wall(sim, shapes.Disk(c, (0, 0, 1), r0 * 1.05), "plug")
-        self._z0 = float(c[2])
-        self._opened = False
-        self._sink = OutflowBoundary(self.name + ".outflow", OutflowParams(
-            type="outflow", point=tuple(c - (0, 0, p.outflow_depth)), normal=(0, 0, 1)))
 
     def set_active(self, sim: Any, active: bool) -> None:
         super().set_active(sim, active)
         if getattr(sim, "stage_name", None) == self.params.open_at_stage:
             self._opened = True
-        if self._opened:
+        if self._opened and self.plug is not None:
             sim.set_wall_active(self.plug.name, False)
 
     def after_step(self, sim: Any) -> None:

@@ -43,12 +43,11 @@ import math
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from .._jit import njit
 from ..contact._kernels import pair_forces, wall_forces
 from ..contact.law import ContactLaw, LawParams
-from ..errors import InputError
 from ..materials import MaterialTable, effective_moduli, rayleigh_time
 
 __all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]
@@ -65,8 +64,9 @@ def damping_ratio(e: float) -> float:
 
 
 @njit(inline="always")
-def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj,
-                        hist, k, dt):
+def hertz_mindlin_force(
+    delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj, hist, k, dt
+):
     a = math.sqrt(r_eff * delta)
     vn = vx * nx + vy * ny + vz * nz
     vtx = vx - vn * nx
@@ -140,17 +140,64 @@ def hertz_mindlin_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff,
 
 
 @njit
-def hertz_mindlin_pair_kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt,
-                              max_overlap):
-    return pair_forces(hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair,
-                       dt, max_overlap)
+def hertz_mindlin_pair_kernel(
+    pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
+):
+    return pair_forces(
+        hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
+    )
 
 
 @njit
-def hertz_mindlin_wall_kernel(kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
-                              coef, f, t, dt, max_overlap, out_idx, out_val):
-    return wall_forces(hertz_mindlin_force, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i,
-                       mat, wmat, coef, f, t, dt, max_overlap, out_idx, out_val)
+def hertz_mindlin_wall_kernel(
+    kind,
+    p,
+    vel,
+    omega,
+    centre,
+    cand,
+    hist,
+    x,
+    v,
+    w,
+    r,
+    inv_m,
+    inv_i,
+    mat,
+    wmat,
+    coef,
+    f,
+    t,
+    dt,
+    max_overlap,
+    out_idx,
+    out_val,
+):
+    return wall_forces(
+        hertz_mindlin_force,
+        kind,
+        p,
+        vel,
+        omega,
+        centre,
+        cand,
+        hist,
+        x,
+        v,
+        w,
+        r,
+        inv_m,
+        inv_i,
+        mat,
+        wmat,
+        coef,
+        f,
+        t,
+        dt,
+        max_overlap,
+        out_idx,
+        out_val,
+    )
 
 
 def force_numpy(delta, n, vrel, wrel, r_eff, m_eff, i_eff, c, hist, dt):
@@ -203,12 +250,31 @@ class HertzMindlinParams(LawParams):
     ``clamp_normal``: forbid an attractive damped normal force.
     """
 
-    parameterisation: Literal["material", "coefficients"] = "material"
-    kn: float | None = Field(default=None, gt=0)
-    kt: float | None = Field(default=None, gt=0)
-    cn: float | None = Field(default=None, ge=0)
-    ct: float | None = Field(default=None, ge=0)
-    clamp_normal: bool = False
+    parameterisation: Literal["material", "coefficients"] = Field(
+        "material", description="'material': E, ν, e, μ from the materials; 'coefficients': kn, kt, cn, ct"
+    )
+    kn: float | None = Field(default=None, gt=0, description="normal coefficient K_n [Pa] (coefficient form)")
+    kt: float | None = Field(
+        default=None, gt=0, description="tangential coefficient K_t [Pa] (coefficient form)"
+    )
+    cn: float | None = Field(
+        default=None, ge=0, description="normal damping C_n [1/(m s)] (coefficient form)"
+    )
+    ct: float | None = Field(
+        default=None, ge=0, description="tangential damping C_t [1/(m s)] (coefficient form)"
+    )
+    clamp_normal: bool = Field(False, description="forbid an attractive damped normal force (F_n ≥ 0)")
+
+    @model_validator(mode="after")
+    def _coefficients_given(self):
+        if self.parameterisation == "coefficients":
+            missing = [k for k in ("kn", "kt", "cn", "ct") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(
+                    f"parameterisation = 'coefficients' needs {', '.join(missing)}; give kn, kt [Pa] and "
+                    "cn, ct [1/(m s)], or use parameterisation = 'material'"
+                )
+        return self
 
 
 class HertzMindlin(ContactLaw):
@@ -221,17 +287,6 @@ class HertzMindlin(ContactLaw):
     Params = HertzMindlinParams
     pair_kernel = hertz_mindlin_pair_kernel
     wall_kernel = hertz_mindlin_wall_kernel
-
-    def __init__(self, **params):
-        super().__init__(**params)
-        p = self.params
-        if p.parameterisation == "coefficients":
-            missing = [k for k in ("kn", "kt", "cn", "ct") if getattr(p, k) is None]
-            if missing:
-                raise InputError(
-                    f"law 'hertz_mindlin' with parameterisation = 'coefficients' needs {', '.join(missing)}; "
-                    "give kn, kt [Pa] and cn, ct [1/(m s)], or use parameterisation = 'material'"
-                )
 
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         p = self.params

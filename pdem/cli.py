@@ -1,0 +1,219 @@
+"""The ``pdem`` command.
+
+    pdem DECK [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
+    pdem check DECK [--set KEY=VALUE ...]
+    pdem resume CHECKPOINT [--steps N] [--output DIR] [--overwrite] [--quiet]
+    pdem plugins
+    pdem schema [--output FILE]
+
+Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory),
+3 numerical failure (instability, lost particles), 1 anything else. User errors print one message,
+no traceback. With ``mpirun -n N``, every rank fails together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import CheckpointError, PdemError
+
+__all__ = ["main"]
+
+SUBCOMMANDS = ("check", "resume", "plugins", "schema")
+
+
+def _run_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="pdem",
+        description="Run a pdem deck (TOML). Other commands: pdem check DECK | pdem resume CHECKPOINT | "
+        "pdem plugins | pdem schema. Exit codes: 0 ok, 2 invalid input, 3 numerical failure, 1 other.",
+    )
+    p.add_argument("deck", type=Path, help="the deck file (TOML); see docs/deck.md")
+    _common(p, sets=True)
+    p.add_argument("--version", action="version", version=f"pdem {__version__}")
+    return p
+
+
+def _common(p: argparse.ArgumentParser, sets: bool) -> None:
+    if sets:
+        p.add_argument(
+            "--set",
+            dest="sets",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE",
+            help="override a deck key, value in TOML syntax (e.g. run.dt=1e-5, "
+            'contact.law="hertz_mindlin", stages.fill.end.time=0.2); repeatable',
+        )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after N steps in total, writing final output and a checkpoint",
+    )
+    p.add_argument(
+        "--output",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="output directory (default: the deck's output.directory)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _comm():
+    from .parallel.comm import default_comm
+
+    return default_comm()
+
+
+def _print_summary(summary: dict, out: Path) -> None:
+    print(
+        f"pdem: {summary['steps']} steps, t = {summary['time']:.6g} s, {summary['particles']} particles, "
+        f"{summary['wall_time_s']:.1f} s wall time; output in {out}"
+    )
+    for name, res in summary.get("results", {}).items():
+        items = ", ".join(f"{k} = {v:.6g}" for k, v in res.items())
+        print(f"pdem: {name}: {items}")
+    if not summary.get("completed", True):
+        print(f"pdem: stopped early (--steps); resume with: pdem resume {out / 'checkpoints' / 'latest.h5'}")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .deck import load_deck
+    from .runner import Runner
+
+    resolved = load_deck(args.deck, args.sets)
+    runner = Runner(
+        resolved,
+        output=args.output,
+        overwrite=args.overwrite,
+        max_steps=args.steps,
+        comm=_comm(),
+        progress=None if args.quiet else sys.stderr,
+        overrides=tuple(args.sets),
+    )
+    summary = runner.run()
+    _print_summary(summary, runner.out)
+    return 0
+
+
+def cmd_check(argv: list[str]) -> int:
+    from .deck import load_deck
+
+    p = argparse.ArgumentParser(prog="pdem check", description="Validate a deck without running it.")
+    p.add_argument("deck", type=Path)
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    args = p.parse_args(argv)
+    resolved = load_deck(args.deck, args.sets)
+    deck = resolved.deck
+    nb = len(resolved.boundaries)
+    print(
+        f"{args.deck}: valid ({len(deck.stages)} stage(s): {', '.join(s.name for s in deck.stages)}; "
+        f"law {deck.contact.law}; {nb} boundar{'y' if nb == 1 else 'ies'})"
+    )
+    return 0
+
+
+def cmd_resume(argv: list[str]) -> int:
+    from .deck import load_deck
+    from .io.checkpoint import read_checkpoint
+    from .runner import Runner
+
+    p = argparse.ArgumentParser(
+        prog="pdem resume", description="Continue a run from a checkpoint, bitwise-identically."
+    )
+    p.add_argument("checkpoint", type=Path, help="e.g. OUTPUT/checkpoints/latest.h5")
+    _common(p, sets=False)
+    args = p.parse_args(argv)
+    state, meta = read_checkpoint(args.checkpoint)
+    deck_path = Path(meta["deck_path"])
+    overrides = json.loads(meta.get("overrides", "[]"))
+    if not deck_path.exists():
+        raise CheckpointError(
+            f"the deck {deck_path} the checkpoint was written from no longer exists; restore it to resume"
+        )
+    resolved = load_deck(deck_path, overrides)
+    if resolved.resolved_toml() != meta["deck"]:
+        raise CheckpointError(
+            f"the deck {deck_path} changed since the checkpoint was written; resume needs "
+            "the same deck (compare with deck.resolved.toml in the run's output)"
+        )
+    out = args.output or Path(str(meta["output"]) + f"-resumed-{int(state['scalars/step'])}")
+    runner = Runner(
+        resolved,
+        output=out,
+        overwrite=args.overwrite,
+        max_steps=args.steps,
+        comm=_comm(),
+        progress=None if args.quiet else sys.stderr,
+        resume=(state, meta),
+        overrides=tuple(overrides),
+    )
+    summary = runner.run()
+    _print_summary(summary, runner.out)
+    return 0
+
+
+def cmd_plugins(argv: list[str]) -> int:
+    from .plugins import GROUPS, available
+
+    argparse.ArgumentParser(prog="pdem plugins", description="List installed plugins.").parse_args(argv)
+    for group in GROUPS:
+        print(f"{GROUPS[group]}:")
+        for name, info in sorted(available(group).items()):
+            print(f"  {name:16s} {info.value}  (from {info.distribution})")
+    return 0
+
+
+def cmd_schema(argv: list[str]) -> int:
+    from .deck import deck_json_schema
+
+    p = argparse.ArgumentParser(prog="pdem schema", description="Print the JSON Schema of decks.")
+    p.add_argument("--output", type=Path, default=None)
+    args = p.parse_args(argv)
+    text = json.dumps(deck_json_schema(), indent=2) + "\n"
+    if args.output:
+        args.output.write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] in SUBCOMMANDS:
+            return {"check": cmd_check, "resume": cmd_resume, "plugins": cmd_plugins, "schema": cmd_schema}[
+                argv[0]
+            ](argv[1:])
+        return cmd_run(_run_parser().parse_args(argv))
+    except PdemError as exc:
+        print(f"pdem: error: {exc}", file=sys.stderr)
+        return _fail(exc.exit_code)
+    except KeyboardInterrupt:
+        print("pdem: interrupted", file=sys.stderr)
+        return _fail(1)
+
+
+def _fail(code: int) -> int:
+    """Make every rank fail together: under MPI, abort the whole job with this code."""
+    try:
+        from mpi4py import MPI
+
+        if MPI.Is_initialized() and MPI.COMM_WORLD.Get_size() > 1:
+            sys.stderr.flush()
+            MPI.COMM_WORLD.Abort(code)
+    except ImportError:  # pragma: no cover
+        pass
+    return code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

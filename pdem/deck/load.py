@@ -1,0 +1,412 @@
+"""Load a deck: read TOML, apply ``--set`` overrides, validate everything, return a ResolvedDeck.
+
+Validation runs in full before anything else and reports every problem at once in one
+:class:`~pdem.errors.DeckError` (``.problems`` = ``[(key path, message), ...]``):
+
+1. TOML syntax (line and column);
+2. ``--set`` overrides that cannot be parsed or applied;
+3. the schema (:mod:`pdem.deck.schema`, pydantic strict JSON mode) with its rules and cross-checks
+   (materials, stages and boundaries referred to by name exist, stage names unique, …);
+4. the plugin sections: the contact law named by ``contact.law`` and the boundary plugin named by each
+   ``boundaries.NAME.type`` must be installed (entry points), and their keys are validated by the
+   plugin's own ``Params`` model, errors prefixed with the section's path.
+
+A problem under a path that a ``--set`` override wrote is marked ``(from --set …)``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import re
+import tomllib
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from .. import plugins
+from ..errors import PdemError, PluginError
+from . import toml_writer
+from .overrides import Override, apply_overrides
+from .problems import Loc, make_deck_error, show, sort_problems, translate
+from .schema import KNOWN_WRITERS, BoundaryEntry, ContactSection, Deck, OutputSection, Stage, did_you_mean
+
+__all__ = ["ResolvedDeck", "load_deck", "validate_deck", "deck_json_schema", "installed_writers"]
+
+DEFAULT_LAW = "hertz_mindlin"
+_PLUGIN_LABEL = {"contact_laws": "contact law", "boundaries": "boundary type", "writers": "writer"}
+
+
+@dataclass
+class ResolvedDeck:
+    """A validated deck.
+
+    ``deck``: the validated :class:`~pdem.deck.schema.Deck` (``output.directory`` filled in);
+    ``law_params``: the contact law's validated ``Params``; ``boundaries``: name → the boundary plugin's
+    validated ``Params`` (deck order); ``law_class`` / ``boundary_classes``: the plugin classes;
+    ``path``: the deck file (None for a deck given as a dict); ``base_dir``: the directory relative
+    paths in the deck are resolved against; ``overrides``: the ``--set`` texts applied.
+    """
+
+    deck: Deck
+    law_params: BaseModel
+    boundaries: dict[str, BaseModel]
+    path: Path | None
+    base_dir: Path
+    law_class: type | None = None
+    boundary_classes: dict[str, type] = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()
+
+    def make_law(self) -> Any:
+        """A new instance of the contact law with the deck's parameters."""
+        return self.law_class(**self.law_params.model_dump())
+
+    def make_boundaries(self) -> dict[str, Any]:
+        """New instances of every boundary plugin, by name, in deck order."""
+        return {name: self.boundary_classes[name](name, params) for name, params in self.boundaries.items()}
+
+    def output_for(self, stage: str | int) -> OutputSection:
+        """The ``[output]`` settings in force during ``stage`` (name or index), overrides applied."""
+        st = self.stage(stage)
+        return self.deck.output.merged(st.output)
+
+    def stage(self, stage: str | int) -> Stage:
+        if isinstance(stage, int):
+            return self.deck.stages[stage]
+        for st in self.deck.stages:
+            if st.name == stage:
+                return st
+        raise KeyError(f"no stage named {stage!r}; stages: {self.deck.stage_names()}")
+
+    def resolved_dict(self) -> dict[str, Any]:
+        """The whole deck as plain data with defaults filled in (keys without a value left out)."""
+        data = self.deck.model_dump(mode="json", exclude_none=True)
+        data["particles"] = [{"source": p.pop("source"), **p} for p in data["particles"]]
+        # empty sections are their defaults; TOML would have to write them as `key = []` up front
+        return {k: v for k, v in data.items() if v != [] and v != {}}
+
+    def resolved_toml(self) -> str:
+        """TOML text of :meth:`resolved_dict`; loading it gives an equivalent deck."""
+        head = ["resolved pdem deck: every default filled in"]
+        if self.path is not None:
+            head.append(f"from: {self.path.resolve()}")
+        head += [f"--set {o}" for o in self.overrides]
+        return toml_writer.dumps(self.resolved_dict(), "\n".join(head))
+
+
+# -------------------------------------------------------------------------------------------------
+# entry points
+# -------------------------------------------------------------------------------------------------
+
+
+def load_deck(path: str | Path, overrides: Iterable[str] = (), *,
+              writers: Collection[str] | None = None) -> ResolvedDeck:
+    """Read, override and validate the deck at ``path``; raise one DeckError listing every problem.
+
+    ``overrides``: ``key.path=value`` texts (see :mod:`pdem.deck.overrides`). ``writers``: the output
+    formats to accept (default: ``hdf5``, ``vtk`` and the installed ``pdem.writers`` entry points).
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise make_deck_error([((), f"deck file '{p}' does not exist")], str(p)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise make_deck_error([((), f"cannot read deck file '{p}': {exc}")], str(p)) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise make_deck_error([((), _toml_message(exc))], str(p)) from None
+    return validate_deck(data, path=p, overrides=overrides, writers=writers)
+
+
+def _toml_message(exc: tomllib.TOMLDecodeError) -> str:
+    text = str(exc)
+    m = re.search(r"\(at line (\d+), column (\d+)\)", text)
+    if m:
+        reason = text[: m.start()].strip()
+        return f"invalid TOML at line {m.group(1)}, column {m.group(2)}: {reason}"
+    return f"invalid TOML: {text}"
+
+
+def installed_writers() -> list[str]:
+    """Output formats accepted by default: the known built-ins plus installed pdem.writers entry points."""
+    try:
+        names = set(plugins.available("writers"))
+    except Exception:  # noqa: BLE001 - a broken metadata entry must not stop validation
+        names = set()
+    return sorted(set(KNOWN_WRITERS) | names)
+
+
+def validate_deck(data: dict[str, Any], *, path: str | Path | None = None, base_dir: str | Path | None = None,
+                  overrides: Iterable[str] = (), writers: Collection[str] | None = None) -> ResolvedDeck:
+    """Validate a deck given as parsed TOML (``data`` is not modified); see :func:`load_deck`.
+
+    ``base_dir`` (relative paths in the deck) defaults to the deck file's directory, or the current
+    directory for a deck without a file.
+    """
+    p = Path(path) if path is not None else None
+    if not isinstance(data, dict):
+        raise make_deck_error([((), f"a deck is a table of sections; got {type(data).__name__}")],
+                              str(p) if p is not None else None)
+    base = Path(base_dir) if base_dir is not None else (p.parent if p is not None else Path.cwd())
+    base = base.resolve()
+    data = copy.deepcopy(data)
+    overrides = tuple(overrides)
+    applied, problems = apply_overrides(data, overrides)
+    allowed = tuple(writers) if writers is not None else tuple(installed_writers())
+    context = {"base_dir": str(base), "writers": allowed}
+
+    deck: Deck | None = None
+    try:
+        deck = Deck.model_validate(data, context=context)
+    except ValidationError as exc:
+        problems += translate(exc, Deck)
+
+    law_class, law_params, law_problems = _validate_law(data)
+    problems += law_problems
+    boundary_classes, boundaries, bnd_problems = _validate_boundaries(data)
+    problems += bnd_problems
+
+    if problems:
+        problems = _mark_overrides(_dedupe(problems), applied)
+        source = str(p) if p is not None else None
+        raise make_deck_error(sort_problems(problems, data), source)
+
+    assert deck is not None and law_params is not None
+    # the plugin sections of the deck hold the validated parameters, defaults filled in
+    deck.contact = ContactSection(law=deck.contact.law, **_plain(law_params))
+    for name, params in boundaries.items():
+        table = _plain(params)
+        table.pop("type", None)
+        deck.boundaries[name] = BoundaryEntry(type=deck.boundaries[name].type, **table)
+    if deck.output.directory is None:
+        stem = p.stem if p is not None else "deck"
+        deck.output.directory = f"out/{stem}"
+    return ResolvedDeck(deck=deck, law_params=law_params, boundaries=boundaries, path=p, base_dir=base,
+                        law_class=law_class, boundary_classes=boundary_classes, overrides=overrides)
+
+
+# -------------------------------------------------------------------------------------------------
+# plugin sections
+# -------------------------------------------------------------------------------------------------
+
+
+def _plain(params: BaseModel) -> dict[str, Any]:
+    """A plugin's validated parameters as plain TOML-able data (unset optional keys left out)."""
+    return params.model_dump(mode="json", exclude_none=True)
+
+
+def _to_json(data: Any) -> str:
+    return json.dumps(data, default=str, allow_nan=True)
+
+
+def _load_plugin(group: str, name: str) -> tuple[Any, str | None]:
+    """(class, None) or (None, message): an unknown name lists the installed plugins."""
+    try:
+        return plugins.load(group, name), None
+    except PluginError as exc:
+        try:
+            installed = sorted(plugins.available(group))
+        except Exception:  # noqa: BLE001
+            installed = []
+        if name in installed:
+            return None, str(exc)
+        label = _PLUGIN_LABEL.get(group, group)
+        listing = ", ".join(f"'{n}'" for n in installed) or "(none)"
+        return None, (f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; installed: {listing}. "
+                      "Install the package that provides it (pip install …) or fix the name")
+
+
+def _non_finite(value: Any, loc: Loc) -> list[tuple[Loc, str]]:
+    """Plugin models may accept inf/nan; a deck never does."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [(loc, f"must be a finite number; got {show(value)}")]
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _non_finite(v, loc + (k,))]
+    if isinstance(value, list):
+        return [p for k, v in enumerate(value) for p in _non_finite(v, loc + (k,))]
+    return []
+
+
+def _params_model(cls: Any, loc: Loc, what: str) -> tuple[type[BaseModel] | None, list[tuple[Loc, str]]]:
+    params = getattr(cls, "Params", None)
+    if isinstance(params, type) and issubclass(params, BaseModel):
+        return params, []
+    return None, [(loc, f"{what} {cls!r} has no pydantic Params model; it does not honour the plugin "
+                        "contract (report this to its author)")]
+
+
+def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple[Loc, str]]]:
+    raw = data.get("contact", {})
+    if not isinstance(raw, dict):
+        return None, None, []  # the schema reports it
+    law = raw.get("law", DEFAULT_LAW)
+    if not isinstance(law, str):
+        return None, None, []
+    cls, err = _load_plugin("contact_laws", law)
+    if err is not None:
+        return None, None, [(("contact", "law"), err)]
+    model, problems = _params_model(cls, ("contact", "law"), f"contact law '{law}'")
+    if model is None:
+        return cls, None, problems
+    values = {k: v for k, v in raw.items() if k != "law"}
+    problems = _non_finite(values, ("contact",))
+    try:
+        params = model.model_validate_json(_to_json(values), strict=True)
+    except ValidationError as exc:
+        return cls, None, problems + translate(exc, model, ("contact",), extra_keys=("law",))
+    if problems:
+        return cls, None, problems
+    try:  # the law's constructor may check combinations of parameters
+        cls(**params.model_dump())
+    except PdemError as exc:
+        return cls, None, [(("contact",), str(exc))]
+    except Exception as exc:  # noqa: BLE001 - a plugin's constructor failing is reported like a bad key
+        return cls, None, [(("contact",), f"contact law '{law}' rejected its parameters: "
+                                          f"{type(exc).__name__}: {exc}")]
+    return cls, params, []
+
+
+def _validate_boundaries(data: dict) -> tuple[dict[str, type], dict[str, BaseModel], list[tuple[Loc, str]]]:
+    raw = data.get("boundaries", {})
+    classes: dict[str, type] = {}
+    params: dict[str, BaseModel] = {}
+    problems: list[tuple[Loc, str]] = []
+    if not isinstance(raw, dict):
+        return classes, params, problems
+    for name, table in raw.items():
+        if not isinstance(table, dict) or not isinstance(table.get("type"), str):
+            continue  # the schema reports a missing / non-string type
+        loc: Loc = ("boundaries", name)
+        cls, err = _load_plugin("boundaries", table["type"])
+        if err is not None:
+            problems.append((loc + ("type",), err))
+            continue
+        model, bad = _params_model(cls, loc + ("type",), f"boundary type '{table['type']}'")
+        problems += bad
+        if model is None:
+            continue
+        values = dict(table)
+        if "type" not in model.model_fields:
+            values.pop("type")
+        nonfinite = _non_finite(values, loc)
+        try:
+            p = model.model_validate_json(_to_json(values), strict=True)
+        except ValidationError as exc:
+            problems += nonfinite + translate(exc, model, loc, extra_keys=() if "type" in model.model_fields
+                                              else ("type",))
+            continue
+        if nonfinite:
+            problems += nonfinite
+            continue
+        classes[name] = cls
+        params[name] = p
+    problems += _check_quantities(data, classes)
+    return classes, params, problems
+
+
+def _check_quantities(data: dict, classes: dict[str, type]) -> list[tuple[Loc, str]]:
+    """``<boundary>.<key>``: if the boundary class declares ``measurement_keys``, the key must be one."""
+    out: list[tuple[Loc, str]] = []
+    stages = data.get("stages")
+    if not isinstance(stages, list):
+        return out
+    for k, stage in enumerate(stages):
+        end = stage.get("end") if isinstance(stage, dict) else None
+        q = end.get("quantity") if isinstance(end, dict) else None
+        if not isinstance(q, str) or "." not in q:
+            continue
+        name, key = q.split(".", 1)
+        keys = getattr(classes.get(name), "measurement_keys", None)
+        if keys and key not in keys:
+            out.append((("stages", k, "end", "quantity"),
+                        f"boundary '{name}' measures no '{key}'{did_you_mean(key, list(keys), True)}; "
+                        "it measures "
+                        + ", ".join(f"'{x}'" for x in keys)))
+    return out
+
+
+def _dedupe(problems: list[tuple[Loc, str]]) -> list[tuple[Loc, str]]:
+    out: list[tuple[Loc, str]] = []
+    for item in problems:
+        if item not in out:
+            out.append(item)
+    return out
+
+
+def _mark_overrides(problems: list[tuple[Loc, str]], applied: list[Override]) -> list[tuple[Loc, str]]:
+    out = []
+    for loc, msg in problems:
+        src = [o.text for o in applied if tuple(loc[: len(o.loc)]) == o.loc]
+        out.append((loc, f"{msg} (from --set {src[-1]})" if src else msg))
+    return out
+
+
+# -------------------------------------------------------------------------------------------------
+# JSON Schema for editors
+# -------------------------------------------------------------------------------------------------
+
+
+def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
+    """JSON Schema (draft 2020-12) of a deck, for editors (e.g. Taplo / Even Better TOML).
+
+    ``[contact]`` and ``[boundaries.NAME]`` are open objects in the core schema; for every installed
+    contact law and boundary plugin (only pdem's own with ``builtin_only``) an ``if``/``then`` clause
+    adds the plugin's own parameter schema, selected by ``law`` / ``type``.
+    """
+    from pydantic.json_schema import models_json_schema
+
+    laws: dict[str, type[BaseModel]] = {}
+    bnds: dict[str, type[BaseModel]] = {}
+    for group, target in (("contact_laws", laws), ("boundaries", bnds)):
+        for name, info in sorted(plugins.available(group).items()):
+            if builtin_only and info.distribution != "pdem":
+                continue
+            try:
+                cls = plugins.load(group, name)
+            except PluginError:
+                continue
+            model = getattr(cls, "Params", None)
+            if isinstance(model, type) and issubclass(model, BaseModel):
+                target[name] = model
+    models = [Deck, *laws.values(), *bnds.values()]
+    unique = list(dict.fromkeys(models))
+    keys, top = models_json_schema([(m, "validation") for m in unique], ref_template="#/$defs/{model}",
+                                   title="pdem deck")
+    defs = top["$defs"]
+
+    def ref(model: type[BaseModel]) -> dict:
+        return keys[(model, "validation")]
+
+    root = copy.deepcopy(defs[ref(Deck)["$ref"].rsplit("/", 1)[-1]])
+    contact_name = root["properties"]["contact"].get("$ref", "").rsplit("/", 1)[-1]
+    if contact_name in defs:
+        contact = defs[contact_name]
+        contact["properties"]["law"]["examples"] = sorted(laws) or [DEFAULT_LAW]
+        clauses = []
+        for name, model in laws.items():
+            # the law's Params forbids unknown keys; [contact] adds `law` to them
+            then = copy.deepcopy(defs[ref(model)["$ref"].rsplit("/", 1)[-1]])
+            then.pop("title", None)
+            then.setdefault("properties", {})["law"] = {"const": name}
+            clauses.append({"if": {"properties": {"law": {"const": name}}}, "then": then})
+        if clauses:
+            contact["allOf"] = clauses
+    entry = root["properties"]["boundaries"].get("additionalProperties", {})
+    entry_name = entry.get("$ref", "").rsplit("/", 1)[-1]
+    if entry_name in defs:
+        bdef = defs[entry_name]
+        bdef["properties"]["type"]["examples"] = sorted(bnds)
+        bdef["allOf"] = [{"if": {"properties": {"type": {"const": name}}}, "then": ref(model)}
+                         for name, model in bnds.items()]
+    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "pdem deck",
+              "description": (Deck.__doc__ or "").strip()}
+    schema.update({k: v for k, v in root.items() if k not in ("title", "description")})
+    schema["$defs"] = {k: v for k, v in defs.items() if k != ref(Deck)["$ref"].rsplit("/", 1)[-1]}
+    return schema
+

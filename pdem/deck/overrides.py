@@ -1,0 +1,160 @@
+"""``--set key.path=value`` overrides applied to a raw deck before validation.
+
+* ``key.path`` is a dotted path of TOML keys; a key that is not a bare key may be quoted
+  (``materials."glass beads".density``). In an array of tables, a segment is an index (``stages.0``) or,
+  for tables that have a ``name`` key, a name (``stages.fill``).
+* ``value`` is parsed as a TOML value (``1e-5``, ``true``, ``"hertz_mindlin"``, ``[0, 0, -9.81]``,
+  ``{type = "box", lo = [0, 0, 0], hi = [1, 1, 1]}``). A value that is not valid TOML but is a single
+  bare word (letters, digits, ``_ - . /``, starting with a letter) is taken as a string, so that
+  ``--set contact.law=hertz_mindlin`` works without shell-quoting the quotes.
+* Missing intermediate tables are created; the override replaces whatever was there.
+
+Keys are not checked here: the validation that follows reports an unknown key (with the closest valid
+key) at its path, and :mod:`pdem.deck.load` marks every problem under an overridden path with the
+override that caused it.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+import tomllib
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["Override", "OverrideError", "parse_override", "apply_overrides"]
+
+_SEGMENT = re.compile(r'\s*(?:"((?:[^"\\]|\\.)*)"|([A-Za-z0-9_-]+))\s*')
+_BARE_WORD = re.compile(r"^[A-Za-z][A-Za-z0-9_.\-/]*$")
+
+
+class OverrideError(ValueError):
+    """A ``--set`` text that cannot be parsed or applied; ``loc`` is where it points (may be ())."""
+
+    def __init__(self, message: str, loc: tuple[str | int, ...] = ()) -> None:
+        super().__init__(message)
+        self.loc = loc
+
+
+@dataclass(frozen=True)
+class Override:
+    """One applied override: its text, the location it resolved to and the parsed value."""
+
+    text: str
+    loc: tuple[str | int, ...]
+    value: Any
+
+
+def _parse_key(text: str) -> tuple[list[str], str]:
+    """Split ``key.path=value`` into key segments and the value text."""
+    segments: list[str] = []
+    pos = 0
+    while True:
+        m = _SEGMENT.match(text, pos)
+        if not m or m.end() == pos:
+            raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+        quoted, bare = m.group(1), m.group(2)
+        segments.append(bare if bare is not None else _unescape(quoted, text))
+        pos = m.end()
+        if pos < len(text) and text[pos] == ".":
+            pos += 1
+            continue
+        if pos < len(text) and text[pos] == "=":
+            return segments, text[pos + 1:]
+        raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+
+
+def _unescape(quoted: str, text: str) -> str:
+    try:
+        return tomllib.loads(f'k = "{quoted}"')["k"]
+    except tomllib.TOMLDecodeError:
+        raise OverrideError(f"malformed override '{text}': bad quoted key \"{quoted}\"") from None
+
+
+def parse_value(raw: str, text: str = "") -> Any:
+    """A TOML value (or a bare word as a string, see the module docstring)."""
+    raw = raw.strip()
+    if not raw:
+        raise OverrideError(f"malformed override '{text}': no value after '='; e.g. run.dt=1e-5")
+    try:
+        return tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError as exc:
+        if _BARE_WORD.match(raw):
+            return raw
+        raise OverrideError(
+            f"override '{text}': the value {raw} is not a TOML value ({exc}); quote strings, "
+            f'e.g. contact.law="hertz_mindlin"') from None
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"run.dt=1e-5"`` → ``(["run", "dt"], 1e-05)``; raises :class:`OverrideError`."""
+    if "=" not in text:
+        raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+    segments, raw = _parse_key(text)
+    return segments, parse_value(raw, text)
+
+
+def _kind(v: Any) -> str:
+    if isinstance(v, dict):
+        return "table"
+    if isinstance(v, list):
+        return "array"
+    return type(v).__name__
+
+
+def _index(node: list, seg: str, loc: tuple, text: str) -> int:
+    where = ".".join(str(p) for p in loc)
+    if re.fullmatch(r"\d+", seg):
+        k = int(seg)
+        if k >= len(node):
+            raise OverrideError(f"override '{text}': {where} has {len(node)} entr"
+                                f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range", loc + (k,))
+        return k
+    names = [e.get("name") for e in node if isinstance(e, dict)]
+    for k, e in enumerate(node):
+        if isinstance(e, dict) and e.get("name") == seg:
+            return k
+    known = [n for n in names if isinstance(n, str)]
+    close = difflib.get_close_matches(seg, known, n=1)
+    hint = f"; did you mean '{close[0]}'?" if close else ""
+    listing = ", ".join(f"'{n}'" for n in known) or "(none have a name)"
+    raise OverrideError(f"override '{text}': no entry of {where} is named '{seg}'{hint}; give an index "
+                        f"(0..{len(node) - 1}) or one of {listing}", loc + (seg,))
+
+
+def apply_one(data: dict, text: str) -> Override:
+    """Apply one ``key.path=value`` to ``data`` in place."""
+    segments, value = parse_override(text)
+    node: Any = data
+    loc: tuple[str | int, ...] = ()
+    for i, seg in enumerate(segments):
+        last = i == len(segments) - 1
+        if isinstance(node, list):
+            key: str | int = _index(node, seg, loc, text)
+        elif isinstance(node, dict):
+            key = seg
+        else:
+            where = ".".join(str(p) for p in loc)
+            raise OverrideError(f"override '{text}': {where} is a {_kind(node)}, not a table; it has no key "
+                                f"'{seg}'", loc)
+        loc += (key,)
+        if last:
+            node[key] = value
+        else:
+            if isinstance(node, dict) and key not in node:
+                node[key] = {}
+            node = node[key]
+    return Override(text, loc, value)
+
+
+def apply_overrides(data: dict, overrides: list[str] | tuple[str, ...]
+                    ) -> tuple[list[Override], list[tuple[tuple[str | int, ...], str]]]:
+    """Apply every override in order; return the applied ones and the problems of the others."""
+    applied: list[Override] = []
+    problems: list[tuple[tuple[str | int, ...], str]] = []
+    for text in overrides:
+        try:
+            applied.append(apply_one(data, text))
+        except OverrideError as exc:
+            problems.append((exc.loc or ("--set",), str(exc)))
+    return applied, problems

@@ -1,0 +1,890 @@
+"""Pydantic models of a pdem deck (TOML), the first validation pass.
+
+Every model forbids unknown keys, rejects non-finite numbers and documents each key with
+``Field(description=...)`` (so :func:`pdem.deck.deck_json_schema` documents it for editors). SI units.
+
+Validation is meant to run in pydantic's *strict JSON* mode (``Deck.model_validate_json(text,
+strict=True, context=...)``, which is what :func:`pdem.deck.load_deck` does): a string is never
+turned into a number, an array becomes a fixed-length tuple, an integer is accepted where a float is
+expected.
+
+Checks that involve more than one key (``exactly one of n / volume_fraction``, ``r_min <= r_max``,
+names that refer to materials, stages and boundaries …) are *rules*: each model's :meth:`rules`
+looks at the raw table and returns ``(relative key path, message)`` pairs. They run through a wrap
+validator **whether or not the fields themselves validated**, so a deck with a bad type in one key
+and a dangling material name elsewhere reports both at once. Rules therefore never assume that a
+raw value has the right type.
+
+Two sections belong to plugins and are validated in a second pass by :mod:`pdem.deck.load` with the
+plugin's own ``Params`` model: the keys of ``[contact]`` other than ``law`` (the contact law's
+parameters) and each ``[boundaries.NAME]`` table (the boundary plugin's parameters). Their models
+here (:class:`ContactSection`, :class:`BoundaryEntry`) are the only ones that accept extra keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import InitErrorDetails, PydanticCustomError
+from pydantic_core.core_schema import ErrorType
+
+from ..errors import PdemError
+from ..materials import Material
+
+__all__ = [
+    "Deck",
+    "RunSection",
+    "ContactSection",
+    "MaterialSpec",
+    "MaterialPair",
+    "BoxRegionSpec",
+    "CylinderRegionSpec",
+    "RegionSpec",
+    "SingleSizes",
+    "UniformSizes",
+    "NormalSizes",
+    "TableSizes",
+    "SizeSpec",
+    "RandomFillSource",
+    "LatticeSource",
+    "FileSource",
+    "PluviateSource",
+    "ParticleSource",
+    "BoundaryEntry",
+    "StageEnd",
+    "OutputCadence",
+    "Stage",
+    "OutputSection",
+    "KNOWN_WRITERS",
+    "OUTPUT_FIELDS",
+    "NAME_PATTERN",
+    "RULE_ERROR",
+]
+
+#: writers accepted in ``output.formats`` when the caller passes no list of installed writers
+KNOWN_WRITERS: tuple[str, ...] = ("hdf5", "vtk")
+#: per-particle fields a snapshot may hold
+OUTPUT_FIELDS: tuple[str, ...] = ("x", "v", "w", "r", "material", "f", "contacts", "id")
+#: stage and boundary names: a letter or ``_`` first, then letters, digits, ``_`` or ``-``
+NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_-]*$"
+_NAME_RE = re.compile(NAME_PATTERN)
+#: pydantic error type of rule violations (the message is final, used verbatim)
+RULE_ERROR = "deck_rule"
+
+_KNOWN_ERROR_TYPES = frozenset(ErrorType.__args__)  # type: ignore[attr-defined]
+
+Loc = tuple[str | int, ...]
+Problems = list[tuple[Loc, str]]
+
+# strict scalars: a string is never turned into a number or a boolean, a float never into an integer
+# (an integer is accepted where a float is expected); arrays become fixed-length tuples
+Float = Annotated[float, Strict()]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]
+Vec3 = Annotated[tuple[Float, Float, Float], Field(description="three numbers (x, y, z)")]
+
+
+# -------------------------------------------------------------------------------------------------
+# helpers for rules (raw values may have any type)
+# -------------------------------------------------------------------------------------------------
+
+
+def _is_num(value: Any) -> bool:
+    """A finite int or float (not a bool)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_vec3(value: Any) -> bool:
+    return isinstance(value, list | tuple) and len(value) == 3 and all(_is_num(c) for c in value)
+
+
+def _given(data: dict, key: str) -> bool:
+    return data.get(key) is not None
+
+
+def did_you_mean(word: str, choices: list[str] | tuple[str, ...], inline: bool = False) -> str:
+    """``"; did you mean 'x'?"`` (or `` " (did you mean 'x'?)"`` when ``inline``) for the closest of
+    ``choices`` (difflib), or ``""``."""
+    names = [str(c) for c in choices]
+    close = difflib.get_close_matches(str(word), names, n=1, cutoff=0.6)
+    if not close and len(str(word)) >= 3:  # a truncated key: 'clamp' for 'clamp_normal'
+        close = [c for c in names if c.startswith(str(word))][:2]
+        close = close if len(close) == 1 else []
+    if not close:
+        return ""
+    return f" (did you mean '{close[0]}'?)" if inline else f"; did you mean '{close[0]}'?"
+
+
+def _listing(names: list[str] | tuple[str, ...]) -> str:
+    return ", ".join(f"'{n}'" for n in names) if names else "(none)"
+
+
+def _ctx(info: ValidationInfo | None) -> dict:
+    ctx = getattr(info, "context", None)
+    return ctx if isinstance(ctx, dict) else {}
+
+
+def _as_init_error(err: dict) -> InitErrorDetails:
+    """Rebuild one entry of ``ValidationError.errors()`` so that it can be raised again."""
+    if err["type"] in _KNOWN_ERROR_TYPES:
+        out = InitErrorDetails(type=err["type"], loc=err["loc"], input=err.get("input"))
+        if "ctx" in err:
+            out["ctx"] = err["ctx"]
+        return out
+    return InitErrorDetails(type=PydanticCustomError(err["type"], err["msg"]), loc=err["loc"],
+                            input=err.get("input"))
+
+
+class _DeckModel(BaseModel):
+    """Base of the deck models: unknown keys and non-finite numbers are errors; rules always run."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        """Checks across keys of the raw table ``data``: ``[(relative loc, message), ...]``."""
+        return []
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _run_rules(cls, data: Any, handler: Any, info: ValidationInfo) -> Any:
+        problems: Problems = []
+        if isinstance(data, dict):
+            try:
+                problems = cls.rules(data, _ctx(info))
+            except Exception as exc:  # noqa: BLE001 - a rule must never hide the other problems
+                problems = [((), f"internal error while checking this table ({type(exc).__name__}: {exc}); "
+                                 "please report it")]
+        extra = [InitErrorDetails(type=PydanticCustomError(RULE_ERROR, msg), loc=tuple(loc), input=data)
+                 for loc, msg in problems]
+        try:
+            out = handler(data)
+        except ValidationError as exc:
+            if not extra:
+                raise
+            raise ValidationError.from_exception_data(
+                cls.__name__, [_as_init_error(e) for e in exc.errors()] + extra) from None
+        if extra:
+            raise ValidationError.from_exception_data(cls.__name__, extra)
+        return out
+
+
+# -------------------------------------------------------------------------------------------------
+# [run], [contact], [materials], [[material_pairs]]
+# -------------------------------------------------------------------------------------------------
+
+
+class RunSection(_DeckModel):
+    """``[run]``: time step, gravity, neighbour skin, blow-up threshold, random seed."""
+
+    dt: Float | None = Field(
+        None, gt=0,
+        description="time step [s]; default: 0.2 of the contact law's stability estimate "
+                    "(for Hertz-Mindlin the Rayleigh time of the smallest particle)")
+    force_dt: Bool = Field(
+        False, description="allow a dt (here or in a stage) above the law's stability estimate")
+    gravity: Vec3 = Field((0.0, 0.0, -9.81), description="gravitational acceleration (x, y, z) [m/s²]")
+    skin: Float | None = Field(
+        None, ge=0, description="Verlet-list skin [m]; default: 0.1 of the mean particle diameter")
+    max_overlap: Float = Field(
+        0.25, gt=0, lt=1,
+        description="overlap, as a fraction of the smaller radius, that counts as a blow-up (the run "
+                    "stops with an instability error)")
+    seed: Int = Field(0, ge=0, description="seed of the random number generator used by random sources")
+
+
+class ContactSection(_DeckModel):
+    """``[contact]``: the contact law and its parameters.
+
+    Every key other than ``law`` is a parameter of the law, validated by the law class's ``Params``
+    model in the second pass (so this model accepts extra keys).
+    """
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    law: Str = Field(
+        "hertz_mindlin",
+        description="contact law: an entry point of group pdem.contact_laws (see `pdem plugins`); the "
+                    "other keys of [contact] are that law's parameters")
+
+
+_MAT_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Material) if f.name != "name"}
+
+
+class MaterialSpec(_DeckModel):
+    """``[materials.NAME]``: the keys of :class:`pdem.materials.Material` (defaults from it)."""
+
+    density: Float = Field(_MAT_DEFAULTS["density"], gt=0, description="density ρ [kg/m³]")
+    youngs_modulus: Float = Field(_MAT_DEFAULTS["youngs_modulus"], gt=0, description="Young's modulus E [Pa]")
+    poisson_ratio: Float = Field(_MAT_DEFAULTS["poisson_ratio"], gt=-1, lt=0.5,
+                                 description="Poisson ratio ν [-], in (-1, 0.5)")
+    restitution: Float = Field(_MAT_DEFAULTS["restitution"], ge=0, le=1,
+                               description="coefficient of restitution e [-], in [0, 1]")
+    friction: Float = Field(_MAT_DEFAULTS["friction"], ge=0, description="sliding friction coefficient μ [-]")
+    rolling_friction: Float = Field(
+        _MAT_DEFAULTS["rolling_friction"], ge=0,
+        description="rolling friction coefficient μ_r [-] (multiplies R* F_n; 0 disables rolling resistance)")
+
+    def to_material(self, name: str) -> Material:
+        """The :class:`pdem.materials.Material` called ``name``."""
+        return Material(name=name, **self.model_dump())
+
+
+class MaterialPair(_DeckModel):
+    """``[[material_pairs]]``: explicit values for one pair of materials (default: the minimum)."""
+
+    materials: tuple[Str, Str] = Field(
+        description="the two material names (the same name twice for a self-pair)")
+    restitution: Float | None = Field(None, ge=0, le=1, description="restitution of the pair [-], in [0, 1]")
+    friction: Float | None = Field(None, ge=0, description="sliding friction of the pair [-]")
+    rolling_friction: Float | None = Field(None, ge=0, description="rolling friction of the pair [-]")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if not any(_given(data, k) for k in ("restitution", "friction", "rolling_friction")):
+            return [((), "a material pair needs at least one of restitution, friction, rolling_friction")]
+        return []
+
+    def values(self) -> dict[str, float]:
+        """The pair values that are set."""
+        return {k: v for k in ("restitution", "friction", "rolling_friction")
+                if (v := getattr(self, k)) is not None}
+
+
+# -------------------------------------------------------------------------------------------------
+# regions and size distributions
+# -------------------------------------------------------------------------------------------------
+
+
+class BoxRegionSpec(_DeckModel):
+    """Axis-aligned box ``lo <= x <= hi``."""
+
+    type: Literal["box"] = Field(description="region kind")
+    lo: Vec3 = Field(description="low corner (x, y, z) [m]")
+    hi: Vec3 = Field(description="high corner (x, y, z) [m]; every component above lo's")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        lo, hi = data.get("lo"), data.get("hi")
+        if _is_vec3(lo) and _is_vec3(hi):
+            bad = [a for a, lo_c, hi_c in zip("xyz", lo, hi, strict=True) if hi_c <= lo_c]
+            if bad:
+                return [(("hi",), f"hi = {list(hi)} must exceed lo = {list(lo)} along {', '.join(bad)}")]
+        return []
+
+    def build(self):
+        """The :class:`pdem.sources.BoxRegion`."""
+        from ..sources import BoxRegion
+
+        return BoxRegion(self.lo, self.hi)
+
+
+class CylinderRegionSpec(_DeckModel):
+    """Upright circular cylinder, axis +z from ``base_center``."""
+
+    type: Literal["cylinder"] = Field(description="region kind")
+    base_center: Vec3 = Field(description="centre of the bottom face (x, y, z) [m]")
+    radius: Float = Field(gt=0, description="radius [m]")
+    height: Float = Field(gt=0, description="height along +z [m]")
+
+    def build(self):
+        """The :class:`pdem.sources.CylinderRegion`."""
+        from ..sources import CylinderRegion
+
+        return CylinderRegion(self.base_center, self.radius, self.height)
+
+
+RegionSpec = Annotated[BoxRegionSpec | CylinderRegionSpec, Field(discriminator="type")]
+
+
+class SingleSizes(_DeckModel):
+    """Monodisperse: every sphere has ``radius``."""
+
+    type: Literal["single"] = Field(description="distribution kind")
+    radius: Float = Field(gt=0, description="sphere radius [m]")
+
+    def build(self):
+        from ..sources import Single
+
+        return Single(self.radius)
+
+
+class UniformSizes(_DeckModel):
+    """Radius uniform in [r_min, r_max]."""
+
+    type: Literal["uniform"] = Field(description="distribution kind")
+    r_min: Float = Field(gt=0, description="smallest radius [m]")
+    r_max: Float = Field(gt=0, description="largest radius [m], >= r_min")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        lo, hi = data.get("r_min"), data.get("r_max")
+        if _is_num(lo) and _is_num(hi) and lo > hi:
+            return [(("r_max",), f"r_max = {hi} is smaller than r_min = {lo}; give r_min <= r_max")]
+        return []
+
+    def build(self):
+        from ..sources import Uniform
+
+        return Uniform(self.r_min, self.r_max)
+
+
+class NormalSizes(_DeckModel):
+    """Normal radius distribution truncated to [r_min, r_max] (defaults mean ∓ 3 std)."""
+
+    type: Literal["normal"] = Field(description="distribution kind")
+    mean: Float = Field(gt=0, description="mean radius of the untruncated normal [m]")
+    std: Float = Field(ge=0, description="standard deviation of the radius [m]")
+    r_min: Float | None = Field(
+        None, gt=0, description="smallest radius [m]; default mean − 3 std (must be > 0)")
+    r_max: Float | None = Field(None, gt=0, description="largest radius [m]; default mean + 3 std")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        keys = ("mean", "std", "r_min", "r_max")
+        vals = {k: data.get(k) for k in keys}
+        if not (_is_num(vals["mean"]) and _is_num(vals["std"]) and vals["mean"] > 0 and vals["std"] >= 0):
+            return []
+        if any(v is not None and not (_is_num(v) and v > 0) for v in (vals["r_min"], vals["r_max"])):
+            return []
+        from ..sources import Normal
+
+        try:
+            Normal(**vals)
+        except PdemError as exc:
+            return [((), str(exc).removeprefix("Normal: "))]
+        return []
+
+    def build(self):
+        from ..sources import Normal
+
+        return Normal(self.mean, self.std, self.r_min, self.r_max)
+
+
+class TableSizes(_DeckModel):
+    """Discrete radii with given mass fractions (summing to 1)."""
+
+    type: Literal["table"] = Field(description="distribution kind")
+    radii: list[Annotated[Float, Field(gt=0)]] = Field(min_length=1, description="radii [m], each > 0")
+    mass_fractions: list[Annotated[Float, Field(ge=0)]] = Field(
+        min_length=1, description="mass fraction of each radius [-], each >= 0, summing to 1")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        radii, fracs = data.get("radii"), data.get("mass_fractions")
+        if not (isinstance(radii, list) and isinstance(fracs, list) and radii and fracs):
+            return []
+        if not all(_is_num(v) and v > 0 for v in radii) or not all(_is_num(v) and v >= 0 for v in fracs):
+            return []
+        if len(radii) != len(fracs):
+            return [(("mass_fractions",), f"{len(radii)} radii but {len(fracs)} mass_fractions; "
+                                          "give one mass fraction per radius")]
+        total = math.fsum(fracs)
+        if abs(total - 1.0) > 1e-6:
+            return [(("mass_fractions",), f"mass_fractions sum to {total!r}, not 1 (tolerance 1e-6); "
+                                          "normalise them")]
+        return []
+
+    def build(self):
+        from ..sources import Table
+
+        return Table(self.radii, self.mass_fractions)
+
+
+SizeSpec = Annotated[SingleSizes | UniformSizes | NormalSizes | TableSizes, Field(discriminator="type")]
+_REGION_MODELS = {"box": BoxRegionSpec, "cylinder": CylinderRegionSpec}
+_SIZE_MODELS = {"single": SingleSizes, "uniform": UniformSizes, "normal": NormalSizes, "table": TableSizes}
+
+
+def _try_build(models: dict[str, type[_DeckModel]], raw: Any):
+    """The runtime object of a raw region/sizes table, or None if the table is not valid."""
+    if not isinstance(raw, dict) or not isinstance(raw.get("type"), str) or raw["type"] not in models:
+        return None
+    try:
+        return models[raw["type"]].model_validate(raw, strict=False).build()
+    except (ValidationError, PdemError, TypeError, ValueError):
+        return None
+
+
+def _fit_problem(region_raw: Any, largest: float, what: str, key: str) -> Problems:
+    """A problem if a sphere of radius ``largest`` cannot fit in the region."""
+    region = _try_build(_REGION_MODELS, region_raw)
+    if region is None:
+        return []
+    room = region.max_sphere_radius()
+    if largest > room:
+        return [((key,), f"{what} {largest!r} m does not fit in the region (largest radius that fits: "
+                         f"{room!r} m); use a larger region or smaller spheres")]
+    return []
+
+
+# -------------------------------------------------------------------------------------------------
+# [[particles]]
+# -------------------------------------------------------------------------------------------------
+
+
+class _SourceBase(_DeckModel):
+    material: Str = Field(description="name of a material defined under [materials]")
+    stage: Str | None = Field(
+        None, description="name of the stage at whose start the particles are inserted; default: before "
+                          "the first stage")
+    motion: Literal["free", "fixed", "prescribed"] = Field(
+        "free", description="'free' (integrated), 'fixed' (never move) or 'prescribed' (move at their "
+                            "initial velocity, unaffected by forces)")
+    velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity (x, y, z) [m/s]")
+
+
+#: above this solid fraction random sequential addition cannot succeed (it jams near 0.38 for equal spheres)
+RSA_LIMIT = 0.5
+
+
+class RandomFillSource(_SourceBase):
+    """Non-overlapping spheres placed at random (random sequential addition) in a region."""
+
+    source: Literal["random_fill"] = Field(description="source kind")
+    region: RegionSpec = Field(description="region to fill: {type = 'box', …} or {type = 'cylinder', …}")
+    sizes: SizeSpec = Field(
+        description="size distribution: {type = 'single' | 'uniform' | 'normal' | 'table', …}")
+    n: Int | None = Field(
+        None, gt=0, description="number of spheres (give exactly one of n, volume_fraction)")
+    volume_fraction: Float | None = Field(
+        None, gt=0, lt=RSA_LIMIT,
+        description=f"target solid volume fraction of the region [-], < {RSA_LIMIT} (random sequential "
+                    "addition jams near 0.38 for equal spheres); exactly one of n, volume_fraction")
+    gap: Float = Field(0.0, ge=0, description="minimum clearance between sphere surfaces [m]")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        if _given(data, "n") == _given(data, "volume_fraction"):
+            which = "both" if _given(data, "n") else "neither"
+            loc = ("volume_fraction",) if which == "both" else ()
+            out.append((loc, f"give exactly one of n (number of spheres) and volume_fraction; {which} given"))
+        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
+        if sizes is not None:
+            out += _fit_problem(data.get("region"), sizes.r_max, "the largest radius", "sizes")
+            region = _try_build(_REGION_MODELS, data.get("region"))
+            n = data.get("n")
+            if region is not None and isinstance(n, int) and not isinstance(n, bool) and n > 0 \
+                    and not _given(data, "volume_fraction"):
+                frac = n * sizes.mean_volume() / region.volume
+                if frac >= RSA_LIMIT:
+                    out.append((("n",), f"{n} spheres would fill {frac:.3g} of the region's volume; random "
+                                        f"sequential addition cannot exceed about 0.38 (limit {RSA_LIMIT}); "
+                                        "use fewer spheres, a larger region, or source = 'pluviate'"))
+        return out
+
+
+class LatticeSource(_SourceBase):
+    """Equal spheres on a regular lattice: sc, fcc or hcp in a 3-D region, or a hex2d plane."""
+
+    source: Literal["lattice"] = Field(description="source kind")
+    lattice: Literal["sc", "fcc", "hcp", "hex2d"] = Field(
+        description="'sc' (simple cubic), 'fcc', 'hcp' (in `region`) or 'hex2d' (n_cols × n_rows in a plane)")
+    radius: Float = Field(gt=0, description="sphere radius [m]")
+    spacing: Float | None = Field(
+        None, gt=0, description="centre distance of nearest neighbours [m], >= 2 radius; default 2 radius")
+    region: RegionSpec | None = Field(None, description="region to fill (sc, fcc, hcp only)")
+    n_cols: Int | None = Field(None, ge=1, description="spheres per row (hex2d only)")
+    n_rows: Int | None = Field(None, ge=1, description="number of rows (hex2d only)")
+    origin: Vec3 | None = Field(
+        None, description="centre of the first sphere [m] (hex2d only; default 0, 0, 0)")
+    plane: Literal["xy", "xz", "yz"] | None = Field(
+        None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        lattice = data.get("lattice")
+        if lattice == "hex2d":
+            out += [((k,), f"required for lattice = 'hex2d': {k}") for k in ("n_cols", "n_rows")
+                    if not _given(data, k)]
+            if _given(data, "region"):
+                out.append((("region",), "a 'hex2d' lattice takes n_cols, n_rows, origin and plane, not a "
+                                         "region; remove region"))
+        elif lattice in ("sc", "fcc", "hcp"):
+            if not _given(data, "region"):
+                out.append((("region",), f"required for lattice = '{lattice}': region (box or cylinder)"))
+            for k in ("n_cols", "n_rows", "origin", "plane"):
+                if _given(data, k):
+                    out.append(((k,), f"{k} applies to lattice = 'hex2d' only; remove it for '{lattice}'"))
+            radius = data.get("radius")
+            if _is_num(radius) and radius > 0:
+                out += _fit_problem(data.get("region"), radius, "radius", "radius")
+        radius, spacing = data.get("radius"), data.get("spacing")
+        if _is_num(radius) and _is_num(spacing) and spacing < 2 * radius * (1 - 1e-12):
+            out.append((("spacing",), f"spacing = {spacing} is smaller than the diameter {2 * radius}; "
+                                      "neighbouring spheres would overlap (use spacing >= 2 radius or "
+                                      "omit it)"))
+        return out
+
+    @model_validator(mode="after")
+    def _hex2d_defaults(self) -> LatticeSource:
+        if self.lattice == "hex2d":
+            if self.origin is None:
+                self.origin = (0.0, 0.0, 0.0)
+            if self.plane is None:
+                self.plane = "xz"
+        return self
+
+
+class FileSource(_SourceBase):
+    """Spheres read from a packing file (text ``x y z diameter [vx vy vz]`` or HDF5)."""
+
+    source: Literal["file"] = Field(description="source kind")
+    path: Str = Field(
+        description="packing file, relative to the deck's directory (stored as an absolute path once "
+                    "validated); must exist")
+    velocity: Vec3 | None = Field(
+        None, description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
+                          "default zero")
+
+    @field_validator("path")
+    @classmethod
+    def _absolute(cls, value: str, info: ValidationInfo) -> str:
+        base = _ctx(info).get("base_dir")
+        p = Path(value).expanduser()
+        if not p.is_absolute():
+            p = Path(base if base is not None else ".") / p
+        return str(p.resolve())
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        value = data.get("path")
+        if isinstance(value, str) and value:
+            base = Path(context.get("base_dir", "."))
+            p = Path(value).expanduser()
+            full = p if p.is_absolute() else base / p
+            if not full.is_file():
+                return [(("path",), f"file '{value}' does not exist (looked for {full}); paths are relative "
+                                    "to the deck's directory")]
+        elif isinstance(value, str):
+            return [(("path",), "path is empty; give the packing file's name")]
+        return []
+
+
+class PluviateSource(_SourceBase):
+    """Spheres poured into a container and settled under gravity (a dense random packing)."""
+
+    source: Literal["pluviate"] = Field(description="source kind")
+    region: RegionSpec = Field(
+        description="the container: box or cylinder; its footprint and floor are used, its height is not")
+    sizes: SizeSpec = Field(description="size distribution")
+    n: Int = Field(gt=0, description="number of spheres")
+    fill_fraction: Float = Field(
+        0.3, ge=0.05, le=0.35, description="solid fraction of the loose column the spheres rain from [-]")
+    max_time: Float = Field(2.0, gt=0, description="settling time allowed before giving up [s]")
+    rest_speed: Float | None = Field(
+        None, gt=0, description="settled when the fastest sphere is slower than this [m/s]; default "
+                                "0.01 sqrt(g d_mean)")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
+        region = _try_build(_REGION_MODELS, data.get("region"))
+        if sizes is None or region is None:
+            return []
+        lo, hi = region.bounds
+        room = region.radius if hasattr(region, "radius") else 0.5 * float(min(hi[0] - lo[0], hi[1] - lo[1]))
+        if sizes.r_max > room:
+            return [(("sizes",), f"the largest radius {sizes.r_max!r} m does not fit in the container's "
+                                 f"footprint (largest radius that fits: {room!r} m)")]
+        return []
+
+
+ParticleSource = Annotated[RandomFillSource | LatticeSource | FileSource | PluviateSource,
+                           Field(discriminator="source")]
+
+
+# -------------------------------------------------------------------------------------------------
+# [boundaries.NAME]
+# -------------------------------------------------------------------------------------------------
+
+
+class BoundaryEntry(_DeckModel):
+    """``[boundaries.NAME]``: ``type`` names the plugin; the other keys are its ``Params``."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    type: Str = Field(
+        description="boundary plugin: an entry point of group pdem.boundaries (see `pdem plugins`)")
+
+
+# -------------------------------------------------------------------------------------------------
+# [[stages]] and [output]
+# -------------------------------------------------------------------------------------------------
+
+_END_CONDITIONS = ("time", "steps", "kinetic_energy_below", "quantity")
+
+
+class StageEnd(_DeckModel):
+    """``[stages.end]``: the stage ends as soon as ANY condition holds."""
+
+    time: Float | None = Field(None, gt=0, description="stage duration [s]")
+    steps: Int | None = Field(None, gt=0, description="number of steps")
+    kinetic_energy_below: Float | None = Field(
+        None, gt=0, description="end when the total kinetic energy falls below this [J] (checked every "
+                                "check_every steps)")
+    quantity: Str | None = Field(
+        None, description="a measured quantity '<boundary>.<key>' (e.g. 'cone.discharged_mass'), compared "
+                          "with above / below every check_every steps")
+    above: Float | None = Field(None, description="end when quantity > above (exactly one of above, below)")
+    below: Float | None = Field(None, description="end when quantity < below (exactly one of above, below)")
+    max_time: Float | None = Field(
+        None, gt=0, description="safety cap [s]: reaching it before another condition holds is an error")
+    check_every: Int = Field(
+        100, gt=0, description="steps between checks of kinetic_energy_below and quantity")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        if not any(_given(data, k) for k in _END_CONDITIONS):
+            extra = " (max_time is a safety cap, not an end condition)" if _given(data, "max_time") else ""
+            out.append(((), f"a stage needs at least one end condition: {', '.join(_END_CONDITIONS)}{extra}"))
+        q, above, below = _given(data, "quantity"), _given(data, "above"), _given(data, "below")
+        if q and above == below:
+            out.append((("quantity",), "give exactly one of above / below with quantity; "
+                                       + ("both given" if above else "neither given")))
+        if not q:
+            out += [((k,), f"{k} needs quantity = '<boundary>.<key>'") for k in ("above", "below")
+                    if _given(data, k)]
+        quantity = data.get("quantity")
+        if isinstance(quantity, str):
+            head, _, tail = quantity.partition(".")
+            if not head or not tail:
+                out.append((("quantity",), f"quantity = '{quantity}' must have the form '<boundary>.<key>', "
+                                           "e.g. 'cone.discharged_mass'"))
+        return out
+
+
+class OutputCadence(_DeckModel):
+    """``[stages.output]``: per-stage override of the output cadence (unset keys follow [output])."""
+
+    every_time: Float | None = Field(None, gt=0, description="snapshot interval [s]")
+    every_steps: Int | None = Field(None, gt=0, description="snapshot interval [steps]")
+    series_every_steps: Int | None = Field(None, gt=0, description="time-series interval [steps]")
+    checkpoint_every_steps: Int | None = Field(None, gt=0, description="checkpoint interval [steps]")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if _given(data, "every_time") and _given(data, "every_steps"):
+            return [(("every_time",), "give at most one of every_time [s] and every_steps; both given")]
+        return []
+
+
+class Stage(_DeckModel):
+    """``[[stages]]``: one phase of the run, run in deck order."""
+
+    name: Str = Field(pattern=NAME_PATTERN,
+                      description="unique name: a letter or '_' first, then letters, digits, '_' or '-'")
+    dt: Float | None = Field(None, gt=0, description="time step of this stage [s]; default run.dt")
+    end: StageEnd = Field(description="end conditions (table [stages.end]); the stage ends when ANY holds")
+    output: OutputCadence | None = Field(
+        None, description="per-stage override of the output cadence keys (table [stages.output])")
+
+
+class OutputSection(_DeckModel):
+    """``[output]``: where and how often to write."""
+
+    directory: Str | None = Field(
+        None,
+        description="output directory, relative to the current directory; default 'out/<deck file stem>'")
+    formats: list[Str] = Field(
+        ["hdf5"], description="snapshot writers (entry points of group pdem.writers): 'hdf5', 'vtk'")
+    every_time: Float | None = Field(
+        None, gt=0, description="snapshot interval [s] (at most one of every_time, every_steps)")
+    every_steps: Int | None = Field(None, gt=0, description="snapshot interval [steps]; default 1000 when "
+                                                           "every_time is not given")
+    fields: list[Literal["x", "v", "w", "r", "material", "f", "contacts", "id"]] = Field(
+        list(OUTPUT_FIELDS),
+        description="per-particle fields in snapshots: x (position), v (velocity), w (angular velocity), "
+                    "r (radius), material, f (force), contacts (contact count), id; default all")
+    series_every_steps: Int = Field(100, gt=0, description="time-series interval [steps] (one CSV per stage)")
+    checkpoint_every_steps: Int | None = Field(
+        None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints")
+
+    #: snapshot cadence when neither every_time nor every_steps is given
+    DEFAULT_EVERY_STEPS: ClassVar[int] = 1000
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        if _given(data, "every_time") and _given(data, "every_steps"):
+            out.append((("every_time",), "give at most one of every_time [s] and every_steps; both given"))
+        allowed = tuple(context.get("writers") or KNOWN_WRITERS)
+        formats = data.get("formats")
+        if isinstance(formats, list):
+            seen: set[str] = set()
+            for k, fmt in enumerate(formats):
+                if isinstance(fmt, str) and fmt not in allowed:
+                    hint = did_you_mean(fmt, allowed, True)
+                    out.append((("formats", k), f"unknown output format '{fmt}'{hint}; "
+                                                f"available writers: {_listing(sorted(allowed))}"))
+                elif isinstance(fmt, str) and fmt in seen:
+                    out.append((("formats", k), f"format '{fmt}' is listed twice"))
+                if isinstance(fmt, str):
+                    seen.add(fmt)
+        fields = data.get("fields")
+        if isinstance(fields, list):
+            dup = sorted({f for f in fields if isinstance(f, str) and fields.count(f) > 1})
+            if dup:
+                out.append((("fields",), f"field(s) listed more than once: {_listing(dup)}"))
+        return out
+
+    @model_validator(mode="after")
+    def _default_cadence(self) -> OutputSection:
+        if self.every_time is None and self.every_steps is None:
+            self.every_steps = self.DEFAULT_EVERY_STEPS
+        return self
+
+    def merged(self, override: OutputCadence | None) -> OutputSection:
+        """This section with a stage's cadence override applied (every_time / every_steps replace
+        each other)."""
+        if override is None:
+            return self.model_copy()
+        update = {k: v for k, v in override.model_dump().items() if v is not None}
+        if "every_time" in update:
+            update["every_steps"] = None
+        elif "every_steps" in update:
+            update["every_time"] = None
+        return self.model_copy(update=update)
+
+
+# -------------------------------------------------------------------------------------------------
+# the deck
+# -------------------------------------------------------------------------------------------------
+
+
+def _material_keys(table: dict) -> list[str]:
+    """Keys of a plugin table that name a material: ``material`` and ``*_material``."""
+    return [k for k in table if k == "material" or k.endswith("_material")]
+
+
+def _stage_keys(table: dict) -> list[str]:
+    """Keys of a plugin table that name stages: ``stage``, ``stages`` and ``*_stage``."""
+    return [k for k in table if k in ("stage", "stages") or k.endswith("_stage")]
+
+
+class Deck(_DeckModel):
+    """A pdem deck: the root of the TOML file."""
+
+    title: Str | None = Field(None, description="free-text title of the run")
+    run: RunSection = Field(default_factory=RunSection, description="time step, gravity, skin, seed")
+    contact: ContactSection = Field(default_factory=ContactSection,
+                                    description="the contact law and its parameters")
+    materials: dict[Str, MaterialSpec] = Field(
+        min_length=1, description="materials by name (tables [materials.NAME]); at least one")
+    material_pairs: list[MaterialPair] = Field(
+        default_factory=list, description="per-pair overrides of restitution, friction, rolling_friction")
+    particles: list[ParticleSource] = Field(
+        default_factory=list, description="particle sources (arrays of tables [[particles]]), by `source`")
+    boundaries: dict[Str, BoundaryEntry] = Field(
+        default_factory=dict, description="boundaries by name (tables [boundaries.NAME]), by plugin `type`")
+    stages: list[Stage] = Field(min_length=1, description="the stages of the run, in order (at least one)")
+    output: OutputSection = Field(default_factory=OutputSection, description="output directory and cadence")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        return _cross_checks(data)
+
+    def stage_names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+
+def _cross_checks(data: dict) -> Problems:
+    """Names that refer to materials, stages and boundaries exist; stage names are unique."""
+    out: Problems = []
+    materials = data.get("materials")
+    mat_names = list(materials) if isinstance(materials, dict) and materials else None
+    boundaries = data.get("boundaries")
+    bnd = boundaries if isinstance(boundaries, dict) else {}
+
+    stages = data.get("stages")
+    stage_names: list[str] | None = None
+    if isinstance(stages, list):
+        names = [s.get("name") if isinstance(s, dict) else None for s in stages]
+        first: dict[str, int] = {}
+        for k, name in enumerate(names):
+            if isinstance(name, str):
+                if name in first:
+                    msg = f"duplicate stage name '{name}' (also stages.{first[name]}.name); give unique names"
+                    out.append((("stages", k, "name"), msg))
+                else:
+                    first[name] = k
+        if names and all(isinstance(n, str) for n in names):
+            stage_names = list(first)
+
+    def check_material(loc: Loc, value: Any) -> None:
+        if mat_names is not None and isinstance(value, str) and value not in mat_names:
+            hint = did_you_mean(value, mat_names, True)
+            out.append((loc, f"unknown material '{value}'{hint}; defined materials: {_listing(mat_names)}"))
+
+    def check_stage(loc: Loc, value: Any) -> None:
+        if stage_names is not None and isinstance(value, str) and value not in stage_names:
+            hint = did_you_mean(value, stage_names, True)
+            out.append((loc, f"unknown stage '{value}'{hint}; defined stages: {_listing(stage_names)}"))
+
+    particles = data.get("particles")
+    if isinstance(particles, list):
+        for k, src in enumerate(particles):
+            if isinstance(src, dict):
+                check_material(("particles", k, "material"), src.get("material"))
+                check_stage(("particles", k, "stage"), src.get("stage"))
+
+    pairs = data.get("material_pairs")
+    if isinstance(pairs, list):
+        seen: dict[frozenset, int] = {}
+        for k, pair in enumerate(pairs):
+            mats = pair.get("materials") if isinstance(pair, dict) else None
+            if isinstance(mats, list):
+                for j, m in enumerate(mats):
+                    check_material(("material_pairs", k, "materials", j), m)
+                if len(mats) == 2 and all(isinstance(m, str) for m in mats):
+                    key = frozenset(mats)
+                    if key in seen:
+                        out.append((("material_pairs", k, "materials"),
+                                    f"pair {mats} is already given in material_pairs.{seen[key]}"))
+                    seen.setdefault(key, k)
+
+    for name, table in bnd.items():
+        if not _NAME_RE.match(name):
+            out.append((("boundaries", name), f"boundary name '{name}' must start with a letter or '_' and "
+                                              "contain only letters, digits, '_' or '-'"))
+        if not isinstance(table, dict):
+            continue
+        for key in _material_keys(table):
+            check_material(("boundaries", name, key), table[key])
+        for key in _stage_keys(table):
+            value = table[key]
+            if isinstance(value, list):
+                for j, v in enumerate(value):
+                    check_stage(("boundaries", name, key, j), v)
+            else:
+                check_stage(("boundaries", name, key), value)
+
+    if isinstance(stages, list):
+        for k, stage in enumerate(stages):
+            end = stage.get("end") if isinstance(stage, dict) else None
+            quantity = end.get("quantity") if isinstance(end, dict) else None
+            if isinstance(quantity, str) and "." in quantity:
+                head = quantity.split(".", 1)[0]
+                if head and head not in bnd:
+                    out.append((("stages", k, "end", "quantity"),
+                                f"quantity '{quantity}' names boundary '{head}', which is not defined"
+                                f"{did_you_mean(head, list(bnd), True)}; defined boundaries: "
+                                f"{_listing(list(bnd))}"))
+    return out
