@@ -75,8 +75,11 @@ MALFORMED = [
     ("negative radius", ("r_min = 0.45e-3", "r_min = -0.45e-3"), ["r_min"]),
     ("unknown law", ('law = "hertz_mindlin"', 'law = "hertz"'), ["contact.law", "hertz_mindlin"]),
     ("unknown boundary type", ('type = "box"\nmaterial', 'type = "boxx"\nmaterial'), ["boundaries.box.type"]),
-    ("missing material", ('source = "random_fill"\nmaterial = "glass"', 'source = "random_fill"\nmaterial = "sand"'),
-     ["sand"]),
+    (
+        "missing material",
+        ('source = "random_fill"\nmaterial = "glass"', 'source = "random_fill"\nmaterial = "sand"'),
+        ["sand"],
+    ),
     ("misspelt key", ("density = 2500.0", "densty = 2500.0"), ["densty", "density"]),
     ("stage without end condition", ("[stages.end]\nsteps = 300\n[[stages]]", "[[stages]]"), ["end"]),
     ("duplicate stage names", ('name = "rest"', 'name = "drop"'), ["drop"]),
@@ -84,18 +87,36 @@ MALFORMED = [
     ("Poisson ratio 0.5", ("poisson_ratio = 0.3", "poisson_ratio = 0.5"), ["poisson_ratio"]),
     ("gravity with two components", ("seed = 3", "seed = 3\ngravity = [0.0, -9.81]"), ["run.gravity"]),
     ("unknown output format", ('formats = ["hdf5"]', 'formats = ["netcdf"]'), ["netcdf"]),
-    ("unknown output field", ("every_steps = 200", 'every_steps = 200\nfields = ["x", "colour"]'), ["colour"]),
+    (
+        "unknown output field",
+        ("every_steps = 200", 'every_steps = 200\nfields = ["x", "colour"]'),
+        ["colour"],
+    ),
     ("both n and volume fraction", ("n = 250", "n = 250\nvolume_fraction = 0.1"), ["volume_fraction"]),
-    ("unknown law parameter", ('law = "hertz_mindlin"', 'law = "hertz_mindlin"\nclamp_normall = true'),
-     ["clamp_normall"]),
-    ("quantity of unknown boundary", ("steps = 300\n[[stages]]", 'quantity = "hopper.mass"\nabove = 1.0\n[[stages]]'),
-     ["hopper"]),
-    ("unknown stage in boundary", ('hi = [0.01, 0.01, 0.02]', 'hi = [0.01, 0.01, 0.02]\nstages = ["fill"]'),
-     ["fill"]),
+    (
+        "unknown law parameter",
+        ('law = "hertz_mindlin"', 'law = "hertz_mindlin"\nclamp_normall = true'),
+        ["clamp_normall"],
+    ),
+    (
+        "quantity of unknown boundary",
+        ("steps = 300\n[[stages]]", 'quantity = "hopper.mass"\nabove = 1.0\n[[stages]]'),
+        ["hopper"],
+    ),
+    (
+        "unknown stage in boundary",
+        ("hi = [0.01, 0.01, 0.02]", 'hi = [0.01, 0.01, 0.02]\nstages = ["fill"]'),
+        ["fill"],
+    ),
     ("box with lo above hi", ("hi = [0.01, 0.01, 0.02]", "hi = [0.01, 0.01, -0.02]"), ["boundaries.box"]),
-    ("file source that does not exist", ('source = "random_fill"\nmaterial = "glass"\nregion',
-                                         'source = "file"\npath = "nope.txt"\nmaterial = "glass"\nregion'),
-     ["nope.txt"]),
+    (
+        "file source that does not exist",
+        (
+            'source = "random_fill"\nmaterial = "glass"\nregion',
+            'source = "file"\npath = "nope.txt"\nmaterial = "glass"\nregion',
+        ),
+        ["nope.txt"],
+    ),
 ]
 
 
@@ -117,7 +138,9 @@ def test_malformed_deck_exit_2_without_traceback(tmp_path, capsys, name, change,
 def test_malformed_deck_real_process(tmp_path):
     """The installed console script: exit code 2, one message, no traceback."""
     deck = write(tmp_path, SMALL.replace("density = 2500.0", "densty = 2500.0"))
-    proc = subprocess.run([sys.executable, "-m", "pdem.cli", "check", str(deck)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pdem.cli", "check", str(deck)], capture_output=True, text=True
+    )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and "did you mean 'density'" in proc.stderr
 
@@ -143,8 +166,9 @@ def test_existing_output_not_overwritten(tmp_path, capsys):
 
 
 def test_instability_exit_3(tmp_path, capsys):
-    text = SMALL.replace("dt = 2e-6", "dt = 6e-5\nforce_dt = true").replace("velocity = [0.0, 0.0, -0.2]",
-                                                                          "velocity = [0.0, 0.0, -3.0]")
+    text = SMALL.replace("dt = 2e-6", "dt = 6e-5\nforce_dt = true").replace(
+        "velocity = [0.0, 0.0, -0.2]", "velocity = [0.0, 0.0, -3.0]"
+    )
     deck = write(tmp_path, text)
     code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
     assert code == 3, err
@@ -172,8 +196,16 @@ def test_run_writes_outputs(tmp_path, capsys):
     out = tmp_path / "out"
     code, stdout, _ = run_cli([deck, "--output", out, "--quiet"], capsys)
     assert code == 0
-    for name in ("deck.resolved.toml", "particles.h5", "particles.xdmf", "walls.xdmf", "series_drop.csv",
-                 "series_rest.csv", "summary.json", "checkpoints/latest.h5"):
+    for name in (
+        "deck.resolved.toml",
+        "particles.h5",
+        "particles.xdmf",
+        "walls.xdmf",
+        "series_drop.csv",
+        "series_rest.csv",
+        "summary.json",
+        "checkpoints/latest.h5",
+    ):
         assert (out / name).exists(), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 600 and summary["completed"]
@@ -189,8 +221,9 @@ def test_resume_is_bitwise_identical(tmp_path, capsys):
     full, part = tmp_path / "full", tmp_path / "part"
     assert run_cli([deck, "--output", full, "--quiet"], capsys)[0] == 0
     assert run_cli([deck, "--output", part, "--quiet", "--steps", "170"], capsys)[0] == 0
-    code, _, err = run_cli(["resume", part / "checkpoints" / "latest.h5", "--output", tmp_path / "resumed",
-                            "--quiet"], capsys)
+    code, _, err = run_cli(
+        ["resume", part / "checkpoints" / "latest.h5", "--output", tmp_path / "resumed", "--quiet"], capsys
+    )
     assert code == 0, err
     a, _ = read_checkpoint(full / "checkpoints" / "latest.h5")
     b, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
