@@ -78,6 +78,8 @@ class Simulation:
         self._next_id = 0
         self._prepared = False
         self._force_rebuild = False
+        self._walls_changed = True
+        self._moving_walls: list[int] = []
         self._pair_keys: np.ndarray | None = None
         self.dt_critical = math.nan
 
@@ -170,6 +172,7 @@ class Simulation:
             wall.hist[:] = 0.0
         wall.record_load(0)
         self._force_rebuild = True
+        self._walls_changed = True
 
     def remove_particles(self, mask: np.ndarray) -> tuple[int, float]:
         """Remove the owned particles where ``mask`` is true (an outflow); returns (count, mass).
@@ -186,6 +189,9 @@ class Simulation:
         mass = math.fsum(p.mass[:n][mask])
         keep = np.flatnonzero(~mask)
         self._permute_storage(np.concatenate([keep, np.flatnonzero(mask)]))
+        for wall in self._wall_list:
+            if wall.hist is not None:
+                wall.hist[n - count: n] = 0.0
         p.n_owned = n - count
         self._force_rebuild = True
         return count, mass
@@ -225,13 +231,8 @@ class Simulation:
             self._pj = np.zeros(0, dtype=np.int64)
             self._fpair = np.zeros((0, 3))
             self._pair_capacity = max(8 * n, 64)
-        for wall in self._wall_list:
-            if wall.hist is None or wall.hist.shape[0] < n:
-                old = wall.hist
-                wall.hist = np.zeros((max(n, 1), hsize))
-                if old is not None:
-                    wall.hist[: old.shape[0]] = old
-            wall.params = wall.shape.params(wall.offset)
+        self._allocate_wall_history(n, hsize)
+        self._walls_changed = True
         self._prepared = True
         self._rebuild()
         self._check_initial_overlaps()
@@ -243,6 +244,32 @@ class Simulation:
         for wall, h in zip(self._wall_list, saved[1:], strict=True):
             wall.hist[:] = h
         self._add_body_forces_only()
+
+    def _allocate_wall_history(self, n: int, hsize: int) -> None:
+        """One (walls, particles, H) array; each wall's ``hist`` is a view of its slice."""
+        nw = len(self._wall_list)
+        old = getattr(self, "_wall_hist", None)
+        if old is not None and old.shape[0] == nw and old.shape[1] >= n and old.shape[2] == hsize:
+            return
+        new = np.zeros((nw, max(n, 1), hsize))
+        for k, wall in enumerate(self._wall_list):
+            if wall.hist is not None:
+                m = min(wall.hist.shape[0], new.shape[1])
+                new[k, :m] = wall.hist[:m]
+            wall.hist = new[k]
+        self._wall_hist = new
+
+    def _pack_walls(self) -> None:
+        """Stack the walls' geometry and state into the arrays of the wall kernel."""
+        walls = self._wall_list
+        nw = len(walls)
+        self._w_kinds = np.array([w.shape.kind for w in walls], dtype=np.int64)
+        self._w_params = np.array([w.params for w in walls], dtype=np.float64).reshape(nw, -1)
+        self._w_vel = np.array([w.velocity for w in walls], dtype=np.float64).reshape(nw, 3)
+        self._w_omega = np.array([w.omega for w in walls], dtype=np.float64).reshape(nw, 3)
+        self._w_centre = np.array([w.reference_point for w in walls], dtype=np.float64).reshape(nw, 3)
+        self._w_mat = np.array([w.material for w in walls], dtype=np.int64)
+        self._moving_walls = [k for k, w in enumerate(walls) if w.moving]
 
     # ------------------------------------------------------------------ checkpoint state
     _PARTICLE_FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion")
@@ -300,7 +327,7 @@ class Simulation:
         for wall in self._wall_list:
             key = f"walls/{wall.name}/"
             wall.hist = np.array(state[key + "hist"], dtype=np.float64).reshape(len(g["id"]), hsize)
-            wall.offset = np.array(state[key + "offset"], dtype=float)
+            wall.set_offset(np.array(state[key + "offset"], dtype=float))
             wall.velocity = np.array(state[key + "velocity"], dtype=float)
             wall.active = bool(state[key + "active"])
             if hasattr(wall.motion, "velocity") and not isinstance(wall.motion.velocity, tuple):
@@ -396,25 +423,35 @@ class Simulation:
         self._pi, self._pj, self._pair_keys, self._pair_hist = pi, pj, keys, hist
         self._fpair = np.zeros((keys.shape[0], 3))
         p.x_build[:] = x
-        # wall candidates: particles within the skin of each wall
+        # wall candidates: particles within the skin of each (active) wall, concatenated
         from .boundaries._geometry import wall_contact_numpy
 
+        cands = []
         for wall in self._wall_list:
             if p.n_owned and wall.active:
                 gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
                 wall.candidates = np.flatnonzero(gap < self.skin).astype(np.int64)
             else:
                 wall.candidates = np.zeros(0, dtype=np.int64)
-            if wall._buf_idx.shape[0] < wall.candidates.shape[0]:
-                wall._buf_idx = np.empty(wall.candidates.shape[0], dtype=np.int64)
-                wall._buf_val = np.empty((wall.candidates.shape[0], 6))
+            cands.append(wall.candidates)
             wall.offset_build = wall.offset.copy()
+        sizes = [c.shape[0] for c in cands]
+        self._w_cstart = np.zeros(len(cands) + 1, dtype=np.int64)
+        self._w_cstart[1:] = np.cumsum(sizes)
+        self._w_cand = np.concatenate(cands) if cands else np.zeros(0, dtype=np.int64)
+        total = max(int(self._w_cstart[-1]), 1)
+        self._w_out_idx = np.empty(total, dtype=np.int64)
+        self._w_out_val = np.empty((total, 6))
+        self._w_counts = np.zeros(len(cands), dtype=np.int64)
+        for k, wall in enumerate(self._wall_list):
+            wall.record_load(0, self._w_out_val[self._w_cstart[k]: self._w_cstart[k + 1]])
         self.n_rebuilds += 1
 
     def _needs_rebuild(self) -> bool:
         p = self.particles
         disp = math.sqrt(nk.max_displacement2(p.x, p.x_build, p.n_owned))
-        wall_disp = max((w.displacement_since_build() for w in self._wall_list), default=0.0)
+        walls = self._wall_list
+        wall_disp = max((walls[k].displacement_since_build() for k in self._moving_walls), default=0.0)
         return any_rank(self.comm, 2.0 * disp > self.skin or disp + wall_disp > self.skin)
 
     # ------------------------------------------------------------------ forces
@@ -424,15 +461,17 @@ class Simulation:
         flags = self.law.pair_kernel(self._pi, self._pj, self._pair_hist, p.x, p.v, p.w, p.r, p.inv_m,
                                      p.inv_i, p.mat, self._coef, p.f, p.t, self._fpair, self.dt,
                                      self.max_overlap)
-        for wall in self._wall_list:
-            if not wall.active:
-                continue
-            count, wflags = self.law.wall_kernel(
-                wall.shape.kind, wall.params, wall.velocity, wall.omega, wall.reference_point,
-                wall.candidates, wall.hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, wall.material,
-                self._coef, p.f, p.t, self.dt, self.max_overlap, wall._buf_idx, wall._buf_val)
-            wall.record_load(count)
-            flags |= wflags
+        if self._wall_list:
+            if self._walls_changed:
+                self._pack_walls()
+                self._walls_changed = False
+            flags |= self.law.wall_kernel(
+                self._w_kinds, self._w_params, self._w_vel, self._w_omega, self._w_centre, self._w_mat,
+                self._w_cstart, self._w_cand, self._wall_hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat,
+                self._coef, p.f, p.t, self.dt, self.max_overlap, self._w_out_idx, self._w_out_val,
+                self._w_counts)
+            for k, wall in enumerate(self._wall_list):
+                wall.record_load(int(self._w_counts[k]))
         return flags
 
     def _add_body_forces_only(self) -> None:
@@ -448,8 +487,12 @@ class Simulation:
         p = self.particles
         dt = self.dt
         integ.initial_integrate(p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned)
-        for wall in self._wall_list:
+        for k in self._moving_walls:
+            wall = self._wall_list[k]
             wall.advance(self.time, dt)
+            self._w_params[k] = wall.params
+            self._w_vel[k] = wall.velocity
+            self._w_centre[k] = wall.reference_point
         if self._force_rebuild or self._needs_rebuild():
             self._force_rebuild = False
             self._rebuild()

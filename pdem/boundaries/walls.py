@@ -103,24 +103,41 @@ class Wall:
         self.n_contacts = 0
         self.candidates = np.zeros(0, dtype=np.int64)
         self.hist: np.ndarray | None = None
-        self._buf_idx = np.zeros(1, dtype=np.int64)
-        self._buf_val = np.zeros((1, 6))
-        self.params = shape.params(self.offset)
+        self._buf_val = np.zeros((0, 6))
+        # every primitive keeps its anchor point in params[0:3]: a translation moves only those
+        self._base_params = np.asarray(shape.params(np.zeros(3)), dtype=float)
+        self._base_ref = np.asarray(shape.reference_point, dtype=float)
+        self.params = self._base_params.copy()
+        self.reference_point = self._base_ref.copy()
 
     @property
-    def reference_point(self) -> np.ndarray:
-        return np.asarray(self.shape.reference_point, dtype=float) + self.offset
+    def moving(self) -> bool:
+        return not isinstance(self.motion, Fixed)
 
-    def advance(self, t: float, dt: float) -> None:
-        self.offset, self.velocity = self.motion.advance(t, dt, self.offset)
-        self.params = self.shape.params(self.offset)
+    def set_offset(self, offset) -> None:
+        """Place the wall at ``offset`` [m] from its initial position."""
+        self.offset = np.asarray(offset, dtype=float)
+        self.params = self._base_params.copy()
+        self.params[0:3] += self.offset
+        self.reference_point = self._base_ref + self.offset
+
+    def advance(self, t: float, dt: float) -> bool:
+        """Move over one step; returns whether the wall moved."""
+        if not self.moving:
+            return False
+        offset, self.velocity = self.motion.advance(t, dt, self.offset)
+        self.set_offset(offset)
+        return True
 
     def displacement_since_build(self) -> float:
-        return float(np.linalg.norm(self.offset - self.offset_build))
+        d = self.offset - self.offset_build
+        return math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
 
-    def record_load(self, count: int) -> None:
-        """Note that the contact buffers hold this step's ``count`` contributions (summed lazily)."""
+    def record_load(self, count: int, values: np.ndarray | None = None) -> None:
+        """Note that ``values[:count]`` holds this step's contributions (summed lazily, exactly)."""
         self.n_contacts = count
+        if values is not None:
+            self._buf_val = values
         self._load = None
 
     def _reduced(self) -> np.ndarray:

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from .._jit import njit_nocache
 from ..boundaries._geometry import wall_contact
 
@@ -108,67 +106,72 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
 
 
 @njit_nocache(inline="always")
-def wall_forces(law, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
-                coef, f, t, dt, max_overlap, out_idx, out_val):
-    """Contacts of the candidate particles ``cand`` with one wall.
+def wall_forces(law, kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v, w, r, inv_m, inv_i,
+                mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts):
+    """Contacts of candidate particles with every wall, walls in order (one call per step).
 
-    The wall is the partner j (infinite mass and radius: R* = r_i, m* = m_i, I* = I_i); the law's
-    force F acts on the wall and −F on the particle. ``vel``/``omega`` are the wall's translational
-    and angular velocity, ``centre`` the point it rotates about and about which its torque is
-    reported. ``hist`` is the per-particle history slot array of this wall, shape (n, H).
-    Each touching particle's contribution to the wall's force and torque is written to
-    ``out_val[c] = (Fx, Fy, Fz, Tx, Ty, Tz)`` with its index in ``out_idx[c]``; returns
-    (number of contacts, flags).
+    Wall k has geometry ``kinds[k]``/``params[k]`` (see :mod:`pdem.boundaries._geometry`), translational
+    and angular velocity ``vel[k]``/``omega[k]``, reference point ``centre[k]`` (about which it turns
+    and its torque is reported), material ``wmat[k]``, candidates ``cand[cstart[k]:cstart[k+1]]`` and
+    history ``hist[k]`` of shape (n, H) indexed by particle. Inactive walls have no candidates.
+
+    A wall is the partner j (infinite mass and radius: R* = r_i, m* = m_i, I* = I_i); the law's force
+    F acts on the wall and −F on the particle. Each touching particle's contribution to wall k's
+    load ``(Fx, Fy, Fz, Tx, Ty, Tz)`` is written to ``out_val[cstart[k] + c]`` with its particle index
+    in ``out_idx``; ``counts[k]`` receives the number of contacts. Returns the flag word.
     """
     flags = 0
-    count = 0
-    hsize = hist.shape[1]
-    for q in range(cand.shape[0]):
-        i = cand[q]
-        gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
-        if gap >= 0.0 or inv_m[i] == 0.0:
-            for h in range(hsize):
-                hist[i, h] = 0.0
-            continue
-        delta = -gap
-        if delta > max_overlap * r[i]:
-            flags |= FLAG_OVERLAP
-        ai = r[i] - 0.5 * delta
-        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
-        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
-        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
-        # wall velocity at the contact point: V + Ω × (p − centre)
-        qx = px - centre[0]
-        qy = py - centre[1]
-        qz = pz - centre[2]
-        vwx = vel[0] + omega[1] * qz - omega[2] * qy
-        vwy = vel[1] + omega[2] * qx - omega[0] * qz
-        vwz = vel[2] + omega[0] * qy - omega[1] * qx
-        fx, fy, fz, mx, my, mz = law(
-            delta, nx, ny, nz, vwx - vix, vwy - viy, vwz - viz,
-            omega[0] - w[i, 0], omega[1] - w[i, 1], omega[2] - w[i, 2],
-            r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef, mat[i], wmat, hist, i, dt,
-        )
-        f[i, 0] -= fx
-        f[i, 1] -= fy
-        f[i, 2] -= fz
-        cx = ny * fz - nz * fy
-        cy = nz * fx - nx * fz
-        cz = nx * fy - ny * fx
-        t[i, 0] += -ai * cx - mx
-        t[i, 1] += -ai * cy - my
-        t[i, 2] += -ai * cz - mz
-        out_idx[count] = i
-        out_val[count, 0] = fx
-        out_val[count, 1] = fy
-        out_val[count, 2] = fz
-        out_val[count, 3] = qy * fz - qz * fy + mx
-        out_val[count, 4] = qz * fx - qx * fz + my
-        out_val[count, 5] = qx * fy - qy * fx + mz
-        count += 1
-    return count, flags
+    hsize = hist.shape[2]
+    for k in range(kinds.shape[0]):
+        kind = kinds[k]
+        p = params[k]
+        base = cstart[k]
+        count = 0
+        for q in range(cstart[k], cstart[k + 1]):
+            i = cand[q]
+            gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
+            if gap >= 0.0 or inv_m[i] == 0.0:
+                for h in range(hsize):
+                    hist[k, i, h] = 0.0
+                continue
+            delta = -gap
+            if delta > max_overlap * r[i]:
+                flags |= FLAG_OVERLAP
+            ai = r[i] - 0.5 * delta
+            vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+            viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+            viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+            # wall velocity at the contact point: V + Ω × (p − centre)
+            qx = px - centre[k, 0]
+            qy = py - centre[k, 1]
+            qz = pz - centre[k, 2]
+            vwx = vel[k, 0] + omega[k, 1] * qz - omega[k, 2] * qy
+            vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
+            vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
+            fx, fy, fz, mx, my, mz = law(
+                delta, nx, ny, nz, vwx - vix, vwy - viy, vwz - viz,
+                omega[k, 0] - w[i, 0], omega[k, 1] - w[i, 1], omega[k, 2] - w[i, 2],
+                r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef, mat[i], wmat[k], hist[k], i, dt,
+            )
+            f[i, 0] -= fx
+            f[i, 1] -= fy
+            f[i, 2] -= fz
+            cx = ny * fz - nz * fy
+            cy = nz * fx - nx * fz
+            cz = nx * fy - ny * fx
+            t[i, 0] += -ai * cx - mx
+            t[i, 1] += -ai * cy - my
+            t[i, 2] += -ai * cz - mz
+            c = base + count
+            out_idx[c] = i
+            out_val[c, 0] = fx
+            out_val[c, 1] = fy
+            out_val[c, 2] = fz
+            out_val[c, 3] = qy * fz - qz * fy + mx
+            out_val[c, 4] = qz * fx - qx * fz + my
+            out_val[c, 5] = qx * fy - qy * fx + mz
+            count += 1
+        counts[k] = count
+    return flags
 
 
-def empty_wall_buffers(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Output buffers for :func:`wall_forces` able to hold ``n`` contacts."""
-    return np.empty(max(n, 1), dtype=np.int64), np.empty((max(n, 1), 6), dtype=np.float64)

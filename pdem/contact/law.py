@@ -26,10 +26,10 @@ function as an argument across processes, but it can cache one that calls it as 
                            dt, max_overlap)
 
     @njit
-    def my_wall_kernel(kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i, mat, wmat,
-                       coef, f, t, dt, max_overlap, out_idx, out_val):
-        return wall_forces(my_force, kind, p, vel, omega, centre, cand, hist, x, v, w, r, inv_m, inv_i,
-                           mat, wmat, coef, f, t, dt, max_overlap, out_idx, out_val)
+    def my_wall_kernel(kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v, w, r, inv_m,
+                       inv_i, mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts):
+        return wall_forces(my_force, kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v,
+                           w, r, inv_m, inv_i, mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts)
 
 (explicit argument lists: with ``*args`` numba falls back to an uncacheable first-class function).
 

@@ -139,65 +139,20 @@ def hertz_mindlin_force(
     return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, mx, my, mz)
 
 
+# fmt: off
 @njit
-def hertz_mindlin_pair_kernel(
-    pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
-):
-    return pair_forces(
-        hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
-    )
+def hertz_mindlin_pair_kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt,
+                              max_overlap):
+    return pair_forces(hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair,
+                       dt, max_overlap)
 
 
 @njit
-def hertz_mindlin_wall_kernel(
-    kind,
-    p,
-    vel,
-    omega,
-    centre,
-    cand,
-    hist,
-    x,
-    v,
-    w,
-    r,
-    inv_m,
-    inv_i,
-    mat,
-    wmat,
-    coef,
-    f,
-    t,
-    dt,
-    max_overlap,
-    out_idx,
-    out_val,
-):
-    return wall_forces(
-        hertz_mindlin_force,
-        kind,
-        p,
-        vel,
-        omega,
-        centre,
-        cand,
-        hist,
-        x,
-        v,
-        w,
-        r,
-        inv_m,
-        inv_i,
-        mat,
-        wmat,
-        coef,
-        f,
-        t,
-        dt,
-        max_overlap,
-        out_idx,
-        out_val,
-    )
+def hertz_mindlin_wall_kernel(kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v, w, r, inv_m,
+                              inv_i, mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts):
+    return wall_forces(hertz_mindlin_force, kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v,
+                       w, r, inv_m, inv_i, mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts)
+# fmt: on
 
 
 def force_numpy(delta, n, vrel, wrel, r_eff, m_eff, i_eff, c, hist, dt):

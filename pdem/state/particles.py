@@ -24,40 +24,68 @@ _SCAL = {"r": np.float64, "mass": np.float64, "inv_m": np.float64, "inv_i": np.f
 
 
 class ParticleStore:
-    """Structure of arrays with amortised growth. Arrays are views of length ``n`` (owned + ghosts)."""
+    """Structure of arrays with amortised growth. Field attributes are views of length ``n`` (owned +
+    ghosts), cached until the counts or the capacity change."""
 
     def __init__(self, capacity: int = 0) -> None:
         self.capacity = 0
-        self.n_owned = 0
-        self.n_ghost = 0
+        self._n_owned = 0
+        self._n_ghost = 0
+        self._views: dict[str, np.ndarray] = {}
         self._alloc(max(capacity, 16))
 
     @property
     def n(self) -> int:
-        return self.n_owned + self.n_ghost
+        return self._n_owned + self._n_ghost
+
+    @property
+    def n_owned(self) -> int:
+        return self._n_owned
+
+    @n_owned.setter
+    def n_owned(self, value: int) -> None:
+        self._n_owned = int(value)
+        self._views = {}
+
+    @property
+    def n_ghost(self) -> int:
+        return self._n_ghost
+
+    @n_ghost.setter
+    def n_ghost(self, value: int) -> None:
+        self._n_ghost = int(value)
+        self._views = {}
 
     def _alloc(self, capacity: int) -> None:
         old_cap = self.capacity
         for name in _VEC:
             new = np.zeros((capacity, 3), dtype=np.float64)
             if old_cap:
-                new[:old_cap] = getattr(self, "_" + name)
-            setattr(self, "_" + name, new)
+                new[:old_cap] = self.__dict__["_" + name]
+            self.__dict__["_" + name] = new
         for name, dt in _SCAL.items():
             new = np.zeros(capacity, dtype=dt)
             if old_cap:
-                new[:old_cap] = getattr(self, "_" + name)
-            setattr(self, "_" + name, new)
+                new[:old_cap] = self.__dict__["_" + name]
+            self.__dict__["_" + name] = new
         self.capacity = capacity
+        self._views = {}
 
     def reserve(self, n: int) -> None:
         if n > self.capacity:
             self._alloc(max(n, int(self.capacity * 1.5) + 16))
 
     def __getattr__(self, name: str):
-        # views of the live part; only reached for names not set as attributes
-        if name in _VEC or name in _SCAL:
-            return self.__dict__["_" + name][: self.n]
+        # only reached for names that are not attributes: the field views
+        views = self.__dict__.get("_views")
+        if views is not None:
+            view = views.get(name)
+            if view is not None:
+                return view
+            if name in _VEC or name in _SCAL:
+                view = self.__dict__["_" + name][: self.n]
+                views[name] = view
+                return view
         raise AttributeError(name)
 
     def append_owned(self, ids, x, v, w, r, mass, inv_m, inv_i, mat, motion) -> None:
@@ -67,17 +95,18 @@ class ParticleStore:
         k = len(ids)
         self.reserve(self.n_owned + k)
         s = slice(self.n_owned, self.n_owned + k)
-        self._id[s] = ids
-        self._x[s] = x
-        self._v[s] = v
-        self._w[s] = w
-        self._r[s] = r
-        self._mass[s] = mass
-        self._inv_m[s] = inv_m
-        self._inv_i[s] = inv_i
-        self._mat[s] = mat
-        self._motion[s] = motion
-        self._f[s] = 0.0
-        self._t[s] = 0.0
-        self._x_build[s] = x
-        self.n_owned += k
+        d = self.__dict__
+        d["_id"][s] = ids
+        d["_x"][s] = x
+        d["_v"][s] = v
+        d["_w"][s] = w
+        d["_r"][s] = r
+        d["_mass"][s] = mass
+        d["_inv_m"][s] = inv_m
+        d["_inv_i"][s] = inv_i
+        d["_mat"][s] = mat
+        d["_motion"][s] = motion
+        d["_f"][s] = 0.0
+        d["_t"][s] = 0.0
+        d["_x_build"][s] = x
+        self.n_owned = self.n_owned + k
