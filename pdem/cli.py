@@ -74,6 +74,8 @@ def _comm():
 
 
 def _print_summary(summary: dict, out: Path) -> None:
+    if _rank() != 0:
+        return
     print(
         f"pdem: {summary['steps']} steps, t = {summary['time']:.6g} s, {summary['particles']} particles, "
         f"{summary['wall_time_s']:.1f} s wall time; output in {out}"
@@ -195,24 +197,56 @@ def main(argv: list[str] | None = None) -> int:
             ](argv[1:])
         return cmd_run(_run_parser().parse_args(argv))
     except PdemError as exc:
-        print(f"pdem: error: {exc}", file=sys.stderr)
-        return _fail(exc.exit_code)
+        return _fail(exc.exit_code, f"pdem: error: {exc}")
     except KeyboardInterrupt:
-        print("pdem: interrupted", file=sys.stderr)
-        return _fail(1)
+        return _fail(1, "pdem: interrupted")
+    except Exception as exc:  # a bug: keep the traceback, but never leave other ranks hanging
+        if _world_size() > 1:
+            import traceback
+
+            traceback.print_exc()
+            return _fail(1, f"pdem: internal error: {type(exc).__name__}: {exc}")
+        raise
 
 
-def _fail(code: int) -> int:
-    """Make every rank fail together: under MPI, abort the whole job with this code."""
+def _rank() -> int:
     try:
         from mpi4py import MPI
-
-        if MPI.Is_initialized() and MPI.COMM_WORLD.Get_size() > 1:
-            sys.stderr.flush()
-            MPI.COMM_WORLD.Abort(code)
     except ImportError:  # pragma: no cover
-        pass
-    return code
+        return 0
+    return MPI.COMM_WORLD.Get_rank() if MPI.Is_initialized() else 0
+
+
+def _world_size() -> int:
+    try:
+        from mpi4py import MPI
+    except ImportError:  # pragma: no cover
+        return 1
+    return MPI.COMM_WORLD.Get_size() if MPI.Is_initialized() else 1
+
+
+def _fail(code: int, message: str) -> int:
+    """Report and make every rank fail together.
+
+    Serial: print and return the code. Under MPI, rank 0 prints and aborts the whole job with the
+    code at once; other ranks wait a moment first, so that an error raised on every rank (the usual
+    case: decisions are collective) is printed once, while an error raised on one rank only still
+    ends the job within seconds instead of leaving the others waiting in a collective call.
+    """
+    if _world_size() == 1:
+        print(message, file=sys.stderr)
+        return code
+    import time
+
+    from mpi4py import MPI
+
+    rank = MPI.COMM_WORLD.Get_rank()
+    if rank != 0:
+        time.sleep(2.0)
+        message = f"[rank {rank}] {message}"
+    print(message, file=sys.stderr, flush=True)
+    MPI.COMM_WORLD.Abort(code)
+    return code  # pragma: no cover
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -133,7 +133,8 @@ class _Progress:
             remaining = (1 - frac) / frac * (now - self._stage_start) if hasattr(self, "_stage_start") else 0
             eta = f", ETA {remaining:.0f} s"
         line = (
-            f"[{stage}] t = {sim.time:.6g} s, step {sim.step_count}, {sim.n_particles} particles, "
+            f"[{stage}] t = {sim.time:.6g} s, step {sim.step_count}, "
+            f"{sim.n_particles} particles{' on rank 0' if sim.comm.size > 1 else ''}, "
             f"{rate:,.0f} steps/s{eta}"
         )
         tty = getattr(self.stream, "isatty", lambda: False)()
@@ -170,26 +171,36 @@ class Runner:
         resume: tuple[dict, dict] | None = None,
         overrides: tuple[str, ...] = (),
     ) -> None:
+        from .parallel.comm import SerialComm
+
         self.resolved = resolved
         self.deck = resolved.deck
-        self.comm = comm
+        self.comm = comm if comm is not None else SerialComm()
+        self.root = self.comm.rank == 0  # only rank 0 touches files
         self.max_steps = max_steps
         self.overrides = tuple(overrides)
         self.resume = resume
         out = output if output is not None else Path(self.deck.output.directory)
         self.out = Path(out)
-        if self.out.exists() and any(self.out.iterdir()):
+        problem = None
+        if self.root and self.out.exists() and any(self.out.iterdir()):
             if not overwrite:
-                raise InputError(
+                problem = (
                     f"output directory {self.out} exists and is not empty; pass --overwrite to "
                     "replace it, or choose another with --output DIR"
                 )
-            shutil.rmtree(self.out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "checkpoints").mkdir(exist_ok=True)
+            else:
+                shutil.rmtree(self.out)
+        problem = self.comm.bcast(problem, root=0)
+        if problem:
+            raise InputError(problem)
         self.deck_text = resolved.resolved_toml()
-        (self.out / "deck.resolved.toml").write_text(self.deck_text)
-        self.progress = _Progress(progress)
+        if self.root:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "checkpoints").mkdir(exist_ok=True)
+            (self.out / "deck.resolved.toml").write_text(self.deck_text)
+        self.comm.Barrier()
+        self.progress = _Progress(progress if self.root else None)
         self.boundaries: dict[str, Any] = {}
         self.writers: list[Any] = []
         self.series: dict[str, list[dict[str, float]]] = {}
@@ -253,12 +264,14 @@ class Runner:
         row = {
             "time": sim.time,
             "step": float(sim.step_count),
-            "particles": float(sim.n_particles),
+            "particles": float(sim.count_particles()),
             "ke_trans": ke_t,
             "ke_rot": ke_r,
             **self.measurements(),
         }
         self.series.setdefault(stage, []).append(row)
+        if not self.root:
+            return
         writer = self._series_writers.get(stage)
         if writer is None:
             from .io.series import SeriesWriter
@@ -270,7 +283,7 @@ class Runner:
     def frame(self, stage: str) -> Frame:
         sim = self.sim
         p = sim.get_particles()
-        contacts = np.zeros(sim.n_particles, dtype=np.int32)
+        contacts = np.zeros(len(p["id"]), dtype=np.int32)
         c = sim.contacts()
         if len(c["id_i"]):
             order = {int(i): k for k, i in enumerate(p["id"])}
@@ -312,7 +325,7 @@ class Runner:
     def _write_frame(self, stage: str) -> None:
         if self._last_frame_step == self.sim.step_count:
             return
-        frame = self.frame(stage)
+        frame = self.frame(stage)  # collective
         for w in self.writers:
             w.write(frame)
         self._last_frame_step = self.sim.step_count
@@ -331,9 +344,12 @@ class Runner:
             "boundaries": json.dumps({n: b.state() for n, b in self.boundaries.items()}),
             "output": str(self.out.resolve()),
         }
-        return write_checkpoint(
-            self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5", sim.state_dict(), meta
-        )
+        state = sim.state_dict()  # collective
+        path = self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5"
+        if self.root:
+            write_checkpoint(path, state, meta)
+        self.comm.Barrier()
+        return path
 
     # ---------------------------------------------------------------------------- running
     def run(self) -> dict[str, Any]:
@@ -358,7 +374,7 @@ class Runner:
         self._series_writers: dict[str, Any] = {}
         self._last_frame_step = -1
         out_cfg = deck.output
-        for fmt in out_cfg.formats:
+        for fmt in out_cfg.formats if self.root else ():
             cls = load("writers", fmt)
             self.writers.append(
                 cls(
@@ -392,7 +408,7 @@ class Runner:
             "steps": sim.step_count,
             "time": sim.time,
             "wall_time_s": wall,
-            "particles": sim.n_particles,
+            "particles": sim.count_particles(),
             "dt": sim.dt,
             "steps_per_second": (sim.step_count - steps_start) / max(wall, 1e-9),
             "completed": not self.stopped_early,
@@ -403,7 +419,8 @@ class Runner:
             res = b.summary(merged)
             if res:
                 summary["results"][name] = res
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        if self.root:
+            (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
     def _merged_series(self) -> dict[str, np.ndarray]:

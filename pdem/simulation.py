@@ -38,11 +38,18 @@ from .errors import GeometryError, InputError, InstabilityError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor import _kernels as nk
-from .parallel.comm import SerialComm, any_rank
+from .parallel.comm import SerialComm, all_max, all_min, any_rank
+from .parallel.exact import exact_sum, global_count
 from .plugins import load_contact_law
-from .state.particles import FREE, MOTION_NAMES, ParticleStore
+from .state.particles import FREE, MOTION_NAMES, REMOVED, ParticleStore
 
 __all__ = ["Simulation"]
+
+
+def _bor():
+    from mpi4py import MPI
+
+    return MPI.BOR
 
 
 class Simulation:
@@ -59,9 +66,10 @@ class Simulation:
 
     def __init__(self, comm=None, law: str | ContactLaw = "hertz_mindlin", **law_params: Any) -> None:
         self.comm = comm if comm is not None else SerialComm()
-        if self.comm.size != 1:
-            raise InputError("this build of the engine runs on one rank; the MPI decomposition is not "
-                             "implemented yet (run without mpirun)")
+        self._decomp = None  # a Decomposition when running on several ranks
+        self._swaps: list = []
+        self._removed_ids: list[np.ndarray] = []
+        self.decomposition_dims: tuple[int, int, int] | None = None
         self.materials = MaterialTable()
         self.particles = ParticleStore()
         self.walls: dict[str, Wall] = {}
@@ -95,8 +103,15 @@ class Simulation:
         self._prepared = False
         return self.materials.add(mat)
 
-    def add_particles(self, positions, radii, material: str = None, velocities=None,
-                      angular_velocities=None, motion: str = "free") -> np.ndarray:
+    def add_particles(
+        self,
+        positions,
+        radii,
+        material: str = None,
+        velocities=None,
+        angular_velocities=None,
+        motion: str = "free",
+    ) -> np.ndarray:
         """Add spheres; returns their ids (consecutive, in the order given).
 
         ``radii`` may be a scalar. ``motion``: ``"free"`` (integrated), ``"fixed"`` (never moves) or
@@ -122,10 +137,16 @@ class Simulation:
         if motion not in MOTION_NAMES:
             raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
         mo = MOTION_NAMES[motion]
-        v = np.zeros((n, 3)) if velocities is None else np.broadcast_to(
-            np.asarray(velocities, dtype=float), (n, 3)).copy()
-        w = np.zeros((n, 3)) if angular_velocities is None else np.broadcast_to(
-            np.asarray(angular_velocities, dtype=float), (n, 3)).copy()
+        v = (
+            np.zeros((n, 3))
+            if velocities is None
+            else np.broadcast_to(np.asarray(velocities, dtype=float), (n, 3)).copy()
+        )
+        w = (
+            np.zeros((n, 3))
+            if angular_velocities is None
+            else np.broadcast_to(np.asarray(angular_velocities, dtype=float), (n, 3)).copy()
+        )
         rho = self.materials[mat_idx].density
         mass = rho * 4.0 / 3.0 * math.pi * r**3
         inertia = 0.4 * mass * r**2
@@ -136,13 +157,28 @@ class Simulation:
         if ids.size and ids[-1] >= 2**31:
             raise InputError("more than 2**31 particles are not supported")
         self._next_id += n
-        self.particles.append_owned(ids, x, v, w, r, mass, inv_m, inv_i,
-                                    np.full(n, mat_idx, np.int32), np.full(n, mo, np.int8))
+        mats, mos = np.full(n, mat_idx, np.int32), np.full(n, mo, np.int8)
+        if self._decomp is not None:  # every rank is given all new particles and keeps its own
+            keep = self._decomp.owned_mask(x)
+            ids_k, x, v, w, r, mass, inv_m, inv_i, mats, mos = (
+                a[keep] for a in (ids, x, v, w, r, mass, inv_m, inv_i, mats, mos)
+            )
+            self.particles.n_ghost = 0
+            self._n_expected += n
+        else:
+            ids_k = ids
+        self.particles.append_owned(ids_k, x, v, w, r, mass, inv_m, inv_i, mats, mos)
         self._prepared = False
         return ids
 
-    def add_wall(self, shape, material: str = None, name: str | None = None,
-                 motion: Motion | None = None, omega=(0.0, 0.0, 0.0)) -> Wall:
+    def add_wall(
+        self,
+        shape,
+        material: str = None,
+        name: str | None = None,
+        motion: Motion | None = None,
+        omega=(0.0, 0.0, 0.0),
+    ) -> Wall:
         """Add a wall of the given shape; ``motion`` prescribes its translation."""
         if name is None:
             name = f"{getattr(shape, 'name_hint', 'wall')}{len(self._wall_list)}"
@@ -177,24 +213,42 @@ class Simulation:
     def remove_particles(self, mask: np.ndarray) -> tuple[int, float]:
         """Remove the owned particles where ``mask`` is true (an outflow); returns (count, mass).
 
-        The neighbour list is rebuilt before the next force evaluation; contact history of the
-        remaining pairs is kept (it is keyed by particle ids).
+        They stop interacting at once (marked REMOVED: no mass, not integrated, left out of every
+        query) and leave the storage at the next neighbour-list rebuild, which this forces at the
+        start of the next step: the pair list stays valid meanwhile. Contact history of the remaining
+        pairs is kept (it is keyed by particle ids).
         """
         p = self.particles
         n = p.n_owned
-        mask = np.asarray(mask, dtype=bool)[:n]
+        mask = np.asarray(mask, dtype=bool)[:n] & (p.motion[:n] != REMOVED)
         count = int(mask.sum())
         if count == 0:
             return 0, 0.0
         mass = math.fsum(p.mass[:n][mask])
-        keep = np.flatnonzero(~mask)
-        self._permute_storage(np.concatenate([keep, np.flatnonzero(mask)]))
-        for wall in self._wall_list:
-            if wall.hist is not None:
-                wall.hist[n - count: n] = 0.0
-        p.n_owned = n - count
+        self._removed_ids.append(p.id[:n][mask].copy())
+        idx = np.flatnonzero(mask)
+        p.motion[idx] = REMOVED
+        p.inv_m[idx] = 0.0
+        p.inv_i[idx] = 0.0
+        p.v[idx] = 0.0
+        p.w[idx] = 0.0
         self._force_rebuild = True
         return count, mass
+
+    def _compact_removed(self) -> None:
+        """Drop REMOVED particles from the storage (at a rebuild, before migration)."""
+        p = self.particles
+        n = p.n_owned
+        gone = p.motion[:n] == REMOVED
+        k = int(gone.sum())
+        if k == 0:
+            return
+        p.n_ghost = 0
+        self._permute_storage(np.concatenate([np.flatnonzero(~gone), np.flatnonzero(gone)]))
+        for wall in self._wall_list:
+            if wall.hist is not None:
+                wall.hist[n - k : n] = 0.0
+        p.n_owned = n - k
 
     # ------------------------------------------------------------------ preparation
     def _prepare(self) -> None:
@@ -203,7 +257,7 @@ class Simulation:
         if len(self.materials) == 0:
             raise InputError("no material defined; add one with add_material()")
         self._coef = self.law.coefficients(self.materials)
-        self.dt_critical = self.law.critical_dt(self.materials, p.r, p.mat, p.mass)
+        self.dt_critical = all_min(self.comm, self.law.critical_dt(self.materials, p.r, p.mat, p.mass))
         if self.dt is None:
             self.dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
             if not math.isfinite(self.dt):
@@ -220,6 +274,11 @@ class Simulation:
             self.skin = 0.1 * 2.0 * float(np.mean(p.r)) if n else 0.0
         if not (self.skin >= 0 and math.isfinite(self.skin)):
             raise InputError(f"skin = {self.skin!r} is invalid; give a non-negative distance in metres")
+        r_max = all_max(self.comm, float(p.r[:n].max()) if n else 0.0)
+        self._ghost_width = 2.0 * r_max + self.skin
+        if self.comm.size > 1 and self._decomp is None:
+            self._decompose()
+            n = p.n_owned
         self._g = np.asarray(self.gravity, dtype=float)
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
             raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
@@ -244,6 +303,38 @@ class Simulation:
         for wall, h in zip(self._wall_list, saved[1:], strict=True):
             wall.hist[:] = h
         self._add_body_forces_only()
+
+    def _decompose(self) -> None:
+        """Split space over the ranks (first preparation: every rank still holds every particle)."""
+        from .parallel.decomposition import Decomposition
+
+        p = self.particles
+        n = p.n_owned
+        lo = p.x[:n].min(axis=0) if n else np.zeros(3)
+        hi = p.x[:n].max(axis=0) if n else np.ones(3)
+        for wall in self._wall_list:
+            wlo, whi = wall.shape.bounding_box(wall.offset)
+            lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
+            hi = np.maximum(hi, np.where(np.isfinite(whi), whi, hi))
+        self._decomp = Decomposition(self.comm, lo, hi, self.decomposition_dims)
+        self._decomp.check_ghost_width(self._ghost_width)
+        keep = self._decomp.owned_mask(p.x[:n])
+        self._permute_storage(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
+        p.n_owned = int(keep.sum())
+        self._n_expected = global_count(self.comm, p.n_owned)
+
+    def exact_sum(self, values) -> float:
+        """Correctly rounded sum over all ranks (collective; independent of the partition)."""
+        return exact_sum(self.comm, values)
+
+    def count(self, n: int) -> int:
+        """Sum of an integer over all ranks (collective)."""
+        return global_count(self.comm, n)
+
+    def count_particles(self) -> int:
+        """Number of particles over all ranks (collective)."""
+        p = self.particles
+        return global_count(self.comm, int(np.count_nonzero(p.motion[: p.n_owned] != REMOVED)))
 
     def _allocate_wall_history(self, n: int, hsize: int) -> None:
         """One (walls, particles, H) array; each wall's ``hist`` is a view of its slice."""
@@ -283,15 +374,25 @@ class Simulation:
             self._prepare()
         p = self.particles
         n = p.n_owned
-        order = np.argsort(p.id[:n], kind="stable")
-        out: dict[str, object] = {f"particles/{k}": getattr(p, k)[:n][order].copy()
-                                  for k in self._PARTICLE_FIELDS}
+        live = p.motion[:n] != REMOVED
+        local = {k: getattr(p, k)[:n][live].copy() for k in self._PARTICLE_FIELDS}
+        for k, wall in enumerate(self._wall_list):
+            local[f"wall{k}"] = wall.hist[:n][live].copy()
+        g = self._gather_by_id(local)
+        out: dict[str, object] = {f"particles/{k}": g[k] for k in self._PARTICLE_FIELDS}
         live = np.any(self._pair_hist != 0.0, axis=1)
-        out["pairs/keys"] = self._pair_keys[live].copy()
-        out["pairs/hist"] = self._pair_hist[live].copy()
-        for wall in self._wall_list:
+        keys, hist = self._pair_keys[live], self._pair_hist[live]
+        if self.comm.size > 1:  # a pair across ranks is held by both, identically: keep one
+            parts = self.comm.allgather((keys, hist))
+            keys = np.concatenate([q[0] for q in parts])
+            hist = np.concatenate([q[1] for q in parts]).reshape(-1, self._pair_hist.shape[1])
+            keys, first = np.unique(keys, return_index=True)
+            hist = hist[first]
+        out["pairs/keys"] = keys.copy()
+        out["pairs/hist"] = hist.copy()
+        for k, wall in enumerate(self._wall_list):
             key = f"walls/{wall.name}/"
-            out[key + "hist"] = wall.hist[:n][order].copy()
+            out[key + "hist"] = g[f"wall{k}"]
             out[key + "offset"] = wall.offset.copy()
             out[key + "velocity"] = wall.velocity.copy()
             out[key + "active"] = np.array(wall.active)
@@ -308,16 +409,21 @@ class Simulation:
         from .errors import CheckpointError
 
         if self.particles.n_owned:
-            raise CheckpointError("load_state needs a simulation without particles (built from the deck "
-                                  "without running its particle sources)")
+            raise CheckpointError(
+                "load_state needs a simulation without particles (built from the deck "
+                "without running its particle sources)"
+            )
         names = set(self.walls)
         saved = {k.split("/")[1] for k in state if k.startswith("walls/")}
         if names != saved:
-            raise CheckpointError(f"the checkpoint's walls {sorted(saved)} differ from the deck's "
-                                  f"{sorted(names)}; resume with the deck the checkpoint was written from")
+            raise CheckpointError(
+                f"the checkpoint's walls {sorted(saved)} differ from the deck's "
+                f"{sorted(names)}; resume with the deck the checkpoint was written from"
+            )
         g = {k: np.asarray(state[f"particles/{k}"]) for k in self._PARTICLE_FIELDS}
-        self.particles.append_owned(g["id"], g["x"], g["v"], g["w"], g["r"], g["mass"], g["inv_m"],
-                                    g["inv_i"], g["mat"], g["motion"])
+        self.particles.append_owned(
+            g["id"], g["x"], g["v"], g["w"], g["r"], g["mass"], g["inv_m"], g["inv_i"], g["mat"], g["motion"]
+        )
         hsize = max(self.law.history_size, 1)
         self._pair_keys = np.asarray(state["pairs/keys"], dtype=np.int64)
         self._pair_hist = np.asarray(state["pairs/hist"], dtype=np.float64).reshape(-1, hsize)
@@ -338,8 +444,10 @@ class Simulation:
         self._next_id = int(state["scalars/next_id"])
         self._prepare()
         # the forces that start the next step are the saved ones, not a re-evaluation
-        self.particles.f[:] = g["f"]
-        self.particles.t[:] = g["t"]
+        p = self.particles
+        rows = np.searchsorted(g["id"], p.id[: p.n_owned])
+        p.f[: p.n_owned] = g["f"][rows]
+        p.t[: p.n_owned] = g["t"][rows]
 
     def _worst_overlap(self) -> tuple[float, str]:
         """Largest overlap / radius over pairs and walls, and who has it (for messages)."""
@@ -364,8 +472,14 @@ class Simulation:
                 worst, who = float(ratio[k]), f"particle {p.id[k]} and wall '{wall.name}'"
         return worst, who
 
-    def _check_initial_overlaps(self) -> None:
+    def _global_worst_overlap(self) -> tuple[float, str]:
         worst, who = self._worst_overlap()
+        if self.comm.size > 1:
+            worst, who = max(self.comm.allgather((worst, who)), key=lambda t: t[0])
+        return worst, who
+
+    def _check_initial_overlaps(self) -> None:
+        worst, who = self._global_worst_overlap()
         if worst > self.max_overlap:
             raise GeometryError(
                 f"{who} overlap by {worst:.3g} of the radius at the start (limit {self.max_overlap}); "
@@ -384,15 +498,36 @@ class Simulation:
         n = p.n_owned
         if p.n_ghost:
             raise RuntimeError("storage can only be permuted without ghosts")
-        for name in ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion",
-                     "x_build"):
+        for name in (
+            "id",
+            "x",
+            "v",
+            "w",
+            "f",
+            "t",
+            "r",
+            "mass",
+            "inv_m",
+            "inv_i",
+            "mat",
+            "motion",
+            "x_build",
+        ):
             arr = getattr(p, name)
             arr[:n] = arr[:n][perm]
         for wall in self._wall_list:
-            wall.hist[:n] = wall.hist[:n][perm]
+            if wall.hist is not None:
+                wall.hist[:n] = wall.hist[:n][perm]
 
     def _rebuild(self) -> None:
         p = self.particles
+        self._compact_removed()
+        if self._decomp is not None:
+            from .parallel.exchange import borders, migrate
+
+            migrate(self)
+            self._check_particle_count()
+            borders(self, self._ghost_width)
         n = p.n
         x = p.x
         r = p.r
@@ -408,8 +543,9 @@ class Simulation:
                 cell *= 1.26
             inv_cell = 1.0 / cell
             while True:
-                pi, pj, count = nk.build_pairs(x, r, p.id, p.n_owned, n, self.skin, lo, inv_cell, dims,
-                                               self._pair_capacity)
+                pi, pj, count = nk.build_pairs(
+                    x, r, p.id, p.n_owned, n, self.skin, lo, inv_cell, dims, self._pair_capacity
+                )
                 if count <= self._pair_capacity:
                     break
                 self._pair_capacity = int(count * 1.3) + 64
@@ -444,34 +580,92 @@ class Simulation:
         self._w_out_val = np.empty((total, 6))
         self._w_counts = np.zeros(len(cands), dtype=np.int64)
         for k, wall in enumerate(self._wall_list):
-            wall.record_load(0, self._w_out_val[self._w_cstart[k]: self._w_cstart[k + 1]])
+            wall.record_load(0, self._w_out_val[self._w_cstart[k] : self._w_cstart[k + 1]])
         self.n_rebuilds += 1
+
+    def _check_particle_count(self) -> None:
+        """No particle may be lost between ranks: owned counts must add up (collective)."""
+        from .errors import LostParticleError
+
+        total = global_count(self.comm, self.particles.n_owned)
+        removed = global_count(self.comm, sum(len(a) for a in self._removed_ids))
+        if total + removed == self._n_expected:
+            return
+        ids = np.concatenate(self.comm.allgather(self.particles.id[: self.particles.n_owned]))
+        gone = np.concatenate(
+            self.comm.allgather(np.concatenate(self._removed_ids or [np.zeros(0, np.int64)]))
+        )
+        missing = np.setdiff1d(np.arange(self._next_id), np.concatenate([ids, gone]))
+        raise LostParticleError(
+            f"{self._n_expected - total - removed} particle(s) lost between ranks at step {self.step_count} "
+            f"(first id {missing[0] if missing.size else '?'}); this is a bug in the exchange, "
+            "please report it"
+        )
 
     def _needs_rebuild(self) -> bool:
         p = self.particles
         disp = math.sqrt(nk.max_displacement2(p.x, p.x_build, p.n_owned))
         walls = self._wall_list
         wall_disp = max((walls[k].displacement_since_build() for k in self._moving_walls), default=0.0)
-        return any_rank(self.comm, 2.0 * disp > self.skin or disp + wall_disp > self.skin)
+        return any_rank(
+            self.comm, self._force_rebuild or 2.0 * disp > self.skin or disp + wall_disp > self.skin
+        )
 
     # ------------------------------------------------------------------ forces
     def _compute_forces(self) -> int:
         p = self.particles
         integ.zero_forces(p.f, p.t, p.n)
-        flags = self.law.pair_kernel(self._pi, self._pj, self._pair_hist, p.x, p.v, p.w, p.r, p.inv_m,
-                                     p.inv_i, p.mat, self._coef, p.f, p.t, self._fpair, self.dt,
-                                     self.max_overlap)
+        flags = self.law.pair_kernel(
+            self._pi,
+            self._pj,
+            self._pair_hist,
+            p.x,
+            p.v,
+            p.w,
+            p.r,
+            p.inv_m,
+            p.inv_i,
+            p.mat,
+            self._coef,
+            p.f,
+            p.t,
+            self._fpair,
+            self.dt,
+            self.max_overlap,
+        )
         if self._wall_list:
             if self._walls_changed:
                 self._pack_walls()
                 self._walls_changed = False
             flags |= self.law.wall_kernel(
-                self._w_kinds, self._w_params, self._w_vel, self._w_omega, self._w_centre, self._w_mat,
-                self._w_cstart, self._w_cand, self._wall_hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat,
-                self._coef, p.f, p.t, self.dt, self.max_overlap, self._w_out_idx, self._w_out_val,
-                self._w_counts)
+                self._w_kinds,
+                self._w_params,
+                self._w_vel,
+                self._w_omega,
+                self._w_centre,
+                self._w_mat,
+                self._w_cstart,
+                self._w_cand,
+                self._wall_hist,
+                p.x,
+                p.v,
+                p.w,
+                p.r,
+                p.inv_m,
+                p.inv_i,
+                p.mat,
+                self._coef,
+                p.f,
+                p.t,
+                self.dt,
+                self.max_overlap,
+                self._w_out_idx,
+                self._w_out_val,
+                self._w_counts,
+            )
             for k, wall in enumerate(self._wall_list):
                 wall.record_load(int(self._w_counts[k]))
+                wall._comm = self.comm
         return flags
 
     def _add_body_forces_only(self) -> None:
@@ -493,20 +687,30 @@ class Simulation:
             self._w_params[k] = wall.params
             self._w_vel[k] = wall.velocity
             self._w_centre[k] = wall.reference_point
-        if self._force_rebuild or self._needs_rebuild():
+        if self._needs_rebuild():
             self._force_rebuild = False
             self._rebuild()
+        elif self._decomp is not None:
+            from .parallel.exchange import forward
+
+            forward(self)
         flags = self._compute_forces()
         g = self._g
-        flags |= integ.add_body_force_and_final_integrate(p.v, p.w, p.f, p.t, p.mass, p.inv_m, p.inv_i,
-                                                          p.motion, g[0], g[1], g[2], dt, p.n_owned)
+        flags |= integ.add_body_force_and_final_integrate(
+            p.v, p.w, p.f, p.t, p.mass, p.inv_m, p.inv_i, p.motion, g[0], g[1], g[2], dt, p.n_owned
+        )
         self.time += dt
         self.step_count += 1
         if any_rank(self.comm, flags != 0):
             self._raise_for_flags(flags)
 
-    def run(self, steps: int | None = None, until: float | None = None,
-            callback: Callable[[Simulation], Any] | None = None, every: int = 1) -> Simulation:
+    def run(
+        self,
+        steps: int | None = None,
+        until: float | None = None,
+        callback: Callable[[Simulation], Any] | None = None,
+        every: int = 1,
+    ) -> Simulation:
         """Run ``steps`` steps, or until simulated time ``until`` [s]. ``callback(sim)`` runs every
         ``every`` steps."""
         if not self._prepared:
@@ -524,7 +728,9 @@ class Simulation:
         return self
 
     def _raise_for_flags(self, flags: int) -> None:
-        worst, who = self._worst_overlap()
+        worst, who = self._global_worst_overlap()
+        if self.comm.size > 1:
+            flags = int(self.comm.allreduce(flags, op=_bor()))
         causes = []
         if flags & FLAG_OVERLAP:
             causes.append(f"an overlap exceeded {self.max_overlap} of a radius")
@@ -540,14 +746,26 @@ class Simulation:
         )
 
     # ------------------------------------------------------------------ inspection
+    def _gather_by_id(self, local: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Concatenate per-rank arrays (each keyed like ``local``, with ``id``) and order by id."""
+        if self.comm.size > 1:
+            parts = self.comm.allgather(local)
+            local = {k: np.concatenate([q[k] for q in parts]) for k in local}
+        order = np.argsort(local["id"], kind="stable")
+        return {k: v[order] for k, v in local.items()}
+
     def get_particles(self) -> dict[str, np.ndarray]:
-        """Copies of the owned particle arrays, ordered by id: id, x, v, w, r, mass, f, t, material,
-        motion."""
+        """Copies of the particle arrays of all ranks, ordered by id: id, x, v, w, r, mass, f, t,
+        material, motion. Under MPI this is a collective call."""
         p = self.particles
         n = p.n_owned
-        order = np.argsort(p.id[:n], kind="stable")
-        out = {name: getattr(p, name)[:n][order].copy() for name in
-               ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")}
+        live = p.motion[:n] != REMOVED
+        out = self._gather_by_id(
+            {
+                name: getattr(p, name)[:n][live].copy()
+                for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
+            }
+        )
         out["material"] = out.pop("mat")
         return out
 
@@ -562,15 +780,24 @@ class Simulation:
         dist = np.linalg.norm(d, axis=1)
         overlap = p.r[pi] + p.r[pj] - dist
         touching = (overlap > 0) & np.any(self._fpair != 0, axis=1)
+        touching &= (p.motion[pi] != REMOVED) & (p.motion[pj] != REMOVED)
         n = d[touching] / dist[touching, None]
         force = self._fpair[touching]
-        return {
+        local = {
             "id_i": p.id[pi[touching]].copy(),
             "id_j": p.id[pj[touching]].copy(),
             "overlap": overlap[touching],
             "normal_force": np.einsum("ij,ij->i", force, n),
             "force": force.copy(),
         }
+        if self.comm.size == 1:
+            return local
+        # a contact across ranks is computed on both: keep one copy (they are identical)
+        parts = self.comm.allgather(local)
+        allc = {k: np.concatenate([q[k] for q in parts]) for k in local}
+        key = (allc["id_i"] << 32) | allc["id_j"]
+        _, first = np.unique(key, return_index=True)
+        return {k: v[first] for k, v in allc.items()}
 
     def kinetic_energy(self) -> tuple[float, float]:
         """(translational, rotational) kinetic energy of the free particles [J]."""
@@ -578,9 +805,10 @@ class Simulation:
         n = p.n_owned
         free = p.motion[:n] == FREE
         m = p.mass[:n][free]
-        et = 0.5 * math.fsum(m * np.einsum("ij,ij->i", p.v[:n][free], p.v[:n][free]))
-        er = 0.5 * math.fsum(0.4 * m * p.r[:n][free] ** 2 * np.einsum("ij,ij->i", p.w[:n][free],
-                                                                      p.w[:n][free]))
+        et = 0.5 * exact_sum(self.comm, m * np.einsum("ij,ij->i", p.v[:n][free], p.v[:n][free]))
+        er = 0.5 * exact_sum(
+            self.comm, 0.4 * m * p.r[:n][free] ** 2 * np.einsum("ij,ij->i", p.w[:n][free], p.w[:n][free])
+        )
         return et, er
 
     @property
@@ -588,5 +816,7 @@ class Simulation:
         return self.particles.n_owned
 
     def __repr__(self) -> str:
-        return (f"Simulation({self.n_particles} particles, {len(self._wall_list)} walls, "
-                f"law={self.law.name}, dt={self.dt}, t={self.time:.6g} s, step={self.step_count})")
+        return (
+            f"Simulation({self.n_particles} particles, {len(self._wall_list)} walls, "
+            f"law={self.law.name}, dt={self.dt}, t={self.time:.6g} s, step={self.step_count})"
+        )

@@ -216,29 +216,40 @@ class OutflowBoundary(Boundary):
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)
-        self.removed_count = 0
-        self.removed_mass = 0.0
+        self.removed_masses: list[float] = []  # this rank's removals (summed exactly over ranks)
+        self._comm = None
         n = np.asarray(params.normal, dtype=float)
         self._n = n / np.linalg.norm(n)
         self._p = np.asarray(params.point, dtype=float)
 
+    def build(self, sim: Any) -> None:
+        self._comm = sim.comm
+
     def after_step(self, sim: Any) -> None:
-        x = sim.particles.x[: sim.n_particles]
-        gone = (x - self._p) @ self._n < 0.0
+        self._comm = sim.comm
+        n = sim.n_particles
+        x = sim.particles.x[:n]
+        gone = ((x - self._p) @ self._n < 0.0) & (sim.particles.inv_m[:n] > 0)
         if gone.any():
-            count, mass = sim.remove_particles(gone)
-            self.removed_count += count
-            self.removed_mass += mass
+            self.removed_masses.extend(float(m) for m in sim.particles.mass[:n][gone])
+            sim.remove_particles(gone)
 
     def measurements(self, sim: Any) -> dict[str, float]:
-        return {"removed_count": float(self.removed_count), "removed_mass": self.removed_mass}
+        return {
+            "removed_count": float(sim.count(len(self.removed_masses))),
+            "removed_mass": sim.exact_sum(self.removed_masses),
+        }
 
     def state(self) -> dict[str, Any]:
-        return {"removed_count": self.removed_count, "removed_mass": self.removed_mass}
+        """All ranks' removals (collective), so a checkpoint resumes on any number of ranks."""
+        masses = list(self.removed_masses)
+        if self._comm is not None and self._comm.size > 1:
+            masses = [m for part in self._comm.allgather(masses) for m in part]
+        return {"removed_masses": masses}
 
     def restore(self, state: dict[str, Any]) -> None:
-        self.removed_count = int(state.get("removed_count", 0))
-        self.removed_mass = float(state.get("removed_mass", 0.0))
+        rank = 0 if self._comm is None else self._comm.rank
+        self.removed_masses = list(state.get("removed_masses", [])) if rank == 0 else []
 
 
 class HopperParams(WallBoundaryParams):
@@ -286,6 +297,7 @@ class HopperBoundary(Boundary):
         )
 
     def build(self, sim: Any) -> None:
+        self._sink.build(sim)
         p = self.params
         c = np.asarray(p.orifice_center, dtype=float)
         r0, r1 = 0.5 * p.orifice_diameter, 0.5 * p.top_diameter
@@ -317,8 +329,11 @@ class HopperBoundary(Boundary):
         out = super().measurements(sim)
         n = sim.n_particles
         below = (sim.particles.x[:n, 2] < self._z0) & (sim.particles.inv_m[:n] > 0)
-        out["discharged_mass"] = self._sink.removed_mass + math.fsum(sim.particles.mass[:n][below])
-        out["discharged_count"] = float(self._sink.removed_count + int(below.sum()))
+        masses = np.concatenate(
+            [np.asarray(self._sink.removed_masses, dtype=float), sim.particles.mass[:n][below]]
+        )
+        out["discharged_mass"] = sim.exact_sum(masses)
+        out["discharged_count"] = float(sim.count(masses.shape[0]))
         return out
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:

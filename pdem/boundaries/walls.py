@@ -143,12 +143,19 @@ class Wall:
     def _reduced(self) -> np.ndarray:
         if self._load is None:
             vals = self._buf_val[: self.n_contacts]
-            self._load = np.array([math.fsum(vals[:, c]) for c in range(6)])
+            comm = getattr(self, "_comm", None)
+            if comm is not None and comm.size > 1:  # collective: every rank reads the load together
+                from ..parallel.exact import exact_sums
+
+                self._load = exact_sums(comm, vals.reshape(-1, 6))
+            else:
+                self._load = np.array([math.fsum(vals[:, c]) for c in range(6)])
         return self._load
 
     @property
     def force(self) -> np.ndarray:
-        """Total force the particles exert on the wall in the last step [N] (exact sum)."""
+        """Total force the particles exert on the wall in the last step [N] (exact sum; under MPI a
+        collective call: every rank must read it)."""
         return self._reduced()[:3].copy()
 
     @property

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["SerialComm", "default_comm", "any_rank", "all_max"]
+__all__ = ["SerialComm", "default_comm", "any_rank", "all_max", "all_min"]
 
 
 class SerialComm:
@@ -63,6 +63,13 @@ def all_max(comm, value: float) -> float:
     if comm.size == 1:
         return value
     return comm.allreduce(value, op=_mpi_op("MAX"))
+
+
+def all_min(comm, value: float) -> float:
+    """Minimum of ``value`` over ranks (exact, hence partition-independent)."""
+    if comm.size == 1:
+        return value
+    return comm.allreduce(value, op=_mpi_op("MIN"))
 
 
 def _mpi_op(name: str):

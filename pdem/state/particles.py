@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ParticleStore", "FREE", "FIXED", "PRESCRIBED", "MOTION_NAMES"]
+__all__ = ["ParticleStore", "FREE", "FIXED", "PRESCRIBED", "REMOVED", "MOTION_NAMES"]
 
 FREE = 0
 FIXED = 1
 PRESCRIBED = 2
+REMOVED = 3  # taken out by an outflow; compacted away at the next neighbour-list rebuild
 MOTION_NAMES = {"free": FREE, "fixed": FIXED, "prescribed": PRESCRIBED}
 
 _VEC = ("x", "v", "w", "f", "t", "x_build")
