@@ -70,6 +70,7 @@ class Simulation:
         self._swaps: list = []
         self._removed_ids: list[np.ndarray] = []
         self.decomposition_dims: tuple[int, int, int] | None = None
+        self.balance_threshold = 1.1  # rebalance when max/mean owned particles exceeds this
         self.materials = MaterialTable()
         self.particles = ParticleStore()
         self.walls: dict[str, Wall] = {}
@@ -310,13 +311,7 @@ class Simulation:
 
         p = self.particles
         n = p.n_owned
-        lo = p.x[:n].min(axis=0) if n else np.zeros(3)
-        hi = p.x[:n].max(axis=0) if n else np.ones(3)
-        for wall in self._wall_list:
-            wlo, whi = wall.shape.bounding_box(wall.offset)
-            lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
-            hi = np.maximum(hi, np.where(np.isfinite(whi), whi, hi))
-        self._decomp = Decomposition(self.comm, lo, hi, self.decomposition_dims)
+        self._decomp = Decomposition(self.comm, p.x[:n], self.decomposition_dims, min_width=self._ghost_width)
         self._decomp.check_ghost_width(self._ghost_width)
         keep = self._decomp.owned_mask(p.x[:n])
         self._permute_storage(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
@@ -526,6 +521,10 @@ class Simulation:
             from .parallel.exchange import borders, migrate
 
             migrate(self)
+            n_own = p.n_owned
+            if self.balance_threshold and self._decomp.imbalance(n_own) > self.balance_threshold:
+                self._decomp.rebalance(p.x[:n_own])
+                migrate(self)
             self._check_particle_count()
             borders(self, self._ghost_width)
         n = p.n

@@ -26,6 +26,7 @@ import importlib.util
 import json
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -88,11 +89,13 @@ def pdem_worker(packing: str, steps: int) -> dict:
 
     import pdem
     from pdem.boundaries.shapes import Plane
+    from pdem.parallel.comm import default_comm
     from pdem.sources import read_spheres
 
     t_import = time.perf_counter()
+    comm = default_comm()
     d = read_spheres(packing)
-    sim = pdem.Simulation()
+    sim = pdem.Simulation(comm=comm)
     sim.add_material("glass", **MATERIAL)
     sim.add_particles(d["positions"], d["radii"])
     for name, point, normal in [("floor", (0, 0, 0), (0, 0, 1)), ("x0", (0, 0, 0), (1, 0, 0)),
@@ -103,29 +106,37 @@ def pdem_worker(packing: str, steps: int) -> dict:
     sim.dt = 2e-6
     sim.skin = 1e-4
     sim.run(steps=1)  # compile or load kernels, first neighbour list
+    comm.Barrier()
     t_ready = time.perf_counter()
     sim.run(steps=steps - 1)
+    comm.Barrier()
     t_end = time.perf_counter()
     p = sim.get_particles()
     ke_t, ke_r = sim.kinetic_energy()
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    rss = comm.allreduce(rss) if comm.size > 1 else rss
     return dict(
-        natoms=int(sim.n_particles), steps=steps, loop_time=t_end - t_ready,
+        ranks=comm.size,
+        natoms=int(sim.count_particles()), steps=steps, loop_time=t_end - t_ready,
         startup_time=t_ready - t_start, import_time=t_import - t_start,
         front_x=float(p["x"][:, 0].max()), ke_trans=ke_t, ke_rot=ke_r,
-        peak_rss_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
-        rebuilds=sim.n_rebuilds, particle_steps_loop=int(sim.n_particles) * (steps - 1),
+        peak_rss_bytes=rss,
+        rebuilds=sim.n_rebuilds,
         finite=bool(np.all(np.isfinite(p["x"]))),
     )
 
 
-def run_pdem(packing: Path, steps: int, cold: bool = False) -> dict:
+def run_pdem(packing: Path, steps: int, cold: bool = False, ranks: int = 1) -> dict:
     env = dict(os.environ)
     tmpdir = None
     if cold:
         tmpdir = tempfile.TemporaryDirectory(prefix="pdem-cold-cache-")
         env["PDEM_NUMBA_CACHE_DIR"] = tmpdir.name
-    out = subprocess.run([sys.executable, __file__, "--worker", str(packing), "--steps", str(steps)],
-                         capture_output=True, text=True, env=env)
+    cmd = [sys.executable, __file__, "--worker", str(packing), "--steps", str(steps)]
+    if ranks > 1:
+        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or "mpiexec"
+        cmd = [mpiexec, "-n", str(ranks), *cmd]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if tmpdir is not None:
         tmpdir.cleanup()
     if out.returncode != 0:
@@ -147,7 +158,11 @@ def main(argv=None) -> int:
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(pdem_worker(args.worker, args.steps)))
+        result = pdem_worker(args.worker, args.steps)
+        from pdem.parallel.comm import default_comm
+
+        if default_comm().rank == 0:
+            print(json.dumps(result))
         return 0
 
     peer = _peer()

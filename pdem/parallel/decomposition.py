@@ -36,49 +36,70 @@ def choose_dims(size: int, extent: np.ndarray) -> tuple[int, int, int]:
 
 
 class Decomposition:
-    """Subdomains of a Cartesian communicator over the box [lo, hi).
+    """Subdomains of a Cartesian communicator.
+
+    Cut planes sit at particle-count quantiles along each axis (``cuts[d]`` holds the ``dims[d] − 1``
+    interior planes), so every rank starts with a similar share; :meth:`rebalance` moves them when the
+    particles have moved. The outer subdomains extend to infinity. Results never depend on where the
+    cuts are: every sum is ordered by particle ids.
 
     ``owner(x)`` gives the rank owning each position; ``sub_lo``/``sub_hi`` bound this rank's
-    subdomain (±inf on the outer faces); ``neighbours[d] = (lower, upper)`` ranks along axis d
-    (``None`` at an outer face).
+    subdomain; ``neighbours[d] = (lower, upper)`` ranks along axis d (``None`` at an outer face).
     """
 
-    def __init__(self, comm, lo, hi, dims=None) -> None:
+    def __init__(self, comm, x_all: np.ndarray, dims=None, min_width: float = 0.0) -> None:
         from mpi4py import MPI
 
-        lo = np.asarray(lo, dtype=float)
-        hi = np.asarray(hi, dtype=float)
-        extent = np.maximum(hi - lo, 1e-12)
+        x_all = np.atleast_2d(np.asarray(x_all, dtype=float))
+        if x_all.shape[0]:
+            extent = np.maximum(x_all.max(axis=0) - x_all.min(axis=0), 1e-12)
+        else:
+            extent = np.ones(3)
         self.dims = tuple(int(d) for d in (dims or choose_dims(comm.size, extent)))
         if int(np.prod(self.dims)) != comm.size:
             raise InputError(f"decomposition {self.dims} does not match {comm.size} ranks")
         self.comm = comm.Create_cart(list(self.dims), periods=[False, False, False], reorder=False)
         self.rank = self.comm.Get_rank()
         self.coords = tuple(self.comm.Get_coords(self.rank))
-        self.lo, self.hi = lo, lo + extent
-        self.cuts = [np.linspace(self.lo[d], self.hi[d], self.dims[d] + 1) for d in range(3)]
-        self.sub_lo = np.array(
-            [-np.inf if self.coords[d] == 0 else self.cuts[d][self.coords[d]] for d in range(3)]
-        )
-        self.sub_hi = np.array(
-            [
-                np.inf if self.coords[d] == self.dims[d] - 1 else self.cuts[d][self.coords[d] + 1]
-                for d in range(3)
-            ]
-        )
+        self.min_width = min_width
         self.neighbours = []
         for d in range(3):
             lower, upper = self.comm.Shift(d, 1)
             self.neighbours.append(
                 (None if lower == MPI.PROC_NULL else lower, None if upper == MPI.PROC_NULL else upper)
             )
+        self.set_cuts([self._quantile_cuts(np.sort(x_all[:, d]), d) for d in range(3)])
+        self.n_rebalances = 0
+
+    def _quantile_cuts(self, sorted_x: np.ndarray, d: int) -> np.ndarray:
+        k = self.dims[d]
+        if k == 1 or sorted_x.size == 0:
+            return np.zeros(0)
+        idx = (np.arange(1, k) * sorted_x.size) // k
+        return self._spread(sorted_x[idx].astype(float))
+
+    def _spread(self, cuts: np.ndarray) -> np.ndarray:
+        """Keep interior subdomains at least ``min_width`` wide (ghosts move one subdomain per swap)."""
+        cuts = np.array(cuts, dtype=float)
+        for i in range(1, cuts.size):
+            cuts[i] = max(cuts[i], cuts[i - 1] + self.min_width)
+        return cuts
+
+    def set_cuts(self, cuts: list[np.ndarray]) -> None:
+        self.cuts = [np.asarray(c, dtype=float) for c in cuts]
+        self.sub_lo = np.array(
+            [-np.inf if self.coords[d] == 0 else self.cuts[d][self.coords[d] - 1] for d in range(3)]
+        )
+        self.sub_hi = np.array(
+            [np.inf if self.coords[d] == self.dims[d] - 1 else self.cuts[d][self.coords[d]] for d in range(3)]
+        )
 
     def cell_coords(self, x: np.ndarray) -> np.ndarray:
         """Subdomain coordinates (n, 3) of positions ``x``."""
         x = np.atleast_2d(x)
         out = np.empty((x.shape[0], 3), dtype=np.int64)
         for d in range(3):
-            out[:, d] = np.searchsorted(self.cuts[d][1:-1], x[:, d], side="right")
+            out[:, d] = np.searchsorted(self.cuts[d], x[:, d], side="right")
         return out
 
     def owner(self, x: np.ndarray) -> np.ndarray:
@@ -89,14 +110,48 @@ class Decomposition:
         c = self.cell_coords(x)
         return np.all(c == np.asarray(self.coords), axis=1)
 
-    def check_ghost_width(self, width: float) -> None:
-        """Ghosts travel one subdomain per swap: interior subdomains must be at least that wide."""
+    def imbalance(self, n_owned: int) -> float:
+        """max / mean of the owned counts over ranks (1 = perfect; collective)."""
+        counts = self.comm.allgather(int(n_owned))
+        mean = sum(counts) / len(counts)
+        return max(counts) / mean if mean > 0 else 1.0
+
+    def rebalance(self, x_owned: np.ndarray, bins: int = 4096) -> None:
+        """Move the cut planes to the particle-count quantiles of all ranks' positions (collective).
+
+        Each axis uses a histogram of ``bins`` bins over the global range, summed over ranks (integer,
+        exact), so every rank computes the same cuts.
+        """
+        from mpi4py import MPI
+
+        new = []
         for d in range(3):
-            if self.dims[d] > 2:
-                w = (self.hi[d] - self.lo[d]) / self.dims[d]
-                if w < width:
-                    raise InputError(
-                        f"{self.dims[d]} subdomains along axis {'xyz'[d]} are {w:.3g} m wide, "
-                        "narrower than the "
-                        f"ghost width {width:.3g} m (2 r_max + skin); run on fewer ranks"
-                    )
+            if self.dims[d] == 1:
+                new.append(np.zeros(0))
+                continue
+            xd = x_owned[:, d]
+            lo = self.comm.allreduce(float(xd.min()) if xd.size else np.inf, op=MPI.MIN)
+            hi = self.comm.allreduce(float(xd.max()) if xd.size else -np.inf, op=MPI.MAX)
+            if not hi > lo:
+                new.append(self.cuts[d])
+                continue
+            counts = np.histogram(xd, bins=bins, range=(lo, hi))[0].astype(np.int64)
+            total = np.zeros_like(counts)
+            self.comm.Allreduce(counts, total, op=MPI.SUM)
+            cum = np.cumsum(total)
+            edges = np.linspace(lo, hi, bins + 1)
+            targets = np.arange(1, self.dims[d]) * cum[-1] / self.dims[d]
+            new.append(self._spread(edges[np.searchsorted(cum, targets) + 1]))
+        self.set_cuts(new)
+        self.n_rebalances += 1
+
+    def check_ghost_width(self, width: float) -> None:
+        """Interior subdomains must be at least one ghost width wide."""
+        for d in range(3):
+            widths = np.diff(self.cuts[d])
+            if widths.size and widths.min() < width * (1 - 1e-12):
+                raise InputError(
+                    f"{self.dims[d]} subdomains along axis {'xyz'[d]}: an interior one is "
+                    f"{widths.min():.3g} m wide, narrower than the ghost width {width:.3g} m "
+                    "(2 r_max + skin); run on fewer ranks"
+                )

@@ -32,10 +32,25 @@ def _sendrecv(comm, obj, dest, source):
 
 
 def migrate(sim) -> None:
-    """Move owned particles that left this subdomain to their new owners (collective)."""
+    """Move owned particles that left this subdomain to their new owners (collective).
+
+    One pass moves a particle by one subdomain along each axis; passes repeat until every particle is
+    home (after a rebalance cut planes can move by several subdomains)."""
+    from .comm import any_rank
+
     dec = sim._decomp
     p = sim.particles
     p.n_ghost = 0
+    while True:
+        _migrate_pass(sim)
+        n = p.n_owned
+        if not any_rank(dec.comm, not bool(np.all(dec.owned_mask(p.x[:n])))):
+            return
+
+
+def _migrate_pass(sim) -> None:
+    dec = sim._decomp
+    p = sim.particles
     for d in range(3):
         lower, upper = dec.neighbours[d]
         n = p.n_owned
