@@ -15,8 +15,11 @@
    second, pdem start-up time with a warm and a cold numba cache, and pdem's peak memory per particle.
 4. Checks that both codes agree physically at the end: front position and kinetic energy within 10 %.
 
-The last line is ``ratio pdem/lammps = X.XX`` (pdem throughput over LAMMPS throughput, > 1 means
-pdem is faster). Exit code 1 if the physical check fails.
+With ``--ranks 1 2`` both codes also run on 2 ranks (MPI; LAMMPS splits the box in y, pdem balances
+its cut planes on particle counts) and each code's speed-up over its own serial run is reported.
+
+The last line is ``ratio pdem/lammps = X.XX`` (pdem throughput over LAMMPS throughput at the first
+rank count, > 1 means pdem is faster). Exit code 1 if the physical check fails.
 """
 
 from __future__ import annotations
@@ -155,6 +158,8 @@ def main(argv=None) -> int:
     ap.add_argument("--packing", type=Path, default=None,
                     help="use this 'x y z diameter' packing instead of making one (rows are sorted "
                          "spatially, and both codes get the same sorted rows)")
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1],
+                    help="rank counts to run both codes on, e.g. --ranks 1 2 (speed-ups are reported)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -177,35 +182,49 @@ def main(argv=None) -> int:
 
     cold = run_pdem(packing, 50, cold=True)
     print(f"pdem start-up with a cold numba cache: {cold['startup_time']:.2f} s", flush=True)
-    pd, lm = [], []
-    for k in range(args.repeats):
-        pd.append(run_pdem(packing, args.steps))
-        lm.append(peer.run_lammps(data, ranks=1, steps=args.steps, epar=epar, xmax=XMAX, ymax=YMAX,
-                                  skin=1e-4, dt=2e-6))
-        print(f"  run {k + 1}: pdem loop {pd[-1]['loop_time']:.2f} s, "
-              f"LAMMPS loop {lm[-1]['loop_time']:.2f} s", flush=True)
-    n = pd[0]["natoms"]
-    t_pd = statistics.median(r["loop_time"] for r in pd)
-    t_lm = statistics.median(r["loop_time"] for r in lm)
-    rate_pd = n * (args.steps - 1) / t_pd
-    rate_lm = n * args.steps / t_lm
-    warm = statistics.median(r["startup_time"] for r in pd)
-    mem = max(r["peak_rss_bytes"] for r in pd) / n
+    ranks = sorted(set(args.ranks))
+    pd: dict[int, list] = {k: [] for k in ranks}
+    lm: dict[int, list] = {k: [] for k in ranks}
+    for rep in range(args.repeats):
+        for k in ranks:  # alternate the codes so both see the same machine state
+            pd[k].append(run_pdem(packing, args.steps, ranks=k))
+            lm[k].append(peer.run_lammps(data, ranks=k, steps=args.steps, epar=epar, xmax=XMAX, ymax=YMAX,
+                                         skin=1e-4, dt=2e-6))
+            print(f"  run {rep + 1}, {k} rank(s): pdem loop {pd[k][-1]['loop_time']:.2f} s, "
+                  f"LAMMPS loop {lm[k][-1]['loop_time']:.2f} s", flush=True)
+    n = pd[ranks[0]][0]["natoms"]
+    t_pd = {k: statistics.median(r["loop_time"] for r in pd[k]) for k in ranks}
+    t_lm = {k: statistics.median(r["loop_time"] for r in lm[k]) for k in ranks}
+    rate_pd = {k: n * (args.steps - 1) / t_pd[k] for k in ranks}
+    rate_lm = {k: n * args.steps / t_lm[k] for k in ranks}
     print(f"\nN = {n}, {args.steps} steps, medians of {args.repeats}")
-    print(f"pdem   serial: loop {t_pd:.2f} s -> {rate_pd / 1e6:.2f} M particle-steps/s")
-    print(f"LAMMPS serial: loop {t_lm:.2f} s -> {rate_lm / 1e6:.2f} M particle-steps/s")
-    print(f"pdem start-up: warm cache {warm:.2f} s, cold cache {cold['startup_time']:.2f} s "
-          f"(import {pd[0]['import_time']:.2f} s)")
-    print(f"pdem peak memory: {mem:.0f} bytes per particle (whole process RSS / N)")
+    for k in ranks:
+        print(f"pdem   {k} rank(s): loop {t_pd[k]:.2f} s -> {rate_pd[k] / 1e6:.2f} M particle-steps/s")
+        print(f"LAMMPS {k} rank(s): loop {t_lm[k]:.2f} s -> {rate_lm[k] / 1e6:.2f} M particle-steps/s")
+    if 1 in ranks:
+        for k in ranks[1:]:
+            print(f"speed-up on {k} ranks over serial: pdem {t_pd[1] / t_pd[k]:.2f}x, "
+                  f"LAMMPS {t_lm[1] / t_lm[k]:.2f}x")
+        warm = statistics.median(r["startup_time"] for r in pd[1])
+        mem = max(r["peak_rss_bytes"] for r in pd[1]) / n
+        print(f"pdem start-up: warm cache {warm:.2f} s, cold cache {cold['startup_time']:.2f} s "
+              f"(import {pd[1][0]['import_time']:.2f} s)")
+        print(f"pdem peak memory: {mem:.0f} bytes per particle (whole process RSS / N, serial)")
     ok = True
-    for key in ("front_x", "ke_trans"):
-        a, b = pd[0][key], lm[0][key]
-        rel = abs(a - b) / abs(b)
-        good = rel <= 0.10
-        ok &= good
-        print(f"agreement {key}: pdem {a:.6g}, LAMMPS {b:.6g}, difference {100 * rel:.1f} % "
-              f"({'ok' if good else 'FAILS the 10 % check'})")
-    print(f"ratio pdem/lammps = {rate_pd / rate_lm:.2f}")
+    for k in ranks:
+        for key in ("front_x", "ke_trans"):
+            a, b = pd[k][0][key], lm[k][0][key]
+            rel = abs(a - b) / abs(b)
+            good = rel <= 0.10
+            ok &= good
+            print(f"agreement on {k} rank(s), {key}: pdem {a:.6g}, LAMMPS {b:.6g}, difference "
+                  f"{100 * rel:.1f} % ({'ok' if good else 'FAILS the 10 % check'})")
+    if len(ranks) > 1:
+        same = all(pd[k][0]["front_x"] == pd[ranks[0]][0]["front_x"]
+                   and pd[k][0]["ke_trans"] == pd[ranks[0]][0]["ke_trans"] for k in ranks)
+        print(f"pdem results identical on {ranks} ranks: {same}")
+    k0 = ranks[0]
+    print(f"ratio pdem/lammps = {rate_pd[k0] / rate_lm[k0]:.2f}")
     return 0 if ok else 1
 
 
