@@ -72,8 +72,8 @@ def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
 
 def rayleigh_time(radius: float, mat: Material) -> float:
     """Rayleigh time T_R = π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] of a sphere of ``radius``."""
-    return math.pi * radius * math.sqrt(mat.density / mat.shear_modulus) / (
-        0.1631 * mat.poisson_ratio + 0.8766
+    return (
+        math.pi * radius * math.sqrt(mat.density / mat.shear_modulus) / (0.1631 * mat.poisson_ratio + 0.8766)
     )
 
 

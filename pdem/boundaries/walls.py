@@ -20,8 +20,15 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["Wall", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
-           "Controlled"]
+__all__ = [
+    "Wall",
+    "Motion",
+    "Fixed",
+    "ConstantVelocity",
+    "VelocityFunction",
+    "PositionFunction",
+    "Controlled",
+]
 
 
 class Motion:
@@ -86,8 +93,9 @@ class Controlled(Motion):
 class Wall:
     """A wall in a simulation (created by :meth:`pdem.Simulation.add_wall`)."""
 
-    def __init__(self, shape, material: int, name: str, motion: Motion | None = None,
-                 omega=(0.0, 0.0, 0.0)) -> None:
+    def __init__(
+        self, shape, material: int, name: str, motion: Motion | None = None, omega=(0.0, 0.0, 0.0)
+    ) -> None:
         self.shape = shape
         self.material = material
         self.name = name

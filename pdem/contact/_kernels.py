@@ -79,9 +79,25 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
         m_eff = 1.0 / (inv_m[i] + inv_m[j])
         i_eff = 1.0 / (inv_i[i] + inv_i[j])
         fx, fy, fz, mx, my, mz = law(
-            delta, nx, ny, nz, vjx - vix, vjy - viy, vjz - viz,
-            w[j, 0] - w[i, 0], w[j, 1] - w[i, 1], w[j, 2] - w[i, 2],
-            r_eff, m_eff, i_eff, coef, mat[i], mat[j], hist, k, dt,
+            delta,
+            nx,
+            ny,
+            nz,
+            vjx - vix,
+            vjy - viy,
+            vjz - viz,
+            w[j, 0] - w[i, 0],
+            w[j, 1] - w[i, 1],
+            w[j, 2] - w[i, 2],
+            r_eff,
+            m_eff,
+            i_eff,
+            coef,
+            mat[i],
+            mat[j],
+            hist,
+            k,
+            dt,
         )
         f[i, 0] -= fx
         f[i, 1] -= fy
@@ -106,8 +122,33 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
 
 
 @njit_nocache(inline="always")
-def wall_forces(law, kinds, params, vel, omega, centre, wmat, cstart, cand, hist, x, v, w, r, inv_m, inv_i,
-                mat, coef, f, t, dt, max_overlap, out_idx, out_val, counts):
+def wall_forces(
+    law,
+    kinds,
+    params,
+    vel,
+    omega,
+    centre,
+    wmat,
+    cstart,
+    cand,
+    hist,
+    x,
+    v,
+    w,
+    r,
+    inv_m,
+    inv_i,
+    mat,
+    coef,
+    f,
+    t,
+    dt,
+    max_overlap,
+    out_idx,
+    out_val,
+    counts,
+):
     """Contacts of candidate particles with every wall, walls in order (one call per step).
 
     Wall k has geometry ``kinds[k]``/``params[k]`` (see :mod:`pdem.boundaries._geometry`), translational
@@ -149,9 +190,25 @@ def wall_forces(law, kinds, params, vel, omega, centre, wmat, cstart, cand, hist
             vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
             vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
             fx, fy, fz, mx, my, mz = law(
-                delta, nx, ny, nz, vwx - vix, vwy - viy, vwz - viz,
-                omega[k, 0] - w[i, 0], omega[k, 1] - w[i, 1], omega[k, 2] - w[i, 2],
-                r[i], 1.0 / inv_m[i], 1.0 / inv_i[i], coef, mat[i], wmat[k], hist[k], i, dt,
+                delta,
+                nx,
+                ny,
+                nz,
+                vwx - vix,
+                vwy - viy,
+                vwz - viz,
+                omega[k, 0] - w[i, 0],
+                omega[k, 1] - w[i, 1],
+                omega[k, 2] - w[i, 2],
+                r[i],
+                1.0 / inv_m[i],
+                1.0 / inv_i[i],
+                coef,
+                mat[i],
+                wmat[k],
+                hist[k],
+                i,
+                dt,
             )
             f[i, 0] -= fx
             f[i, 1] -= fy
@@ -173,5 +230,3 @@ def wall_forces(law, kinds, params, vel, omega, centre, wmat, cstart, cand, hist
             count += 1
         counts[k] = count
     return flags
-
-

@@ -98,13 +98,15 @@ class ContactLaw:
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         raise NotImplementedError
 
-    def critical_dt(self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray,
-                    masses: np.ndarray) -> float:
+    def critical_dt(
+        self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray
+    ) -> float:
         """Largest time step [s] the law considers stable for these particles."""
         raise NotImplementedError
 
-    def suggested_dt(self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray,
-                     masses: np.ndarray) -> float:
+    def suggested_dt(
+        self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray
+    ) -> float:
         """Time step [s] used when the user gives none (a fraction of :meth:`critical_dt`)."""
         return 0.2 * self.critical_dt(materials, radii, mat_index, masses)
 

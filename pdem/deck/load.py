@@ -103,8 +103,9 @@ class ResolvedDeck:
 # -------------------------------------------------------------------------------------------------
 
 
-def load_deck(path: str | Path, overrides: Iterable[str] = (), *,
-              writers: Collection[str] | None = None) -> ResolvedDeck:
+def load_deck(
+    path: str | Path, overrides: Iterable[str] = (), *, writers: Collection[str] | None = None
+) -> ResolvedDeck:
     """Read, override and validate the deck at ``path``; raise one DeckError listing every problem.
 
     ``overrides``: ``key.path=value`` texts (see :mod:`pdem.deck.overrides`). ``writers``: the output
@@ -142,8 +143,14 @@ def installed_writers() -> list[str]:
     return sorted(set(KNOWN_WRITERS) | names)
 
 
-def validate_deck(data: dict[str, Any], *, path: str | Path | None = None, base_dir: str | Path | None = None,
-                  overrides: Iterable[str] = (), writers: Collection[str] | None = None) -> ResolvedDeck:
+def validate_deck(
+    data: dict[str, Any],
+    *,
+    path: str | Path | None = None,
+    base_dir: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    writers: Collection[str] | None = None,
+) -> ResolvedDeck:
     """Validate a deck given as parsed TOML (``data`` is not modified); see :func:`load_deck`.
 
     ``base_dir`` (relative paths in the deck) defaults to the deck file's directory, or the current
@@ -151,8 +158,10 @@ def validate_deck(data: dict[str, Any], *, path: str | Path | None = None, base_
     """
     p = Path(path) if path is not None else None
     if not isinstance(data, dict):
-        raise make_deck_error([((), f"a deck is a table of sections; got {type(data).__name__}")],
-                              str(p) if p is not None else None)
+        raise make_deck_error(
+            [((), f"a deck is a table of sections; got {type(data).__name__}")],
+            str(p) if p is not None else None,
+        )
     base = Path(base_dir) if base_dir is not None else (p.parent if p is not None else Path.cwd())
     base = base.resolve()
     data = copy.deepcopy(data)
@@ -187,8 +196,16 @@ def validate_deck(data: dict[str, Any], *, path: str | Path | None = None, base_
     if deck.output.directory is None:
         stem = p.stem if p is not None else "deck"
         deck.output.directory = f"out/{stem}"
-    return ResolvedDeck(deck=deck, law_params=law_params, boundaries=boundaries, path=p, base_dir=base,
-                        law_class=law_class, boundary_classes=boundary_classes, overrides=overrides)
+    return ResolvedDeck(
+        deck=deck,
+        law_params=law_params,
+        boundaries=boundaries,
+        path=p,
+        base_dir=base,
+        law_class=law_class,
+        boundary_classes=boundary_classes,
+        overrides=overrides,
+    )
 
 
 # -------------------------------------------------------------------------------------------------
@@ -218,8 +235,10 @@ def _load_plugin(group: str, name: str) -> tuple[Any, str | None]:
             return None, str(exc)
         label = _PLUGIN_LABEL.get(group, group)
         listing = ", ".join(f"'{n}'" for n in installed) or "(none)"
-        return None, (f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; installed: {listing}. "
-                      "Install the package that provides it (pip install …) or fix the name")
+        return None, (
+            f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; installed: {listing}. "
+            "Install the package that provides it (pip install …) or fix the name"
+        )
 
 
 def _non_finite(value: Any, loc: Loc) -> list[tuple[Loc, str]]:
@@ -237,8 +256,13 @@ def _params_model(cls: Any, loc: Loc, what: str) -> tuple[type[BaseModel] | None
     params = getattr(cls, "Params", None)
     if isinstance(params, type) and issubclass(params, BaseModel):
         return params, []
-    return None, [(loc, f"{what} {cls!r} has no pydantic Params model; it does not honour the plugin "
-                        "contract (report this to its author)")]
+    return None, [
+        (
+            loc,
+            f"{what} {cls!r} has no pydantic Params model; it does not honour the plugin "
+            "contract (report this to its author)",
+        )
+    ]
 
 
 def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple[Loc, str]]]:
@@ -267,8 +291,11 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
     except PdemError as exc:
         return cls, None, [(("contact",), str(exc))]
     except Exception as exc:  # noqa: BLE001 - a plugin's constructor failing is reported like a bad key
-        return cls, None, [(("contact",), f"contact law '{law}' rejected its parameters: "
-                                          f"{type(exc).__name__}: {exc}")]
+        return (
+            cls,
+            None,
+            [(("contact",), f"contact law '{law}' rejected its parameters: {type(exc).__name__}: {exc}")],
+        )
     return cls, params, []
 
 
@@ -298,8 +325,9 @@ def _validate_boundaries(data: dict) -> tuple[dict[str, type], dict[str, BaseMod
         try:
             p = model.model_validate_json(_to_json(values), strict=True)
         except ValidationError as exc:
-            problems += nonfinite + translate(exc, model, loc, extra_keys=() if "type" in model.model_fields
-                                              else ("type",))
+            problems += nonfinite + translate(
+                exc, model, loc, extra_keys=() if "type" in model.model_fields else ("type",)
+            )
             continue
         if nonfinite:
             problems += nonfinite
@@ -324,10 +352,13 @@ def _check_quantities(data: dict, classes: dict[str, type]) -> list[tuple[Loc, s
         name, key = q.split(".", 1)
         keys = getattr(classes.get(name), "measurement_keys", None)
         if keys and key not in keys:
-            out.append((("stages", k, "end", "quantity"),
-                        f"boundary '{name}' measures no '{key}'{did_you_mean(key, list(keys), True)}; "
-                        "it measures "
-                        + ", ".join(f"'{x}'" for x in keys)))
+            out.append(
+                (
+                    ("stages", k, "end", "quantity"),
+                    f"boundary '{name}' measures no '{key}'{did_you_mean(key, list(keys), True)}; "
+                    "it measures " + ", ".join(f"'{x}'" for x in keys),
+                )
+            )
     return out
 
 
@@ -376,8 +407,9 @@ def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
                 target[name] = model
     models = [Deck, *laws.values(), *bnds.values()]
     unique = list(dict.fromkeys(models))
-    keys, top = models_json_schema([(m, "validation") for m in unique], ref_template="#/$defs/{model}",
-                                   title="pdem deck")
+    keys, top = models_json_schema(
+        [(m, "validation") for m in unique], ref_template="#/$defs/{model}", title="pdem deck"
+    )
     defs = top["$defs"]
 
     def ref(model: type[BaseModel]) -> dict:
@@ -402,11 +434,15 @@ def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
     if entry_name in defs:
         bdef = defs[entry_name]
         bdef["properties"]["type"]["examples"] = sorted(bnds)
-        bdef["allOf"] = [{"if": {"properties": {"type": {"const": name}}}, "then": ref(model)}
-                         for name, model in bnds.items()]
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "pdem deck",
-              "description": (Deck.__doc__ or "").strip()}
+        bdef["allOf"] = [
+            {"if": {"properties": {"type": {"const": name}}}, "then": ref(model)}
+            for name, model in bnds.items()
+        ]
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "pdem deck",
+        "description": (Deck.__doc__ or "").strip(),
+    }
     schema.update({k: v for k, v in root.items() if k not in ("title", "description")})
     schema["$defs"] = {k: v for k, v in defs.items() if k != ref(Deck)["$ref"].rsplit("/", 1)[-1]}
     return schema
-

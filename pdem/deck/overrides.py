@@ -60,7 +60,7 @@ def _parse_key(text: str) -> tuple[list[str], str]:
             pos += 1
             continue
         if pos < len(text) and text[pos] == "=":
-            return segments, text[pos + 1:]
+            return segments, text[pos + 1 :]
         raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
 
 
@@ -83,7 +83,8 @@ def parse_value(raw: str, text: str = "") -> Any:
             return raw
         raise OverrideError(
             f"override '{text}': the value {raw} is not a TOML value ({exc}); quote strings, "
-            f'e.g. contact.law="hertz_mindlin"') from None
+            f'e.g. contact.law="hertz_mindlin"'
+        ) from None
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -107,8 +108,11 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
     if re.fullmatch(r"\d+", seg):
         k = int(seg)
         if k >= len(node):
-            raise OverrideError(f"override '{text}': {where} has {len(node)} entr"
-                                f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range", loc + (k,))
+            raise OverrideError(
+                f"override '{text}': {where} has {len(node)} entr"
+                f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range",
+                loc + (k,),
+            )
         return k
     names = [e.get("name") for e in node if isinstance(e, dict)]
     for k, e in enumerate(node):
@@ -118,8 +122,11 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
     close = difflib.get_close_matches(seg, known, n=1)
     hint = f"; did you mean '{close[0]}'?" if close else ""
     listing = ", ".join(f"'{n}'" for n in known) or "(none have a name)"
-    raise OverrideError(f"override '{text}': no entry of {where} is named '{seg}'{hint}; give an index "
-                        f"(0..{len(node) - 1}) or one of {listing}", loc + (seg,))
+    raise OverrideError(
+        f"override '{text}': no entry of {where} is named '{seg}'{hint}; give an index "
+        f"(0..{len(node) - 1}) or one of {listing}",
+        loc + (seg,),
+    )
 
 
 def apply_one(data: dict, text: str) -> Override:
@@ -135,8 +142,9 @@ def apply_one(data: dict, text: str) -> Override:
             key = seg
         else:
             where = ".".join(str(p) for p in loc)
-            raise OverrideError(f"override '{text}': {where} is a {_kind(node)}, not a table; it has no key "
-                                f"'{seg}'", loc)
+            raise OverrideError(
+                f"override '{text}': {where} is a {_kind(node)}, not a table; it has no key '{seg}'", loc
+            )
         loc += (key,)
         if last:
             node[key] = value
@@ -147,8 +155,9 @@ def apply_one(data: dict, text: str) -> Override:
     return Override(text, loc, value)
 
 
-def apply_overrides(data: dict, overrides: list[str] | tuple[str, ...]
-                    ) -> tuple[list[Override], list[tuple[tuple[str | int, ...], str]]]:
+def apply_overrides(
+    data: dict, overrides: list[str] | tuple[str, ...]
+) -> tuple[list[Override], list[tuple[tuple[str | int, ...], str]]]:
     """Apply every override in order; return the applied ones and the problems of the others."""
     applied: list[Override] = []
     problems: list[tuple[tuple[str | int, ...], str]] = []

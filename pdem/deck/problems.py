@@ -28,8 +28,19 @@ __all__ = ["Loc", "format_path", "show", "translate", "make_deck_error", "SECTIO
 Loc = tuple[str | int, ...]
 
 #: order in which problems are listed (by top-level key)
-SECTION_ORDER = ("--set", "", "title", "run", "contact", "materials", "material_pairs", "particles",
-                 "boundaries", "stages", "output")
+SECTION_ORDER = (
+    "--set",
+    "",
+    "title",
+    "run",
+    "contact",
+    "materials",
+    "material_pairs",
+    "particles",
+    "boundaries",
+    "stages",
+    "output",
+)
 
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -192,6 +203,7 @@ def _bounds(field: FieldInfo | None, ctx: dict) -> str:
     for attr, sym in (("lt", "<"), ("le", "<=")):
         if attr in ctx and upper is None:
             upper = (sym, ctx[attr])
+
     def num(v: Any) -> str:
         if isinstance(v, float) and v.is_integer() and abs(v) < 1e15:
             return str(int(v))
@@ -209,12 +221,20 @@ def _bounds(field: FieldInfo | None, ctx: dict) -> str:
 
 
 _TYPE_WORDS = {
-    "float_type": "a number", "float_parsing": "a number",
-    "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
-    "bool_type": "true or false", "bool_parsing": "true or false",
+    "float_type": "a number",
+    "float_parsing": "a number",
+    "int_type": "an integer",
+    "int_parsing": "an integer",
+    "int_from_float": "an integer",
+    "bool_type": "true or false",
+    "bool_parsing": "true or false",
     "string_type": "a string",
-    "list_type": "an array", "tuple_type": "an array", "set_type": "an array",
-    "dict_type": "a table", "model_type": "a table", "model_attributes_type": "a table",
+    "list_type": "an array",
+    "tuple_type": "an array",
+    "set_type": "an array",
+    "dict_type": "a table",
+    "model_type": "a table",
+    "model_attributes_type": "a table",
 }
 
 
@@ -299,8 +319,9 @@ def _one(err: dict, root: Any, prefix: Loc, extra_keys: tuple[str, ...]) -> tupl
     return tuple(prefix) + tuple(parts), msg
 
 
-def translate(exc: ValidationError, root: Any, prefix: Loc = (), extra_keys: tuple[str, ...] = ()
-              ) -> list[tuple[Loc, str]]:
+def translate(
+    exc: ValidationError, root: Any, prefix: Loc = (), extra_keys: tuple[str, ...] = ()
+) -> list[tuple[Loc, str]]:
     """Problems of a pydantic ValidationError raised by validating model ``root``.
 
     ``prefix`` is prepended to every location (for plugin sections, e.g. ``("boundaries", "cone")``);
@@ -344,4 +365,3 @@ def make_deck_error(problems: list[tuple[Loc, str]], source: str | None = None) 
     err = DeckError("\n".join(lines))
     err.problems = pairs  # type: ignore[attr-defined]
     return err
-

@@ -147,8 +147,9 @@ def _as_init_error(err: dict) -> InitErrorDetails:
         if "ctx" in err:
             out["ctx"] = err["ctx"]
         return out
-    return InitErrorDetails(type=PydanticCustomError(err["type"], err["msg"]), loc=err["loc"],
-                            input=err.get("input"))
+    return InitErrorDetails(
+        type=PydanticCustomError(err["type"], err["msg"]), loc=err["loc"], input=err.get("input")
+    )
 
 
 class _DeckModel(BaseModel):
@@ -169,17 +170,25 @@ class _DeckModel(BaseModel):
             try:
                 problems = cls.rules(data, _ctx(info))
             except Exception as exc:  # noqa: BLE001 - a rule must never hide the other problems
-                problems = [((), f"internal error while checking this table ({type(exc).__name__}: {exc}); "
-                                 "please report it")]
-        extra = [InitErrorDetails(type=PydanticCustomError(RULE_ERROR, msg), loc=tuple(loc), input=data)
-                 for loc, msg in problems]
+                problems = [
+                    (
+                        (),
+                        f"internal error while checking this table ({type(exc).__name__}: {exc}); "
+                        "please report it",
+                    )
+                ]
+        extra = [
+            InitErrorDetails(type=PydanticCustomError(RULE_ERROR, msg), loc=tuple(loc), input=data)
+            for loc, msg in problems
+        ]
         try:
             out = handler(data)
         except ValidationError as exc:
             if not extra:
                 raise
             raise ValidationError.from_exception_data(
-                cls.__name__, [_as_init_error(e) for e in exc.errors()] + extra) from None
+                cls.__name__, [_as_init_error(e) for e in exc.errors()] + extra
+            ) from None
         if extra:
             raise ValidationError.from_exception_data(cls.__name__, extra)
         return out
@@ -194,18 +203,25 @@ class RunSection(_DeckModel):
     """``[run]``: time step, gravity, neighbour skin, blow-up threshold, random seed."""
 
     dt: Float | None = Field(
-        None, gt=0,
+        None,
+        gt=0,
         description="time step [s]; default: 0.2 of the contact law's stability estimate "
-                    "(for Hertz-Mindlin the Rayleigh time of the smallest particle)")
+        "(for Hertz-Mindlin the Rayleigh time of the smallest particle)",
+    )
     force_dt: Bool = Field(
-        False, description="allow a dt (here or in a stage) above the law's stability estimate")
+        False, description="allow a dt (here or in a stage) above the law's stability estimate"
+    )
     gravity: Vec3 = Field((0.0, 0.0, -9.81), description="gravitational acceleration (x, y, z) [m/s²]")
     skin: Float | None = Field(
-        None, ge=0, description="Verlet-list skin [m]; default: 0.1 of the mean particle diameter")
+        None, ge=0, description="Verlet-list skin [m]; default: 0.1 of the mean particle diameter"
+    )
     max_overlap: Float = Field(
-        0.25, gt=0, lt=1,
+        0.25,
+        gt=0,
+        lt=1,
         description="overlap, as a fraction of the smaller radius, that counts as a blow-up (the run "
-                    "stops with an instability error)")
+        "stops with an instability error)",
+    )
     seed: Int = Field(0, ge=0, description="seed of the random number generator used by random sources")
 
 
@@ -220,7 +236,8 @@ class ContactSection(_DeckModel):
     law: Str = Field(
         "hertz_mindlin",
         description="contact law: an entry point of group pdem.contact_laws (see `pdem plugins`); the "
-                    "other keys of [contact] are that law's parameters")
+        "other keys of [contact] are that law's parameters",
+    )
 
 
 _MAT_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Material) if f.name != "name"}
@@ -231,14 +248,18 @@ class MaterialSpec(_DeckModel):
 
     density: Float = Field(_MAT_DEFAULTS["density"], gt=0, description="density ρ [kg/m³]")
     youngs_modulus: Float = Field(_MAT_DEFAULTS["youngs_modulus"], gt=0, description="Young's modulus E [Pa]")
-    poisson_ratio: Float = Field(_MAT_DEFAULTS["poisson_ratio"], gt=-1, lt=0.5,
-                                 description="Poisson ratio ν [-], in (-1, 0.5)")
-    restitution: Float = Field(_MAT_DEFAULTS["restitution"], ge=0, le=1,
-                               description="coefficient of restitution e [-], in [0, 1]")
+    poisson_ratio: Float = Field(
+        _MAT_DEFAULTS["poisson_ratio"], gt=-1, lt=0.5, description="Poisson ratio ν [-], in (-1, 0.5)"
+    )
+    restitution: Float = Field(
+        _MAT_DEFAULTS["restitution"], ge=0, le=1, description="coefficient of restitution e [-], in [0, 1]"
+    )
     friction: Float = Field(_MAT_DEFAULTS["friction"], ge=0, description="sliding friction coefficient μ [-]")
     rolling_friction: Float = Field(
-        _MAT_DEFAULTS["rolling_friction"], ge=0,
-        description="rolling friction coefficient μ_r [-] (multiplies R* F_n; 0 disables rolling resistance)")
+        _MAT_DEFAULTS["rolling_friction"],
+        ge=0,
+        description="rolling friction coefficient μ_r [-] (multiplies R* F_n; 0 disables rolling resistance)",
+    )
 
     def to_material(self, name: str) -> Material:
         """The :class:`pdem.materials.Material` called ``name``."""
@@ -249,7 +270,8 @@ class MaterialPair(_DeckModel):
     """``[[material_pairs]]``: explicit values for one pair of materials (default: the minimum)."""
 
     materials: tuple[Str, Str] = Field(
-        description="the two material names (the same name twice for a self-pair)")
+        description="the two material names (the same name twice for a self-pair)"
+    )
     restitution: Float | None = Field(None, ge=0, le=1, description="restitution of the pair [-], in [0, 1]")
     friction: Float | None = Field(None, ge=0, description="sliding friction of the pair [-]")
     rolling_friction: Float | None = Field(None, ge=0, description="rolling friction of the pair [-]")
@@ -262,8 +284,11 @@ class MaterialPair(_DeckModel):
 
     def values(self) -> dict[str, float]:
         """The pair values that are set."""
-        return {k: v for k in ("restitution", "friction", "rolling_friction")
-                if (v := getattr(self, k)) is not None}
+        return {
+            k: v
+            for k in ("restitution", "friction", "rolling_friction")
+            if (v := getattr(self, k)) is not None
+        }
 
 
 # -------------------------------------------------------------------------------------------------
@@ -351,7 +376,8 @@ class NormalSizes(_DeckModel):
     mean: Float = Field(gt=0, description="mean radius of the untruncated normal [m]")
     std: Float = Field(ge=0, description="standard deviation of the radius [m]")
     r_min: Float | None = Field(
-        None, gt=0, description="smallest radius [m]; default mean − 3 std (must be > 0)")
+        None, gt=0, description="smallest radius [m]; default mean − 3 std (must be > 0)"
+    )
     r_max: Float | None = Field(None, gt=0, description="largest radius [m]; default mean + 3 std")
 
     @classmethod
@@ -382,7 +408,8 @@ class TableSizes(_DeckModel):
     type: Literal["table"] = Field(description="distribution kind")
     radii: list[Annotated[Float, Field(gt=0)]] = Field(min_length=1, description="radii [m], each > 0")
     mass_fractions: list[Annotated[Float, Field(ge=0)]] = Field(
-        min_length=1, description="mass fraction of each radius [-], each >= 0, summing to 1")
+        min_length=1, description="mass fraction of each radius [-], each >= 0, summing to 1"
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
@@ -392,12 +419,20 @@ class TableSizes(_DeckModel):
         if not all(_is_num(v) and v > 0 for v in radii) or not all(_is_num(v) and v >= 0 for v in fracs):
             return []
         if len(radii) != len(fracs):
-            return [(("mass_fractions",), f"{len(radii)} radii but {len(fracs)} mass_fractions; "
-                                          "give one mass fraction per radius")]
+            return [
+                (
+                    ("mass_fractions",),
+                    f"{len(radii)} radii but {len(fracs)} mass_fractions; give one mass fraction per radius",
+                )
+            ]
         total = math.fsum(fracs)
         if abs(total - 1.0) > 1e-6:
-            return [(("mass_fractions",), f"mass_fractions sum to {total!r}, not 1 (tolerance 1e-6); "
-                                          "normalise them")]
+            return [
+                (
+                    ("mass_fractions",),
+                    f"mass_fractions sum to {total!r}, not 1 (tolerance 1e-6); normalise them",
+                )
+            ]
         return []
 
     def build(self):
@@ -428,8 +463,13 @@ def _fit_problem(region_raw: Any, largest: float, what: str, key: str) -> Proble
         return []
     room = region.max_sphere_radius()
     if largest > room:
-        return [((key,), f"{what} {largest!r} m does not fit in the region (largest radius that fits: "
-                         f"{room!r} m); use a larger region or smaller spheres")]
+        return [
+            (
+                (key,),
+                f"{what} {largest!r} m does not fit in the region (largest radius that fits: "
+                f"{room!r} m); use a larger region or smaller spheres",
+            )
+        ]
     return []
 
 
@@ -441,11 +481,15 @@ def _fit_problem(region_raw: Any, largest: float, what: str, key: str) -> Proble
 class _SourceBase(_DeckModel):
     material: Str = Field(description="name of a material defined under [materials]")
     stage: Str | None = Field(
-        None, description="name of the stage at whose start the particles are inserted; default: before "
-                          "the first stage")
+        None,
+        description="name of the stage at whose start the particles are inserted; default: before "
+        "the first stage",
+    )
     motion: Literal["free", "fixed", "prescribed"] = Field(
-        "free", description="'free' (integrated), 'fixed' (never move) or 'prescribed' (move at their "
-                            "initial velocity, unaffected by forces)")
+        "free",
+        description="'free' (integrated), 'fixed' (never move) or 'prescribed' (move at their "
+        "initial velocity, unaffected by forces)",
+    )
     velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity (x, y, z) [m/s]")
 
 
@@ -459,13 +503,18 @@ class RandomFillSource(_SourceBase):
     source: Literal["random_fill"] = Field(description="source kind")
     region: RegionSpec = Field(description="region to fill: {type = 'box', …} or {type = 'cylinder', …}")
     sizes: SizeSpec = Field(
-        description="size distribution: {type = 'single' | 'uniform' | 'normal' | 'table', …}")
+        description="size distribution: {type = 'single' | 'uniform' | 'normal' | 'table', …}"
+    )
     n: Int | None = Field(
-        None, gt=0, description="number of spheres (give exactly one of n, volume_fraction)")
+        None, gt=0, description="number of spheres (give exactly one of n, volume_fraction)"
+    )
     volume_fraction: Float | None = Field(
-        None, gt=0, lt=RSA_LIMIT,
+        None,
+        gt=0,
+        lt=RSA_LIMIT,
         description=f"target solid volume fraction of the region [-], < {RSA_LIMIT} (random sequential "
-                    "addition jams near 0.38 for equal spheres); exactly one of n, volume_fraction")
+        "addition jams near 0.38 for equal spheres); exactly one of n, volume_fraction",
+    )
     gap: Float = Field(0.0, ge=0, description="minimum clearance between sphere surfaces [m]")
 
     @classmethod
@@ -480,13 +529,23 @@ class RandomFillSource(_SourceBase):
             out += _fit_problem(data.get("region"), sizes.r_max, "the largest radius", "sizes")
             region = _try_build(_REGION_MODELS, data.get("region"))
             n = data.get("n")
-            if region is not None and isinstance(n, int) and not isinstance(n, bool) and n > 0 \
-                    and not _given(data, "volume_fraction"):
+            if (
+                region is not None
+                and isinstance(n, int)
+                and not isinstance(n, bool)
+                and n > 0
+                and not _given(data, "volume_fraction")
+            ):
                 frac = n * sizes.mean_volume() / region.volume
                 if frac >= RSA_LIMIT:
-                    out.append((("n",), f"{n} spheres would fill {frac:.3g} of the region's volume; random "
-                                        f"sequential addition cannot exceed about 0.38 (limit {RSA_LIMIT}); "
-                                        "use fewer spheres, a larger region, or source = 'pluviate'"))
+                    out.append(
+                        (
+                            ("n",),
+                            f"{n} spheres would fill {frac:.3g} of the region's volume; random "
+                            f"sequential addition cannot exceed about 0.38 (limit {RSA_LIMIT}); "
+                            "use fewer spheres, a larger region, or source = 'pluviate'",
+                        )
+                    )
         return out
 
 
@@ -495,28 +554,40 @@ class LatticeSource(_SourceBase):
 
     source: Literal["lattice"] = Field(description="source kind")
     lattice: Literal["sc", "fcc", "hcp", "hex2d"] = Field(
-        description="'sc' (simple cubic), 'fcc', 'hcp' (in `region`) or 'hex2d' (n_cols × n_rows in a plane)")
+        description="'sc' (simple cubic), 'fcc', 'hcp' (in `region`) or 'hex2d' (n_cols × n_rows in a plane)"
+    )
     radius: Float = Field(gt=0, description="sphere radius [m]")
     spacing: Float | None = Field(
-        None, gt=0, description="centre distance of nearest neighbours [m], >= 2 radius; default 2 radius")
+        None, gt=0, description="centre distance of nearest neighbours [m], >= 2 radius; default 2 radius"
+    )
     region: RegionSpec | None = Field(None, description="region to fill (sc, fcc, hcp only)")
     n_cols: Int | None = Field(None, ge=1, description="spheres per row (hex2d only)")
     n_rows: Int | None = Field(None, ge=1, description="number of rows (hex2d only)")
     origin: Vec3 | None = Field(
-        None, description="centre of the first sphere [m] (hex2d only; default 0, 0, 0)")
+        None, description="centre of the first sphere [m] (hex2d only; default 0, 0, 0)"
+    )
     plane: Literal["xy", "xz", "yz"] | None = Field(
-        None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')")
+        None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')"
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
         out: Problems = []
         lattice = data.get("lattice")
         if lattice == "hex2d":
-            out += [((k,), f"required for lattice = 'hex2d': {k}") for k in ("n_cols", "n_rows")
-                    if not _given(data, k)]
+            out += [
+                ((k,), f"required for lattice = 'hex2d': {k}")
+                for k in ("n_cols", "n_rows")
+                if not _given(data, k)
+            ]
             if _given(data, "region"):
-                out.append((("region",), "a 'hex2d' lattice takes n_cols, n_rows, origin and plane, not a "
-                                         "region; remove region"))
+                out.append(
+                    (
+                        ("region",),
+                        "a 'hex2d' lattice takes n_cols, n_rows, origin and plane, not a "
+                        "region; remove region",
+                    )
+                )
         elif lattice in ("sc", "fcc", "hcp"):
             if not _given(data, "region"):
                 out.append((("region",), f"required for lattice = '{lattice}': region (box or cylinder)"))
@@ -528,9 +599,14 @@ class LatticeSource(_SourceBase):
                 out += _fit_problem(data.get("region"), radius, "radius", "radius")
         radius, spacing = data.get("radius"), data.get("spacing")
         if _is_num(radius) and _is_num(spacing) and spacing < 2 * radius * (1 - 1e-12):
-            out.append((("spacing",), f"spacing = {spacing} is smaller than the diameter {2 * radius}; "
-                                      "neighbouring spheres would overlap (use spacing >= 2 radius or "
-                                      "omit it)"))
+            out.append(
+                (
+                    ("spacing",),
+                    f"spacing = {spacing} is smaller than the diameter {2 * radius}; "
+                    "neighbouring spheres would overlap (use spacing >= 2 radius or "
+                    "omit it)",
+                )
+            )
         return out
 
     @model_validator(mode="after")
@@ -549,10 +625,13 @@ class FileSource(_SourceBase):
     source: Literal["file"] = Field(description="source kind")
     path: Str = Field(
         description="packing file, relative to the deck's directory (stored as an absolute path once "
-                    "validated); must exist")
+        "validated); must exist"
+    )
     velocity: Vec3 | None = Field(
-        None, description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
-                          "default zero")
+        None,
+        description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
+        "default zero",
+    )
 
     @field_validator("path")
     @classmethod
@@ -571,8 +650,13 @@ class FileSource(_SourceBase):
             p = Path(value).expanduser()
             full = p if p.is_absolute() else base / p
             if not full.is_file():
-                return [(("path",), f"file '{value}' does not exist (looked for {full}); paths are relative "
-                                    "to the deck's directory")]
+                return [
+                    (
+                        ("path",),
+                        f"file '{value}' does not exist (looked for {full}); paths are relative "
+                        "to the deck's directory",
+                    )
+                ]
         elif isinstance(value, str):
             return [(("path",), "path is empty; give the packing file's name")]
         return []
@@ -583,15 +667,19 @@ class PluviateSource(_SourceBase):
 
     source: Literal["pluviate"] = Field(description="source kind")
     region: RegionSpec = Field(
-        description="the container: box or cylinder; its footprint and floor are used, its height is not")
+        description="the container: box or cylinder; its footprint and floor are used, its height is not"
+    )
     sizes: SizeSpec = Field(description="size distribution")
     n: Int = Field(gt=0, description="number of spheres")
     fill_fraction: Float = Field(
-        0.3, ge=0.05, le=0.35, description="solid fraction of the loose column the spheres rain from [-]")
+        0.3, ge=0.05, le=0.35, description="solid fraction of the loose column the spheres rain from [-]"
+    )
     max_time: Float = Field(2.0, gt=0, description="settling time allowed before giving up [s]")
     rest_speed: Float | None = Field(
-        None, gt=0, description="settled when the fastest sphere is slower than this [m/s]; default "
-                                "0.01 sqrt(g d_mean)")
+        None,
+        gt=0,
+        description="settled when the fastest sphere is slower than this [m/s]; default 0.01 sqrt(g d_mean)",
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
@@ -602,13 +690,19 @@ class PluviateSource(_SourceBase):
         lo, hi = region.bounds
         room = region.radius if hasattr(region, "radius") else 0.5 * float(min(hi[0] - lo[0], hi[1] - lo[1]))
         if sizes.r_max > room:
-            return [(("sizes",), f"the largest radius {sizes.r_max!r} m does not fit in the container's "
-                                 f"footprint (largest radius that fits: {room!r} m)")]
+            return [
+                (
+                    ("sizes",),
+                    f"the largest radius {sizes.r_max!r} m does not fit in the container's "
+                    f"footprint (largest radius that fits: {room!r} m)",
+                )
+            ]
         return []
 
 
-ParticleSource = Annotated[RandomFillSource | LatticeSource | FileSource | PluviateSource,
-                           Field(discriminator="source")]
+ParticleSource = Annotated[
+    RandomFillSource | LatticeSource | FileSource | PluviateSource, Field(discriminator="source")
+]
 
 
 # -------------------------------------------------------------------------------------------------
@@ -621,7 +715,8 @@ class BoundaryEntry(_DeckModel):
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     type: Str = Field(
-        description="boundary plugin: an entry point of group pdem.boundaries (see `pdem plugins`)")
+        description="boundary plugin: an entry point of group pdem.boundaries (see `pdem plugins`)"
+    )
 
 
 # -------------------------------------------------------------------------------------------------
@@ -637,17 +732,24 @@ class StageEnd(_DeckModel):
     time: Float | None = Field(None, gt=0, description="stage duration [s]")
     steps: Int | None = Field(None, gt=0, description="number of steps")
     kinetic_energy_below: Float | None = Field(
-        None, gt=0, description="end when the total kinetic energy falls below this [J] (checked every "
-                                "check_every steps)")
+        None,
+        gt=0,
+        description="end when the total kinetic energy falls below this [J] (checked every "
+        "check_every steps)",
+    )
     quantity: Str | None = Field(
-        None, description="a measured quantity '<boundary>.<key>' (e.g. 'cone.discharged_mass'), compared "
-                          "with above / below every check_every steps")
+        None,
+        description="a measured quantity '<boundary>.<key>' (e.g. 'cone.discharged_mass'), compared "
+        "with above / below every check_every steps",
+    )
     above: Float | None = Field(None, description="end when quantity > above (exactly one of above, below)")
     below: Float | None = Field(None, description="end when quantity < below (exactly one of above, below)")
     max_time: Float | None = Field(
-        None, gt=0, description="safety cap [s]: reaching it before another condition holds is an error")
+        None, gt=0, description="safety cap [s]: reaching it before another condition holds is an error"
+    )
     check_every: Int = Field(
-        100, gt=0, description="steps between checks of kinetic_energy_below and quantity")
+        100, gt=0, description="steps between checks of kinetic_energy_below and quantity"
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
@@ -657,17 +759,30 @@ class StageEnd(_DeckModel):
             out.append(((), f"a stage needs at least one end condition: {', '.join(_END_CONDITIONS)}{extra}"))
         q, above, below = _given(data, "quantity"), _given(data, "above"), _given(data, "below")
         if q and above == below:
-            out.append((("quantity",), "give exactly one of above / below with quantity; "
-                                       + ("both given" if above else "neither given")))
+            out.append(
+                (
+                    ("quantity",),
+                    "give exactly one of above / below with quantity; "
+                    + ("both given" if above else "neither given"),
+                )
+            )
         if not q:
-            out += [((k,), f"{k} needs quantity = '<boundary>.<key>'") for k in ("above", "below")
-                    if _given(data, k)]
+            out += [
+                ((k,), f"{k} needs quantity = '<boundary>.<key>'")
+                for k in ("above", "below")
+                if _given(data, k)
+            ]
         quantity = data.get("quantity")
         if isinstance(quantity, str):
             head, _, tail = quantity.partition(".")
             if not head or not tail:
-                out.append((("quantity",), f"quantity = '{quantity}' must have the form '<boundary>.<key>', "
-                                           "e.g. 'cone.discharged_mass'"))
+                out.append(
+                    (
+                        ("quantity",),
+                        f"quantity = '{quantity}' must have the form '<boundary>.<key>', "
+                        "e.g. 'cone.discharged_mass'",
+                    )
+                )
         return out
 
 
@@ -689,12 +804,15 @@ class OutputCadence(_DeckModel):
 class Stage(_DeckModel):
     """``[[stages]]``: one phase of the run, run in deck order."""
 
-    name: Str = Field(pattern=NAME_PATTERN,
-                      description="unique name: a letter or '_' first, then letters, digits, '_' or '-'")
+    name: Str = Field(
+        pattern=NAME_PATTERN,
+        description="unique name: a letter or '_' first, then letters, digits, '_' or '-'",
+    )
     dt: Float | None = Field(None, gt=0, description="time step of this stage [s]; default run.dt")
     end: StageEnd = Field(description="end conditions (table [stages.end]); the stage ends when ANY holds")
     output: OutputCadence | None = Field(
-        None, description="per-stage override of the output cadence keys (table [stages.output])")
+        None, description="per-stage override of the output cadence keys (table [stages.output])"
+    )
 
 
 class OutputSection(_DeckModel):
@@ -702,20 +820,26 @@ class OutputSection(_DeckModel):
 
     directory: Str | None = Field(
         None,
-        description="output directory, relative to the current directory; default 'out/<deck file stem>'")
+        description="output directory, relative to the current directory; default 'out/<deck file stem>'",
+    )
     formats: list[Str] = Field(
-        ["hdf5"], description="snapshot writers (entry points of group pdem.writers): 'hdf5', 'vtk'")
+        ["hdf5"], description="snapshot writers (entry points of group pdem.writers): 'hdf5', 'vtk'"
+    )
     every_time: Float | None = Field(
-        None, gt=0, description="snapshot interval [s] (at most one of every_time, every_steps)")
-    every_steps: Int | None = Field(None, gt=0, description="snapshot interval [steps]; default 1000 when "
-                                                           "every_time is not given")
+        None, gt=0, description="snapshot interval [s] (at most one of every_time, every_steps)"
+    )
+    every_steps: Int | None = Field(
+        None, gt=0, description="snapshot interval [steps]; default 1000 when every_time is not given"
+    )
     fields: list[Literal["x", "v", "w", "r", "material", "f", "contacts", "id"]] = Field(
         list(OUTPUT_FIELDS),
         description="per-particle fields in snapshots: x (position), v (velocity), w (angular velocity), "
-                    "r (radius), material, f (force), contacts (contact count), id; default all")
+        "r (radius), material, f (force), contacts (contact count), id; default all",
+    )
     series_every_steps: Int = Field(100, gt=0, description="time-series interval [steps] (one CSV per stage)")
     checkpoint_every_steps: Int | None = Field(
-        None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints")
+        None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints"
+    )
 
     #: snapshot cadence when neither every_time nor every_steps is given
     DEFAULT_EVERY_STEPS: ClassVar[int] = 1000
@@ -732,8 +856,13 @@ class OutputSection(_DeckModel):
             for k, fmt in enumerate(formats):
                 if isinstance(fmt, str) and fmt not in allowed:
                     hint = did_you_mean(fmt, allowed, True)
-                    out.append((("formats", k), f"unknown output format '{fmt}'{hint}; "
-                                                f"available writers: {_listing(sorted(allowed))}"))
+                    out.append(
+                        (
+                            ("formats", k),
+                            f"unknown output format '{fmt}'{hint}; "
+                            f"available writers: {_listing(sorted(allowed))}",
+                        )
+                    )
                 elif isinstance(fmt, str) and fmt in seen:
                     out.append((("formats", k), f"format '{fmt}' is listed twice"))
                 if isinstance(fmt, str):
@@ -784,16 +913,21 @@ class Deck(_DeckModel):
 
     title: Str | None = Field(None, description="free-text title of the run")
     run: RunSection = Field(default_factory=RunSection, description="time step, gravity, skin, seed")
-    contact: ContactSection = Field(default_factory=ContactSection,
-                                    description="the contact law and its parameters")
+    contact: ContactSection = Field(
+        default_factory=ContactSection, description="the contact law and its parameters"
+    )
     materials: dict[Str, MaterialSpec] = Field(
-        min_length=1, description="materials by name (tables [materials.NAME]); at least one")
+        min_length=1, description="materials by name (tables [materials.NAME]); at least one"
+    )
     material_pairs: list[MaterialPair] = Field(
-        default_factory=list, description="per-pair overrides of restitution, friction, rolling_friction")
+        default_factory=list, description="per-pair overrides of restitution, friction, rolling_friction"
+    )
     particles: list[ParticleSource] = Field(
-        default_factory=list, description="particle sources (arrays of tables [[particles]]), by `source`")
+        default_factory=list, description="particle sources (arrays of tables [[particles]]), by `source`"
+    )
     boundaries: dict[Str, BoundaryEntry] = Field(
-        default_factory=dict, description="boundaries by name (tables [boundaries.NAME]), by plugin `type`")
+        default_factory=dict, description="boundaries by name (tables [boundaries.NAME]), by plugin `type`"
+    )
     stages: list[Stage] = Field(min_length=1, description="the stages of the run, in order (at least one)")
     output: OutputSection = Field(default_factory=OutputSection, description="output directory and cadence")
 
@@ -856,14 +990,23 @@ def _cross_checks(data: dict) -> Problems:
                 if len(mats) == 2 and all(isinstance(m, str) for m in mats):
                     key = frozenset(mats)
                     if key in seen:
-                        out.append((("material_pairs", k, "materials"),
-                                    f"pair {mats} is already given in material_pairs.{seen[key]}"))
+                        out.append(
+                            (
+                                ("material_pairs", k, "materials"),
+                                f"pair {mats} is already given in material_pairs.{seen[key]}",
+                            )
+                        )
                     seen.setdefault(key, k)
 
     for name, table in bnd.items():
         if not _NAME_RE.match(name):
-            out.append((("boundaries", name), f"boundary name '{name}' must start with a letter or '_' and "
-                                              "contain only letters, digits, '_' or '-'"))
+            out.append(
+                (
+                    ("boundaries", name),
+                    f"boundary name '{name}' must start with a letter or '_' and "
+                    "contain only letters, digits, '_' or '-'",
+                )
+            )
         if not isinstance(table, dict):
             continue
         for key in _material_keys(table):
@@ -883,8 +1026,12 @@ def _cross_checks(data: dict) -> Problems:
             if isinstance(quantity, str) and "." in quantity:
                 head = quantity.split(".", 1)[0]
                 if head and head not in bnd:
-                    out.append((("stages", k, "end", "quantity"),
-                                f"quantity '{quantity}' names boundary '{head}', which is not defined"
-                                f"{did_you_mean(head, list(bnd), True)}; defined boundaries: "
-                                f"{_listing(list(bnd))}"))
+                    out.append(
+                        (
+                            ("stages", k, "end", "quantity"),
+                            f"quantity '{quantity}' names boundary '{head}', which is not defined"
+                            f"{did_you_mean(head, list(bnd), True)}; defined boundaries: "
+                            f"{_listing(list(bnd))}",
+                        )
+                    )
     return out

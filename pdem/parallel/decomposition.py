@@ -110,17 +110,18 @@ class Decomposition:
         c = self.cell_coords(x)
         return np.all(c == np.asarray(self.coords), axis=1)
 
-    def imbalance(self, n_owned: int) -> float:
-        """max / mean of the owned counts over ranks (1 = perfect; collective)."""
-        counts = self.comm.allgather(int(n_owned))
-        mean = sum(counts) / len(counts)
-        return max(counts) / mean if mean > 0 else 1.0
+    def imbalance(self, work: float) -> float:
+        """max / mean of a per-rank work estimate (1 = perfect; collective)."""
+        loads = self.comm.allgather(float(work))
+        mean = sum(loads) / len(loads)
+        return max(loads) / mean if mean > 0 else 1.0
 
-    def rebalance(self, x_owned: np.ndarray, bins: int = 4096) -> None:
-        """Move the cut planes to the particle-count quantiles of all ranks' positions (collective).
+    def rebalance(self, x_owned: np.ndarray, weights: np.ndarray | None = None, bins: int = 4096) -> None:
+        """Move the cut planes to the work quantiles of all ranks' particles (collective).
 
-        Each axis uses a histogram of ``bins`` bins over the global range, summed over ranks (integer,
-        exact), so every rank computes the same cuts.
+        ``weights`` (integers ≥ 1, default 1) estimate each particle's cost. Each axis uses a weighted
+        histogram of ``bins`` bins over the global range, summed over ranks in integers (exact), so
+        every rank computes the same cuts.
         """
         from mpi4py import MPI
 
@@ -135,7 +136,7 @@ class Decomposition:
             if not hi > lo:
                 new.append(self.cuts[d])
                 continue
-            counts = np.histogram(xd, bins=bins, range=(lo, hi))[0].astype(np.int64)
+            counts = np.histogram(xd, bins=bins, range=(lo, hi), weights=weights)[0].astype(np.int64)
             total = np.zeros_like(counts)
             self.comm.Allreduce(counts, total, op=MPI.SUM)
             cum = np.cumsum(total)

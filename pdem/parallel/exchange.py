@@ -60,6 +60,8 @@ def _migrate_pass(sim) -> None:
         down = _pack(sim, np.flatnonzero(go_down))
         up = _pack(sim, np.flatnonzero(go_up))
         _remove(sim, go_down | go_up)
+        if lower is None and upper is None:
+            continue
         from_up = _sendrecv(dec.comm, down, lower, upper)
         from_down = _sendrecv(dec.comm, up, upper, lower)
         for parcel in (from_down, from_up):
@@ -141,7 +143,11 @@ def borders(sim, width: float) -> None:
         recv = []
         for send_idx, dest, source in ((to_lower, lower, upper), (to_upper, upper, lower)):
             parcel = {k: getattr(p, k)[send_idx].copy() for k in _GHOST_FIELDS} if dest is not None else None
-            got = _sendrecv(dec.comm, parcel, dest, source)
+            got = (
+                _sendrecv(dec.comm, parcel, dest, source)
+                if (dest is not None or source is not None)
+                else None
+            )
             recv.append(got)
             swaps.append([send_idx, dest, source, 0, 0])
         for got, swap in zip(recv, swaps[-2:], strict=True):
@@ -164,17 +170,32 @@ def _append_ghosts(p, got: dict) -> None:
 
 
 def forward(sim) -> None:
-    """Send the ghosts' current positions, velocities and spins along the recorded swaps."""
+    """Send the ghosts' current positions, velocities and spins along the recorded swaps.
+
+    Buffer-based ``Sendrecv`` of (k, 9) float arrays; swaps with no partner on either side cost
+    nothing."""
+    from mpi4py import MPI
+
     dec = sim._decomp
     p = sim.particles
     for send_idx, dest, source, start, end in sim._swaps:
-        payload = (
-            np.concatenate([p.x[send_idx], p.v[send_idx], p.w[send_idx]], axis=1)
-            if dest is not None
-            else None
+        if dest is None and source is None:
+            continue
+        if dest is not None:
+            sendbuf = np.empty((send_idx.shape[0], 9))
+            sendbuf[:, 0:3] = p.x[send_idx]
+            sendbuf[:, 3:6] = p.v[send_idx]
+            sendbuf[:, 6:9] = p.w[send_idx]
+        else:
+            sendbuf = np.empty((0, 9))
+        recvbuf = np.empty((end - start, 9))
+        dec.comm.Sendrecv(
+            sendbuf,
+            dest=MPI.PROC_NULL if dest is None else dest,
+            recvbuf=recvbuf,
+            source=MPI.PROC_NULL if source is None else source,
         )
-        got = _sendrecv(dec.comm, payload, dest, source)
         if end > start:
-            p.x[start:end] = got[:, 0:3]
-            p.v[start:end] = got[:, 3:6]
-            p.w[start:end] = got[:, 6:9]
+            p.x[start:end] = recvbuf[:, 0:3]
+            p.v[start:end] = recvbuf[:, 3:6]
+            p.w[start:end] = recvbuf[:, 6:9]

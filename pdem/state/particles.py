@@ -20,8 +20,15 @@ REMOVED = 3  # taken out by an outflow; compacted away at the next neighbour-lis
 MOTION_NAMES = {"free": FREE, "fixed": FIXED, "prescribed": PRESCRIBED}
 
 _VEC = ("x", "v", "w", "f", "t", "x_build")
-_SCAL = {"r": np.float64, "mass": np.float64, "inv_m": np.float64, "inv_i": np.float64,
-         "mat": np.int32, "motion": np.int8, "id": np.int64}
+_SCAL = {
+    "r": np.float64,
+    "mass": np.float64,
+    "inv_m": np.float64,
+    "inv_i": np.float64,
+    "mat": np.int32,
+    "motion": np.int8,
+    "id": np.int64,
+}
 
 
 class ParticleStore:

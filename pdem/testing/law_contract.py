@@ -32,8 +32,17 @@ def random_contacts(rng: np.random.Generator, n: int, r_range=(4e-4, 6e-4)):
     return out
 
 
-def check_law_against_twin(law: ContactLaw, twin, materials: MaterialTable, *, mat=(0, 0), steps: int = 5,
-                           seed: int = 0, rtol: float = 1e-10, dt: float = 1e-6) -> int:
+def check_law_against_twin(
+    law: ContactLaw,
+    twin,
+    materials: MaterialTable,
+    *,
+    mat=(0, 0),
+    steps: int = 5,
+    seed: int = 0,
+    rtol: float = 1e-10,
+    dt: float = 1e-6,
+) -> int:
     """Compare ``law.pair_kernel`` with ``twin`` over random contacts for ``steps`` steps each.
 
     ``twin(delta, n, vrel, wrel, r_eff, m_eff, i_eff, coef_row, hist_row, dt) -> (F_on_j, M_on_j)``
@@ -56,8 +65,24 @@ def check_law_against_twin(law: ContactLaw, twin, materials: MaterialTable, *, m
             f = np.zeros((2, 3))
             t = np.zeros((2, 3))
             fpair = np.zeros((1, 3))
-            law.pair_kernel(np.array([0]), np.array([1]), hist, x, v, w, r, inv_m, inv_i,
-                            np.array(mat, dtype=np.int32), coef, f, t, fpair, dt, 1.0)
+            law.pair_kernel(
+                np.array([0]),
+                np.array([1]),
+                hist,
+                x,
+                v,
+                w,
+                r,
+                inv_m,
+                inv_i,
+                np.array(mat, dtype=np.int32),
+                coef,
+                f,
+                t,
+                fpair,
+                dt,
+                1.0,
+            )
             d = x[1] - x[0]
             dist = np.linalg.norm(d)
             assert dist < r.sum()
@@ -65,8 +90,18 @@ def check_law_against_twin(law: ContactLaw, twin, materials: MaterialTable, *, m
             delta = r.sum() - dist
             ai, aj = r[0] - delta / 2, r[1] - delta / 2
             vrel = (v[1] - aj * np.cross(w[1], n)) - (v[0] + ai * np.cross(w[0], n))
-            force, moment = twin(delta, n, vrel, w[1] - w[0], r[0] * r[1] / r.sum(), 1 / inv_m.sum(),
-                                 1 / inv_i.sum(), coef[mat[0], mat[1]], hist_twin, dt)
+            force, moment = twin(
+                delta,
+                n,
+                vrel,
+                w[1] - w[0],
+                r[0] * r[1] / r.sum(),
+                1 / inv_m.sum(),
+                1 / inv_i.sum(),
+                coef[mat[0], mat[1]],
+                hist_twin,
+                dt,
+            )
             scale = max(np.abs(force).max(), 1e-30)
             assert np.allclose(f[1], force, rtol=rtol, atol=rtol * scale), (f[1], force)
             assert np.allclose(f[0], -force, rtol=rtol, atol=rtol * scale)
@@ -75,8 +110,9 @@ def check_law_against_twin(law: ContactLaw, twin, materials: MaterialTable, *, m
             tscale = max(np.abs(tq_j).max(), np.abs(tq_i).max(), scale * r.sum())
             assert np.allclose(t[1], tq_j, rtol=1e-9, atol=1e-9 * tscale)
             assert np.allclose(t[0], tq_i, rtol=1e-9, atol=1e-9 * tscale)
-            assert np.allclose(hist[0, : law.history_size], hist_twin[: law.history_size], rtol=1e-9,
-                               atol=1e-15)
+            assert np.allclose(
+                hist[0, : law.history_size], hist_twin[: law.history_size], rtol=1e-9, atol=1e-15
+            )
             checked += 1
             # move the pair a little to exercise the history; stop when the contact opens
             x = x + v * dt * 50
