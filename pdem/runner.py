@@ -224,6 +224,8 @@ class Runner:
         sim.gravity = tuple(run.gravity)
         sim.skin = run.skin
         sim.max_overlap = run.max_overlap
+        sim.decomposition_dims = tuple(run.decomposition) if run.decomposition else None
+        sim.balance_threshold = run.balance_threshold
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
             b = cls(name, params)

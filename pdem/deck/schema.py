@@ -223,6 +223,17 @@ class RunSection(_DeckModel):
         "stops with an instability error)",
     )
     seed: Int = Field(0, ge=0, description="seed of the random number generator used by random sources")
+    decomposition: tuple[Int, Int, Int] | None = Field(
+        None,
+        description="MPI grid of subdomains (nx, ny, nz) whose product is the number of ranks; default: "
+        "chosen from the rank count to minimise the cut area over the particles",
+    )
+    balance_threshold: Float | None = Field(
+        1.05,
+        gt=1,
+        description="under MPI, move the cut planes when the slowest rank's force time exceeds the mean "
+        "by this factor (measured between neighbour-list rebuilds); omit or set null to never rebalance",
+    )
 
 
 class ContactSection(_DeckModel):
