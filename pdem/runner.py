@@ -260,6 +260,27 @@ class Runner:
                 out[f"{name}.{key}"] = float(val)
         return out
 
+    def _balance_columns(self) -> dict[str, float]:
+        """Under MPI: max/mean over ranks of owned particles and of estimated work (collective)."""
+        sim = self.sim
+        if sim.comm.size == 1:
+            return {}
+        p = sim.particles
+        n = p.n_owned
+        touching = np.any(sim._fpair != 0.0, axis=1) if sim._fpair.shape[0] == sim._pi.size else None
+        work = sim._W_PARTICLE * n
+        if touching is not None and sim._pi.size:
+            ends = np.concatenate([sim._pi, sim._pj])
+            tends = np.concatenate([sim._pi[touching], sim._pj[touching]])
+            work += sim._W_PAIR_END * int((ends < n).sum()) + sim._W_TOUCH_END * int((tends < n).sum())
+        counts = np.array(sim.comm.allgather((n, work)), dtype=float)
+        mean = counts.mean(axis=0)
+        return {
+            "imbalance_particles": float(counts[:, 0].max() / max(mean[0], 1e-300)),
+            "imbalance_work": float(counts[:, 1].max() / max(mean[1], 1e-300)),
+            "rebalances": float(sim._decomp.n_rebalances if sim._decomp else 0),
+        }
+
     def _series_row(self, stage: str) -> None:
         sim = self.sim
         ke_t, ke_r = sim.kinetic_energy()
@@ -269,6 +290,7 @@ class Runner:
             "particles": float(sim.count_particles()),
             "ke_trans": ke_t,
             "ke_rot": ke_r,
+            **self._balance_columns(),
             **self.measurements(),
         }
         self.series.setdefault(stage, []).append(row)
