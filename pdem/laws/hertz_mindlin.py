@@ -47,6 +47,7 @@ from pydantic import Field, model_validator
 
 from .._jit import njit
 from ..contact._kernels import pair_forces, wall_forces
+from ..contact._tangential import tangential_spring
 from ..contact.law import ContactLaw, LawParams
 from ..materials import MaterialTable, effective_moduli, rayleigh_time
 
@@ -85,43 +86,8 @@ def hertz_mindlin_force(
         c_t = a * coef[mi, mj, 4] * m_eff
     if coef[mi, mj, 7] != 0.0 and fn < 0.0:
         fn = 0.0
-    # tangential spring: rotate onto the tangent plane keeping its length, then increment
-    sx = hist[k, 0]
-    sy = hist[k, 1]
-    sz = hist[k, 2]
-    old2 = sx * sx + sy * sy + sz * sz
-    if old2 > 0.0:
-        sn = sx * nx + sy * ny + sz * nz
-        sx -= sn * nx
-        sy -= sn * ny
-        sz -= sn * nz
-        new2 = sx * sx + sy * sy + sz * sz
-        if new2 > 0.0:
-            scale = math.sqrt(old2 / new2)
-            sx *= scale
-            sy *= scale
-            sz *= scale
-    sx += vtx * dt
-    sy += vty * dt
-    sz += vtz * dt
-    ftx = -k_t * sx - c_t * vtx
-    fty = -k_t * sy - c_t * vty
-    ftz = -k_t * sz - c_t * vtz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
     fcap = coef[mi, mj, 5] * fn if fn > 0.0 else 0.0
-    if ft2 > fcap * fcap:
-        ft = math.sqrt(ft2)
-        scale = fcap / ft
-        ftx *= scale
-        fty *= scale
-        ftz *= scale
-        # the spring alone carries the Coulomb force (damping is not stored, see module docstring)
-        sx = -ftx / k_t
-        sy = -fty / k_t
-        sz = -ftz / k_t
-    hist[k, 0] = sx
-    hist[k, 1] = sy
-    hist[k, 2] = sz
+    ftx, fty, ftz = tangential_spring(hist, k, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt)
     mx = 0.0
     my = 0.0
     mz = 0.0

@@ -55,6 +55,7 @@ import math
 import numpy as np
 from pdem._jit import njit
 from pdem.contact._kernels import pair_forces, wall_forces
+from pdem.contact._tangential import tangential_spring
 from pdem.contact.law import ContactLaw, LawParams
 from pdem.errors import InputError
 from pdem.laws.hertz_mindlin import damping_ratio
@@ -86,43 +87,8 @@ def linear_spring_force(delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff,
     fn = k_n * delta - c_n * vn
     if coef[mi, mj, 5] != 0.0 and fn < 0.0:
         fn = 0.0
-    # tangential spring: rotate onto the tangent plane keeping its length, then increment
-    sx = hist[k, 0]
-    sy = hist[k, 1]
-    sz = hist[k, 2]
-    old2 = sx * sx + sy * sy + sz * sz
-    if old2 > 0.0:
-        sn = sx * nx + sy * ny + sz * nz
-        sx -= sn * nx
-        sy -= sn * ny
-        sz -= sn * nz
-        new2 = sx * sx + sy * sy + sz * sz
-        if new2 > 0.0:
-            scale = math.sqrt(old2 / new2)
-            sx *= scale
-            sy *= scale
-            sz *= scale
-    sx += vtx * dt
-    sy += vty * dt
-    sz += vtz * dt
-    ftx = -k_t * sx - c_t * vtx
-    fty = -k_t * sy - c_t * vty
-    ftz = -k_t * sz - c_t * vtz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
     fcap = coef[mi, mj, 4] * fn if fn > 0.0 else 0.0
-    if ft2 > fcap * fcap:
-        ft = math.sqrt(ft2)
-        scale = fcap / ft
-        ftx *= scale
-        fty *= scale
-        ftz *= scale
-        # the spring alone carries the Coulomb force (damping is not stored)
-        sx = -ftx / k_t
-        sy = -fty / k_t
-        sz = -ftz / k_t
-    hist[k, 0] = sx
-    hist[k, 1] = sy
-    hist[k, 2] = sz
+    ftx, fty, ftz = tangential_spring(hist, k, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt)
     return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, 0.0, 0.0, 0.0)
 
 
