@@ -265,14 +265,8 @@ class Runner:
         sim = self.sim
         if sim.comm.size == 1:
             return {}
-        p = sim.particles
-        n = p.n_owned
-        touching = np.any(sim._fpair != 0.0, axis=1) if sim._fpair.shape[0] == sim._pi.size else None
-        work = sim._W_PARTICLE * n
-        if touching is not None and sim._pi.size:
-            ends = np.concatenate([sim._pi, sim._pj])
-            tends = np.concatenate([sim._pi[touching], sim._pj[touching]])
-            work += sim._W_PAIR_END * int((ends < n).sum()) + sim._W_TOUCH_END * int((tends < n).sum())
+        n = sim.particles.n_owned
+        work = int(sim.model_work().sum())
         counts = np.array(sim.comm.allgather((n, work)), dtype=float)
         mean = counts.mean(axis=0)
         return {
@@ -309,10 +303,9 @@ class Runner:
         p = sim.get_particles()
         contacts = np.zeros(len(p["id"]), dtype=np.int32)
         c = sim.contacts()
-        if len(c["id_i"]):
-            order = {int(i): k for k, i in enumerate(p["id"])}
-            idx = np.array([order[int(i)] for i in np.concatenate([c["id_i"], c["id_j"]])])
-            contacts = np.bincount(idx, minlength=len(p["id"])).astype(np.int32)
+        if len(c["id_i"]):  # p["id"] is sorted: map contact ends to rows by binary search
+            rows = np.searchsorted(p["id"], np.concatenate([c["id_i"], c["id_j"]]))
+            contacts = np.bincount(rows, minlength=len(p["id"])).astype(np.int32)
         particles = {
             "id": p["id"],
             "x": p["x"],

@@ -596,12 +596,10 @@ class Simulation:
     # contact 10 more (~51 ns); pair costs are split between the pair's two ends
     _W_PARTICLE, _W_PAIR_END, _W_TOUCH_END = 2, 1, 5
 
-    def _work_weights(self) -> None:
-        """Note the work of the last force evaluation per owned particle (by id, which survives the
-        migration that follows) and this rank's total."""
+    def model_work(self) -> np.ndarray:
+        """Estimated work of the last force evaluation per owned particle (cost-model units)."""
         p = self.particles
         n = p.n_owned
-        self._weight_ids = p.id[:n].copy()
         w = np.full(n, self._W_PARTICLE, dtype=np.int64)
         if self._pi.size and self._fpair.shape[0] == self._pi.size and n:
             touching = np.any(self._fpair != 0.0, axis=1)
@@ -611,6 +609,15 @@ class Simulation:
             ):
                 ends = ends[ends < n]
                 np.add.at(w, ends, inc)
+        return w
+
+    def _work_weights(self) -> None:
+        """Note the work of the last force evaluation per owned particle (by id, which survives the
+        migration that follows) and this rank's total."""
+        p = self.particles
+        n = p.n_owned
+        self._weight_ids = p.id[:n].copy()
+        w = self.model_work()
         # scale the model to this rank's measured force time since the last rebuild (balance on time)
         measured = getattr(self, "_force_time", 0.0)
         total = float(w.sum())

@@ -240,3 +240,4 @@ def test_resume_refuses_changed_deck(tmp_path, capsys):
     deck.write_text(SMALL.replace("friction = 0.5", "friction = 0.4"))
     code, _, err = run_cli(["resume", part / "checkpoints" / "latest.h5", "--quiet"], capsys)
     assert code == 1 and "changed" in err
+

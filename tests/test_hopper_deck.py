@@ -97,3 +97,19 @@ def test_paraview_opens_hopper_output(hopper_run, tmp_path):
     assert len(res["times"]) >= 5
     assert res["points"][0] == 600 and res["points"][-1] < 600  # grains left through the orifice
     assert res["wall_cells"] > 100
+
+
+def test_snapshot_contact_counts_match_brute_force(hopper_run):
+    """The 'contacts' field of the snapshot at the end of the fill (a settled pile in the closed
+    hopper) equals a brute-force count of overlapping pairs."""
+    import h5py
+    import numpy as np
+
+    with h5py.File(hopper_run / "particles.h5", "r") as fh:
+        frames = [fh["frames"][k] for k in sorted(fh["frames"])]
+        fill = [f for f in frames if f.attrs["stage"] == "fill"][-1]
+        x, r, counts = fill["x"][()], fill["r"][()], fill["contacts"][()]
+    d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2)
+    touching = (d < r[:, None] + r[None, :]) & ~np.eye(len(r), dtype=bool)
+    assert touching.sum() > 1000  # a settled pile: ~4 contacts per bead
+    assert np.array_equal(counts, touching.sum(axis=1))
