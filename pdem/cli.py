@@ -245,6 +245,9 @@ def _fail(code: int, message: str) -> int:
         time.sleep(2.0)
         message = f"[rank {rank}] {message}"
     print(message, file=sys.stderr, flush=True)
+    # mpiexec relays each rank's stderr asynchronously: aborting at once can kill the job before the
+    # message reaches the user, so give the forwarder a moment
+    time.sleep(0.5)
     MPI.COMM_WORLD.Abort(code)
     return code  # pragma: no cover
 
