@@ -275,6 +275,30 @@ class Runner:
             "rebalances": float(sim._decomp.n_rebalances if sim._decomp else 0),
         }
 
+    def _solver_columns(self, stage: str) -> dict[str, float]:
+        """DEM-C: the last step's iterations and residual, the count of unconverged steps; every
+        step's values since the last row go to ``solver_<stage>.csv`` (rank 0)."""
+        st = self.sim._stepper
+        if st is None:
+            return {}
+        log, st.log = st.log, []
+        if self.root and log:
+            writer = self._series_writers.get(("solver", stage))
+            if writer is None:
+                from .io.series import SeriesWriter
+
+                writer = SeriesWriter(
+                    self.out / f"solver_{stage}.csv", ["step", "iterations", "residual", "contacts_rank0"]
+                )
+                self._series_writers[("solver", stage)] = writer
+            for step, it, res, nc in log:
+                writer.append({"step": step, "iterations": it, "residual": res, "contacts_rank0": nc})
+        return {
+            "solver_iterations": float(st.last_iterations),
+            "solver_residual": float(st.last_residual),
+            "solver_unconverged": float(st.n_unconverged),
+        }
+
     def _series_row(self, stage: str) -> None:
         sim = self.sim
         ke_t, ke_r = sim.kinetic_energy()
@@ -285,6 +309,7 @@ class Runner:
             "ke_trans": ke_t,
             "ke_rot": ke_r,
             **self._balance_columns(),
+            **self._solver_columns(stage),
             **self.measurements(),
         }
         self.series.setdefault(stage, []).append(row)
@@ -431,6 +456,8 @@ class Runner:
             "completed": not self.stopped_early,
             "results": {},
         }
+        if sim._stepper is not None:
+            summary["solver"] = sim._stepper.summary()
         merged = self._merged_series()
         for name, b in self.boundaries.items():
             res = b.summary(merged)

@@ -92,11 +92,14 @@ class Simulation:
         self._moving_walls: list[int] = []
         self._pair_keys: np.ndarray | None = None
         self.dt_critical = math.nan
+        self._stepper = None  # the time step of a complementarity method (DEM-C), else None
+        self._envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
 
     # ------------------------------------------------------------------ setup
     def set_law(self, law: str | ContactLaw, **params: Any) -> None:
         """Choose the contact law by entry-point name (``"hertz_mindlin"``) or instance."""
         self.law = load_contact_law(law, **params) if isinstance(law, str) else law
+        self._stepper = None
         self._prepared = False
 
     def add_material(self, material: Material | str, **props: float) -> int:
@@ -277,7 +280,16 @@ class Simulation:
         if not (self.skin >= 0 and math.isfinite(self.skin)):
             raise InputError(f"skin = {self.skin!r} is invalid; give a non-negative distance in metres")
         r_max = all_max(self.comm, float(p.r[:n].max()) if n else 0.0)
-        self._ghost_width = 2.0 * r_max + self.skin
+        if self.law.kind == "complementarity":
+            r_min = all_min(self.comm, float(p.r[:n].min()) if n else math.inf)
+            self._envelope = self.law.envelope(np.array([r_min]) if math.isfinite(r_min) else np.zeros(0))
+        else:
+            self._envelope = 0.0
+        # the list holds every pair within skin + envelope at the build; it is rebuilt when particles
+        # may have moved more than the skin, so every pair within the envelope is always listed
+        self._list_skin = self.skin + self._envelope
+        self._ghost_width_base = 2.0 * r_max
+        self._ghost_width = self._ghost_width_base + self._list_skin
         if self.comm.size > 1 and self._decomp is None:
             self._decompose()
             n = p.n_owned
@@ -297,6 +309,11 @@ class Simulation:
         self._prepared = True
         self._rebuild()
         self._check_initial_overlaps()
+        if self.law.kind == "complementarity":
+            self._stepper = self.law.make_stepper(self)
+            integ.zero_forces(p.f, p.t, p.n)
+            self._add_body_forces_only()
+            return
         # forces for the first half kick; like LAMMPS's setup, this evaluation must not advance the
         # contact history (the next step does)
         saved = [self._pair_hist.copy()] + [w.hist.copy() for w in self._wall_list]
@@ -542,7 +559,7 @@ class Simulation:
         if n:
             lo = x.min(axis=0) - 1e-12
             hi = x.max(axis=0) + 1e-12
-            cell = 2.0 * float(r.max()) + self.skin
+            cell = 2.0 * float(r.max()) + self._list_skin
             ext = np.maximum(hi - lo, cell)
             while True:
                 dims = np.maximum((ext / cell).astype(np.int64), 1)
@@ -552,7 +569,7 @@ class Simulation:
             inv_cell = 1.0 / cell
             while True:
                 pi, pj, count = nk.build_pairs(
-                    x, r, p.id, p.n_owned, n, self.skin, lo, inv_cell, dims, self._pair_capacity
+                    x, r, p.id, p.n_owned, n, self._list_skin, lo, inv_cell, dims, self._pair_capacity
                 )
                 if count <= self._pair_capacity:
                     break
@@ -574,7 +591,7 @@ class Simulation:
         for wall in self._wall_list:
             if p.n_owned and wall.active:
                 gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
-                wall.candidates = np.flatnonzero(gap < self.skin).astype(np.int64)
+                wall.candidates = np.flatnonzero(gap < self._list_skin).astype(np.int64)
             else:
                 wall.candidates = np.zeros(0, dtype=np.int64)
             cands.append(wall.candidates)
@@ -742,6 +759,9 @@ class Simulation:
         """Advance one time step (DEM-P velocity Verlet)."""
         if not self._prepared:
             self._prepare()
+        if self._stepper is not None:
+            self._stepper.step()
+            return
         p = self.particles
         dt = self.dt
         integ.initial_integrate(p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned)
@@ -802,6 +822,15 @@ class Simulation:
             causes.append("a velocity became non-finite")
         if flags & FLAG_COINCIDENT:
             causes.append("two particle centres coincide")
+        if self._stepper is not None:
+            raise InstabilityError(
+                f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
+                f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "
+                f"dt = {self.dt:.4g} s, complementarity solver '{self.law.params.solver}' with "
+                f"max_iterations = {self.law.params.max_iterations}: the contact problem was not solved "
+                "well enough; reduce dt, raise contact.max_iterations or lower contact.tolerance, or "
+                "check the initial overlaps and prescribed velocities"
+            )
         raise InstabilityError(
             f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
             f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "

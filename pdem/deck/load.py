@@ -278,7 +278,29 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
     model, problems = _params_model(cls, ("contact", "law"), f"contact law '{law}'")
     if model is None:
         return cls, None, problems
-    values = {k: v for k, v in raw.items() if k != "law"}
+    # [contact.<law>] tables hold one law's parameters, so that a deck can carry those of both
+    # methods and switch with the one key contact.law; the selected law's table joins the top level
+    known = set(plugins.available("contact_laws"))
+    values: dict = {}
+    for k, v in raw.items():
+        if k == "law" or (isinstance(v, dict) and k in known and k != law):
+            continue
+        if isinstance(v, dict) and k == law:
+            clash = sorted(set(v) & {key for key in raw if key not in known and key != "law"})
+            if clash:
+                return (
+                    cls,
+                    None,
+                    [
+                        (
+                            ("contact", law, clash[0]),
+                            f"given both in [contact] and in [contact.{law}]; keep one",
+                        )
+                    ],
+                )
+            values.update(v)
+        else:
+            values[k] = v
     problems = _non_finite(values, ("contact",))
     try:
         params = model.model_validate_json(_to_json(values), strict=True)

@@ -146,6 +146,13 @@ class Decomposition:
         self.set_cuts(new)
         self.n_rebalances += 1
 
+    def widen(self, min_width: float) -> None:
+        """Raise the minimum subdomain width (a wider ghost layer) and push the cut planes apart where
+        needed; particles move to their new owners at the next migration (collective decision: every
+        rank calls it with the same width)."""
+        self.min_width = max(self.min_width, min_width)
+        self.set_cuts([self._spread(c) for c in self.cuts])
+
     def check_ghost_width(self, width: float) -> None:
         """Interior subdomains must be at least one ghost width wide."""
         for d in range(3):

@@ -1,0 +1,449 @@
+"""DEM-C kernels: contact assembly, impulse accumulation, cone projection, solver sweeps.
+
+Contacts are stored as flat arrays (``nc`` rows), pair contacts first in pair-list order (sorted by
+id pair), then wall contacts wall by wall; a particle therefore receives its impulses in the same
+order on any partition, as in the DEM-P pair loop (architecture: determinism).
+
+Per contact c:
+
+* ``cb[c] = (i, j)``: bodies; ``i = -1`` for a wall (immovable, moving with velocity ``cvw[c]`` at
+  the contact point), ``j`` always a particle;
+* ``cn[c]``: unit normal from i to j; ``ca[c] = (a_i, a_j)``: lever lengths (radii), contact point
+  x_i + a_i n = x_j − a_j n;
+* ``cbias[c]``: b = φ/h (or max(φ/h, −v_recovery)), φ the gap (negative when penetrating);
+* ``cmu[c]``: friction coefficient; ``cscale[c]``: B = 3 / trace(N_cc);
+* ``gam[c] = (γ_n, γ_tx, γ_ty, γ_tz)``: normal impulse and tangential impulse vector (⊥ n), applied
+  as G = γ_n n + γ_t on j and −G on i.
+
+The contact velocity u = Dᵀv + b has u_n = n·v_rel + b and u_t = v_rel − (n·v_rel) n with
+v_rel = (v_j + ω_j × (−a_j n)) − (v_i + ω_i × (a_i n)) (physics reference §3).
+"""
+
+from __future__ import annotations
+
+import math
+
+from .._jit import njit
+from ..boundaries._geometry import wall_contact
+from ..contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
+
+
+@njit(inline="always")
+def project_cone(gn, tx, ty, tz, mu):
+    """Euclidean projection of (γ_n, γ_t) onto the cone K = {γ_n ≥ 0, |γ_t| ≤ μ γ_n}."""
+    t = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if mu <= 0.0:
+        return max(gn, 0.0), 0.0, 0.0, 0.0
+    if t <= mu * gn:
+        return gn, tx, ty, tz
+    if mu * t <= -gn:
+        return 0.0, 0.0, 0.0, 0.0
+    gn2 = (mu * t + gn) / (mu * mu + 1.0)
+    s = mu * gn2 / t
+    return gn2, tx * s, ty * s, tz * s
+
+
+@njit
+def project_cone_array(g, mu):
+    """Project each row of ``g`` (n, 4) onto its cone (tests, APGD)."""
+    out = g.copy()
+    for c in range(g.shape[0]):
+        out[c, 0], out[c, 1], out[c, 2], out[c, 3] = project_cone(g[c, 0], g[c, 1], g[c, 2], g[c, 3], mu[c])
+    return out
+
+
+@njit
+def count_pair_contacts(pi, pj, x, r, inv_m, envelope):
+    n = 0
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        if inv_m[i] == 0.0 and inv_m[j] == 0.0:
+            continue
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        lim = r[i] + r[j] + envelope
+        if dx * dx + dy * dy + dz * dz <= lim * lim:
+            n += 1
+    return n
+
+
+@njit
+def assemble_pairs(
+    pi, pj, hist, x, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, max_overlap,
+    cb, cn, ca, cvw, cbias, cmu, cscale, gam, csrc,
+):  # fmt: skip
+    """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
+
+    Returns (number of contacts, flags)."""
+    flags = 0
+    c = 0
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        lim = r[i] + r[j] + envelope
+        if d2 > lim * lim or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
+            for q in range(hist.shape[1]):
+                hist[k, q] = 0.0
+            continue
+        dist = math.sqrt(d2)
+        if dist == 0.0:
+            flags |= FLAG_COINCIDENT
+            continue
+        nx = dx / dist
+        ny = dy / dist
+        nz = dz / dist
+        phi = dist - r[i] - r[j]
+        if -phi > max_overlap * min(r[i], r[j]):
+            flags |= FLAG_OVERLAP
+        _fill(c, i, j, nx, ny, nz, r[i], r[j], 0.0, 0.0, 0.0, phi, h, v_recovery,
+              coef[mat[i], mat[j], 0], inv_m[i], inv_m[j], inv_i[i], inv_i[j], hist[k],
+              cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+        csrc[c, 0] = -1
+        csrc[c, 1] = k
+        c += 1
+    return c, flags
+
+
+@njit(inline="always")
+def _fill(c, i, j, nx, ny, nz, ai, aj, vwx, vwy, vwz, phi, h, v_recovery, mu, imi, imj, iii, iij, hrow,
+          cb, cn, ca, cvw, cbias, cmu, cscale, gam):  # fmt: skip
+    cb[c, 0] = i
+    cb[c, 1] = j
+    cn[c, 0] = nx
+    cn[c, 1] = ny
+    cn[c, 2] = nz
+    ca[c, 0] = ai
+    ca[c, 1] = aj
+    cvw[c, 0] = vwx
+    cvw[c, 1] = vwy
+    cvw[c, 2] = vwz
+    b = phi / h
+    if v_recovery > 0.0 and b < -v_recovery:
+        b = -v_recovery
+    cbias[c] = b
+    cmu[c] = mu
+    trace = 3.0 * (imi + imj) + 2.0 * (ai * ai * iii + aj * aj * iij)
+    cscale[c] = 3.0 / trace
+    # warm start: last step's impulse, tangential part turned onto the current tangent plane
+    tx = hrow[1]
+    ty = hrow[2]
+    tz = hrow[3]
+    tn = tx * nx + ty * ny + tz * nz
+    gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3] = project_cone(
+        hrow[0], tx - tn * nx, ty - tn * ny, tz - tn * nz, mu
+    )
+
+
+@njit
+def assemble_walls(
+    kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, r, inv_m, inv_i, mat, coef, h,
+    envelope, v_recovery, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, gam, csrc, cpt,
+):  # fmt: skip
+    """Append wall contacts from row ``start``; zero the history of candidates out of reach.
+
+    The wall geometry kernel returns n from the sphere into the wall; the contact normal here points
+    from the wall (body i) to the particle (body j), i.e. −n. ``cpt`` receives the contact point
+    relative to the wall's reference point (for the reported torque). Returns (end row, flags)."""
+    flags = 0
+    c = start
+    for k in range(kinds.shape[0]):
+        kind = kinds[k]
+        p = params[k]
+        for q in range(cstart[k], cstart[k + 1]):
+            i = cand[q]
+            gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
+            if gap > envelope or inv_m[i] == 0.0:
+                for s in range(whist.shape[2]):
+                    whist[k, i, s] = 0.0
+                continue
+            if -gap > max_overlap * r[i]:
+                flags |= FLAG_OVERLAP
+            # lever of the wall's load: its closest point relative to the reference point
+            qx = px - centre[k, 0]
+            qy = py - centre[k, 1]
+            qz = pz - centre[k, 2]
+            vwx = vel[k, 0] + omega[k, 1] * qz - omega[k, 2] * qy
+            vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
+            vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
+            _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], vwx, vwy, vwz, gap, h, v_recovery,
+                  coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[k, i],
+                  cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+            csrc[c, 0] = k
+            csrc[c, 1] = i
+            cpt[c, 0] = qx
+            cpt[c, 1] = qy
+            cpt[c, 2] = qz
+            c += 1
+    return c, flags
+
+
+@njit
+def accumulate(cb, cn, ca, gam, nc, P, L):
+    """P, L ← Σ impulses and their moments per body, contacts in row order (P, L zeroed first)."""
+    P[:] = 0.0
+    L[:] = 0.0
+    for c in range(nc):
+        i = cb[c, 0]
+        j = cb[c, 1]
+        nx = cn[c, 0]
+        ny = cn[c, 1]
+        nz = cn[c, 2]
+        gx = gam[c, 0] * nx + gam[c, 1]
+        gy = gam[c, 0] * ny + gam[c, 2]
+        gz = gam[c, 0] * nz + gam[c, 3]
+        # n × G; a_i × (−G) = −a_i (n × G), (−a_j n) × G = −a_j (n × G)
+        cx = ny * gz - nz * gy
+        cy = nz * gx - nx * gz
+        cz = nx * gy - ny * gx
+        P[j, 0] += gx
+        P[j, 1] += gy
+        P[j, 2] += gz
+        L[j, 0] -= ca[c, 1] * cx
+        L[j, 1] -= ca[c, 1] * cy
+        L[j, 2] -= ca[c, 1] * cz
+        if i >= 0:
+            P[i, 0] -= gx
+            P[i, 1] -= gy
+            P[i, 2] -= gz
+            L[i, 0] -= ca[c, 0] * cx
+            L[i, 1] -= ca[c, 0] * cy
+            L[i, 2] -= ca[c, 0] * cz
+
+
+@njit
+def velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, n):
+    """v = v_free + P/m, ω = ω_free + L/I for bodies [0, n)."""
+    for i in range(n):
+        for d in range(3):
+            v[i, d] = v_free[i, d] + inv_m[i] * P[i, d]
+            w[i, d] = w_free[i, d] + inv_i[i] * L[i, d]
+
+
+@njit(inline="always")
+def _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w):
+    i = cb[c, 0]
+    j = cb[c, 1]
+    nx = cn[c, 0]
+    ny = cn[c, 1]
+    nz = cn[c, 2]
+    aj = ca[c, 1]
+    # v_j + ω_j × (−a_j n)
+    rx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
+    ry = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
+    rz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
+    if i >= 0:
+        ai = ca[c, 0]
+        rx -= v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+        ry -= v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+        rz -= v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+    else:
+        rx -= cvw[c, 0]
+        ry -= cvw[c, 1]
+        rz -= cvw[c, 2]
+    vn = rx * nx + ry * ny + rz * nz
+    return vn + cbias[c], rx - vn * nx, ry - vn * ny, rz - vn * nz
+
+
+@njit
+def contact_velocities(cb, cn, ca, cvw, cbias, v, w, nc, u):
+    """u[c] = (u_n, u_t) = Dᵀ v + b for every contact."""
+    for c in range(nc):
+        u[c, 0], u[c, 1], u[c, 2], u[c, 3] = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+
+
+@njit(inline="always")
+def _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu):
+    """|γ − Π(γ − B u)| / B: the projected-gradient residual [m/s]."""
+    p0, p1, p2, p3 = project_cone(g0 - b * u0, g1 - b * u1, g2 - b * u2, g3 - b * u3, mu)
+    d0 = g0 - p0
+    d1 = g1 - p1
+    d2 = g2 - p2
+    d3 = g3 - p3
+    return math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b
+
+
+@njit
+def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax):
+    """One projected Jacobi sweep: every contact from the same velocities. Returns the largest
+    residual of the impulses before the sweep."""
+    res = 0.0
+    for c in range(nc):
+        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        b = cscale[c]
+        mu = cmu[c]
+        g0 = gam[c, 0]
+        g1 = gam[c, 1]
+        g2 = gam[c, 2]
+        g3 = gam[c, 3]
+        rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+        if rc > res or rc != rc:
+            res = rc
+        s = omega_relax * b
+        gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3] = project_cone(
+            g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu
+        )
+    return res
+
+
+@njit
+def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, nc, omega_relax):
+    """One projected Gauss–Seidel sweep in row order, velocities updated after each contact.
+    Returns the largest residual met during the sweep."""
+    res = 0.0
+    for c in range(nc):
+        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        b = cscale[c]
+        mu = cmu[c]
+        g0 = gam[c, 0]
+        g1 = gam[c, 1]
+        g2 = gam[c, 2]
+        g3 = gam[c, 3]
+        rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+        if rc > res or rc != rc:
+            res = rc
+        s = omega_relax * b
+        n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+        gam[c, 0] = n0
+        gam[c, 1] = n1
+        gam[c, 2] = n2
+        gam[c, 3] = n3
+        # apply the change at once
+        nx = cn[c, 0]
+        ny = cn[c, 1]
+        nz = cn[c, 2]
+        dn = n0 - g0
+        gx = dn * nx + (n1 - g1)
+        gy = dn * ny + (n2 - g2)
+        gz = dn * nz + (n3 - g3)
+        cx = ny * gz - nz * gy
+        cy = nz * gx - nx * gz
+        cz = nx * gy - ny * gx
+        i = cb[c, 0]
+        j = cb[c, 1]
+        aj = ca[c, 1]
+        v[j, 0] += inv_m[j] * gx
+        v[j, 1] += inv_m[j] * gy
+        v[j, 2] += inv_m[j] * gz
+        w[j, 0] -= inv_i[j] * aj * cx
+        w[j, 1] -= inv_i[j] * aj * cy
+        w[j, 2] -= inv_i[j] * aj * cz
+        if i >= 0:
+            ai = ca[c, 0]
+            v[i, 0] -= inv_m[i] * gx
+            v[i, 1] -= inv_m[i] * gy
+            v[i, 2] -= inv_m[i] * gz
+            w[i, 0] -= inv_i[i] * ai * cx
+            w[i, 1] -= inv_i[i] * ai * cy
+            w[i, 2] -= inv_i[i] * ai * cz
+    return res
+
+
+@njit
+def residual_max(gam, u, cmu, cscale, nc):
+    """max over contacts of |γ − Π(γ − B u)| / B."""
+    res = 0.0
+    for c in range(nc):
+        rc = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
+                       cscale[c], cmu[c])  # fmt: skip
+        if rc > res or rc != rc:
+            res = rc
+    return res
+
+
+@njit
+def store_history(gam, csrc, nc, n_pair, hist, whist):
+    """Keep each contact's impulse for the next step's warm start."""
+    for c in range(nc):
+        k = csrc[c, 1]
+        if c < n_pair:
+            for q in range(4):
+                hist[k, q] = gam[c, q]
+        else:
+            wk = csrc[c, 0]
+            for q in range(4):
+                whist[wk, k, q] = gam[c, q]
+
+
+@njit
+def contact_forces(gam, cn, cpt, csrc, nc, n_pair, inv_h, fpair, out_idx, out_val, counts, cstart):
+    """Report contact forces: ``fpair[k]`` = force on the higher-id particle of pair k; per wall the
+    force on the wall (−G/h) and its torque about the wall's reference point (the DEM-P layout)."""
+    fpair[:] = 0.0
+    counts[:] = 0
+    for c in range(nc):
+        gx = (gam[c, 0] * cn[c, 0] + gam[c, 1]) * inv_h
+        gy = (gam[c, 0] * cn[c, 1] + gam[c, 2]) * inv_h
+        gz = (gam[c, 0] * cn[c, 2] + gam[c, 3]) * inv_h
+        if c < n_pair:
+            k = csrc[c, 1]
+            fpair[k, 0] = gx
+            fpair[k, 1] = gy
+            fpair[k, 2] = gz
+        else:
+            if gam[c, 0] == 0.0 and gam[c, 1] == 0.0 and gam[c, 2] == 0.0 and gam[c, 3] == 0.0:
+                continue
+            wk = csrc[c, 0]
+            row = cstart[wk] + counts[wk]
+            counts[wk] += 1
+            out_idx[row] = csrc[c, 1]
+            fx = -gx
+            fy = -gy
+            fz = -gz
+            qx = cpt[c, 0]
+            qy = cpt[c, 1]
+            qz = cpt[c, 2]
+            out_val[row, 0] = fx
+            out_val[row, 1] = fy
+            out_val[row, 2] = fz
+            out_val[row, 3] = qy * fz - qz * fy
+            out_val[row, 4] = qz * fx - qx * fz
+            out_val[row, 5] = qx * fy - qy * fx
+
+
+@njit
+def free_velocities(v, w, motion, gx, gy, gz, h, n, v_free, w_free):
+    """v_free = v + h g for free particles (others keep their velocity); ω_free = ω."""
+    for i in range(n):
+        if motion[i] == 0:
+            v_free[i, 0] = v[i, 0] + h * gx
+            v_free[i, 1] = v[i, 1] + h * gy
+            v_free[i, 2] = v[i, 2] + h * gz
+        else:
+            v_free[i, 0] = v[i, 0]
+            v_free[i, 1] = v[i, 1]
+            v_free[i, 2] = v[i, 2]
+        w_free[i, 0] = w[i, 0]
+        w_free[i, 1] = w[i, 1]
+        w_free[i, 2] = w[i, 2]
+
+
+@njit
+def finish_step(x, v, w, f, t, P, L, mass, motion, gx, gy, gz, inv_h, h, n):
+    """x += h v⁺ (free and prescribed); report f = P/h + m g and τ = L/h. Returns a flag word."""
+    flags = 0
+    for i in range(n):
+        mo = motion[i]
+        if mo == 0 or mo == 2:
+            x[i, 0] += h * v[i, 0]
+            x[i, 1] += h * v[i, 1]
+            x[i, 2] += h * v[i, 2]
+        f[i, 0] = P[i, 0] * inv_h
+        f[i, 1] = P[i, 1] * inv_h
+        f[i, 2] = P[i, 2] * inv_h
+        if mo == 0:
+            f[i, 0] += mass[i] * gx
+            f[i, 1] += mass[i] * gy
+            f[i, 2] += mass[i] * gz
+        t[i, 0] = L[i, 0] * inv_h
+        t[i, 1] = L[i, 1] * inv_h
+        t[i, 2] = L[i, 2] * inv_h
+        for d in range(3):
+            if not (math.isfinite(x[i, d]) and math.isfinite(v[i, d]) and math.isfinite(w[i, d])):
+                flags |= FLAG_NONFINITE
+    return flags

@@ -1,0 +1,430 @@
+"""DEM-C: rigid grains, non-penetration and Coulomb friction as a cone complementarity problem.
+
+Physics reference §3 (Anitescu–Tasora; Chrono NSC). Selected in a deck with
+``[contact] law = "complementarity"`` (or ``--set contact.law=complementarity``); registered through
+pdem's own entry point like any contact law. One time step h:
+
+1. rebuild the neighbour list if particles moved more than half the skin (as DEM-P), else forward
+   the ghosts' state;
+2. contacts: every listed pair and wall candidate with gap φ ≤ ``envelope``, normal n, bias
+   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulse of
+   the same id pair (of the same wall and particle);
+3. walls advance (their velocity over the step enters the constraints: moving and servo walls);
+4. v_free = v + h g; solve the CCP for the impulses γ ∈ K (friction cones), u = Dᵀv⁺ + b,
+   −u ∈ K°, γ ⊥ u, with the chosen solver;
+5. v⁺ = v_free + M⁻¹ D γ, ω likewise; x⁺ = x + h v⁺ (semi-implicit Euler).
+
+Reported forces are impulses / h (particles: contact force + weight; walls: the DEM-P layout, force
+on the wall and torque about its reference point), so loads, measurements and output are the same
+for both methods.
+
+Solvers (``solver``):
+
+* ``"jacobi"``: projected Jacobi, γ ← Π_K(γ − ω B u), B = 3/trace(N_cc). Under MPI every rank
+  updates the contacts of its owned particles (cross-rank contacts on both ranks, identically) and
+  forwards its ghosts' velocities once per iteration; the stopping test uses a max (exact), so the
+  results are bitwise identical on any rank count.
+* ``"apgd"``: accelerated projected gradient descent with adaptive step and restart (Mazhar et al.
+  2015); serial (its global dot products would need exact reductions under MPI).
+* ``"gauss_seidel"``: projected Gauss–Seidel / SOR in contact order (pairs by id, then walls);
+  serial.
+
+The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s]; iterations stop when it is
+below ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
+(``Simulation.solver_log``); steps that hit the cap unconverged are counted.
+
+Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions are
+inelastic (no restitution at the velocity level), sliding contacts separate by ~μ|v_t|h (the cone
+relaxation of Coulomb's law), Jacobi needs iterations growing with the number of grains a load must
+cross, and information moves at most one contact per iteration.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from ..contact.law import ContactLaw, LawParams
+from ..errors import InputError
+from ..materials import MaterialTable
+from ..parallel.comm import all_max, any_rank
+from . import _kernels as ck
+
+__all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
+
+
+class ComplementarityParams(LawParams):
+    """Parameters of :class:`Complementarity` (DEM-C)."""
+
+    solver: Literal["jacobi", "apgd", "gauss_seidel"] = Field(
+        "jacobi", description="CCP solver: 'jacobi' (MPI, deterministic), 'apgd' or 'gauss_seidel' (serial)"
+    )
+    tolerance: float = Field(
+        1e-5, gt=0, description="stop when the projected-gradient residual (a velocity) is below this [m/s]"
+    )
+    max_iterations: int = Field(200, gt=0, description="iteration cap per step")
+    relaxation: float = Field(
+        0.3, gt=0, le=1.0, description="relaxation ω of Jacobi and Gauss–Seidel updates (0 < ω ≤ 1)"
+    )
+    envelope: float | None = Field(
+        default=None,
+        ge=0,
+        description="collision envelope [m]: contacts enter the problem when their gap is below it; "
+        "default: automatic, 0.1 of the smallest radius, grown to 2.5 × the fastest grain's travel per "
+        "step when that is larger (a fixed envelope narrower than the travel lets grains overlap)",
+    )
+    recovery_speed: float | None = Field(
+        default=None,
+        gt=0,
+        description="cap on the speed [m/s] at which penetration is removed (b = max(φ/h, −v)); "
+        "default: no cap (b = φ/h)",
+    )
+    max_travel: float = Field(
+        0.2,
+        gt=0,
+        description="automatic step: a grain at reference_speed travels this fraction of the smallest "
+        "radius per step (used when [run] dt is not given)",
+    )
+    reference_speed: float = Field(1.0, gt=0, description="speed [m/s] of the automatic step rule")
+
+
+class Complementarity(ContactLaw):
+    """DEM-C (see module docstring). Coefficient row: ``[μ]`` per material pair."""
+
+    name = "complementarity"
+    kind = "complementarity"
+    history_size = 4  # last step's impulse (γ_n, γ_t) for the warm start
+    n_coef = 1
+    Params = ComplementarityParams
+
+    def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
+        return np.array([materials.mixed(a, b, "friction")])
+
+    def critical_dt(self, materials, radii, mat_index, masses) -> float:
+        """Rigid contact has no stiffness limit: the step is bounded only by accuracy."""
+        return math.inf
+
+    def suggested_dt(self, materials, radii, mat_index, masses) -> float:
+        if len(radii) == 0:
+            return math.inf
+        p = self.params
+        return p.max_travel * float(np.min(radii)) / p.reference_speed
+
+    def envelope(self, radii) -> float:
+        if self.params.envelope is not None:
+            return float(self.params.envelope)
+        return 0.1 * float(np.min(radii)) if len(radii) else 0.0
+
+    def make_stepper(self, sim) -> Stepper:
+        if self.params.solver != "jacobi" and sim.comm.size > 1:
+            raise InputError(
+                f"contact.solver = '{self.params.solver}' runs on one rank only (its results would depend "
+                "on the partition); use solver = 'jacobi' under MPI, or run serially"
+            )
+        return Stepper(sim, self)
+
+
+class Stepper:
+    """The DEM-C time step for one :class:`~pdem.Simulation` (holds the solver's work arrays)."""
+
+    def __init__(self, sim, law: Complementarity) -> None:
+        self.sim = sim
+        self.law = law
+        self.p = law.params
+        self.n_unconverged = 0
+        self.n_steps = 0
+        self.total_iterations = 0
+        self.max_residual = 0.0
+        self.last_iterations = 0
+        self.last_residual = 0.0
+        self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
+        self._cap = 0
+
+    # ------------------------------------------------------------------ work arrays
+    def _reserve(self, nc: int) -> None:
+        if nc <= self._cap:
+            return
+        cap = max(int(nc * 1.3) + 64, 256)
+        self.cb = np.empty((cap, 2), dtype=np.int64)
+        self.cn = np.empty((cap, 3))
+        self.ca = np.empty((cap, 2))
+        self.cvw = np.empty((cap, 3))
+        self.cbias = np.empty(cap)
+        self.cmu = np.empty(cap)
+        self.cscale = np.empty(cap)
+        self.gam = np.empty((cap, 4))
+        self.csrc = np.empty((cap, 2), dtype=np.int64)
+        self.cpt = np.zeros((cap, 3))
+        self._cap = cap
+
+    # ------------------------------------------------------------------ one step
+    def step(self) -> None:
+        sim = self.sim
+        p = sim.particles
+        h = sim.dt
+        self._grow_envelope()
+        if sim._needs_rebuild():
+            sim._force_rebuild = False
+            sim._rebuild()
+        elif sim._decomp is not None:
+            from ..parallel.exchange import forward
+
+            forward(sim)
+        t0 = _time.perf_counter()
+        env = sim._envelope
+        v_rec = self.p.recovery_speed or 0.0
+        n_tot = p.n
+        n_own = p.n_owned
+        npairs = sim._pi.shape[0]
+        nw = int(sim._w_cstart[-1]) if sim._wall_list else 0
+        self._reserve(npairs + nw)
+        if sim._wall_list and sim._walls_changed:
+            sim._pack_walls()
+            sim._walls_changed = False
+        # geometry at the start of the step (walls where they are now) ...
+        w_params = sim._w_params.copy() if sim._wall_list else None
+        # ... with the velocity the walls move at during the step
+        for k in sim._moving_walls:
+            wall = sim._wall_list[k]
+            wall.advance(sim.time, h)
+            sim._w_params[k] = wall.params
+            sim._w_vel[k] = wall.velocity
+            sim._w_centre[k] = wall.reference_point
+        n_pair, flags = ck.assemble_pairs(
+            sim._pi, sim._pj, sim._pair_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim._coef, h, env, v_rec,
+            sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale,
+            self.gam, self.csrc,
+        )  # fmt: skip
+        nc = n_pair
+        if sim._wall_list:
+            nc, wflags = ck.assemble_walls(
+                sim._w_kinds, w_params, sim._w_vel, sim._w_omega, sim._w_centre, sim._w_mat, sim._w_cstart,
+                sim._w_cand, sim._wall_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim._coef, h, env, v_rec,
+                sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                self.cscale, self.gam, self.csrc, self.cpt,
+            )  # fmt: skip
+            flags |= wflags
+        g = sim._g
+        v_free = np.empty((n_tot, 3))
+        w_free = np.empty((n_tot, 3))
+        ck.free_velocities(p.v, p.w, p.motion, g[0], g[1], g[2], h, n_own, v_free, w_free)
+        P = np.empty((n_tot, 3))
+        L = np.empty((n_tot, 3))
+        solver = self.p.solver
+        if solver == "jacobi":
+            it, res = self._jacobi(nc, v_free, w_free, P, L)
+        elif solver == "gauss_seidel":
+            it, res = self._gauss_seidel(nc, v_free, w_free, P, L)
+        else:
+            it, res = self._apgd(nc, v_free, w_free, P, L)
+        # final velocities from the final impulses, accumulated in contact order (deterministic)
+        ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
+        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, n_own)
+        ck.store_history(self.gam, self.csrc, nc, n_pair, sim._pair_hist, sim._wall_hist)
+        if sim._fpair.shape[0] != npairs:
+            sim._fpair = np.zeros((npairs, 3))
+        if sim._wall_list:
+            ck.contact_forces(
+                self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair, sim._w_out_idx,
+                sim._w_out_val, sim._w_counts, sim._w_cstart,
+            )  # fmt: skip
+            for k, wall in enumerate(sim._wall_list):
+                wall.record_load(int(sim._w_counts[k]))
+                wall._comm = sim.comm
+        else:
+            ck.contact_forces(
+                self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair,
+                np.zeros(1, np.int64), np.zeros((1, 6)), np.zeros(0, np.int64), np.zeros(1, np.int64),
+            )  # fmt: skip
+        flags |= ck.finish_step(p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h,
+                                n_own)  # fmt: skip
+        sim._force_time = getattr(sim, "_force_time", 0.0) + (_time.perf_counter() - t0)
+        converged = res <= self.p.tolerance
+        if not converged:
+            self.n_unconverged += 1
+        self.last_iterations = it
+        self.last_residual = res
+        self.n_steps += 1
+        self.total_iterations += it
+        self.max_residual = max(self.max_residual, res)
+        self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
+        sim.time += h
+        sim.step_count += 1
+        if any_rank(sim.comm, flags != 0):
+            sim._raise_for_flags(flags)
+
+    def _grow_envelope(self) -> None:
+        """Automatic envelope: it must hold every pair that can close its gap within the step, so it
+        grows (never shrinks) to 2.5 × the fastest grain's travel per step; the list is then rebuilt
+        with the wider reach. The speed is a global max, so every rank decides alike."""
+        sim = self.sim
+        if self.p.envelope is not None:
+            return
+        p = sim.particles
+        n = p.n_owned
+        vmax = math.sqrt(float(np.max(np.einsum("ij,ij->i", p.v[:n], p.v[:n])))) if n else 0.0
+        need = 2.5 * all_max(sim.comm, vmax) * sim.dt
+        if need > sim._envelope:
+            sim._envelope = max(need, 1.25 * sim._envelope)
+            sim._list_skin = sim.skin + sim._envelope
+            sim._ghost_width = sim._ghost_width_base + sim._list_skin
+            if sim._decomp is not None:
+                sim._decomp.widen(sim._ghost_width)
+            sim._force_rebuild = True
+
+    def summary(self) -> dict[str, object]:
+        """Solver statistics of this run (summary.json)."""
+        p = self.p
+        return {
+            "method": "complementarity",
+            "solver": p.solver,
+            "tolerance": p.tolerance,
+            "max_iterations": p.max_iterations,
+            "relaxation": p.relaxation,
+            "envelope": self.sim._envelope,
+            "steps": self.n_steps,
+            "unconverged_steps": self.n_unconverged,
+            "mean_iterations": self.total_iterations / max(self.n_steps, 1),
+            "max_residual": self.max_residual,
+        }
+
+    # ------------------------------------------------------------------ solvers
+    def _sync_velocities(self, nc, v_free, w_free, P, L) -> None:
+        sim = self.sim
+        p = sim.particles
+        ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
+        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.n_owned)
+        if sim._decomp is not None:
+            from ..parallel.exchange import forward
+
+            forward(sim)
+
+    def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
+        sim = self.sim
+        p = sim.particles
+        pr = self.p
+        self._sync_velocities(nc, v_free, w_free, P, L)
+        res = 0.0
+        it = 0
+        while it < pr.max_iterations:
+            local = ck.jacobi_update(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, p.v, p.w,
+                nc, pr.relaxation,
+            )  # fmt: skip
+            it += 1
+            self._sync_velocities(nc, v_free, w_free, P, L)
+            res = all_max(sim.comm, local)
+            if res <= pr.tolerance:
+                break
+        if res > pr.tolerance or it == pr.max_iterations:
+            # the residual above is that of the impulses before the last sweep: measure the final one
+            res = all_max(sim.comm, self._residual(nc))
+        return it, res
+
+    def _residual(self, nc) -> float:
+        p = self.sim.particles
+        u = np.empty((nc, 4))
+        ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, p.v, p.w, nc, u)
+        return ck.residual_max(self.gam, u, self.cmu, self.cscale, nc)
+
+    def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
+        p = self.sim.particles
+        pr = self.p
+        self._sync_velocities(nc, v_free, w_free, P, L)
+        res = 0.0
+        it = 0
+        while it < pr.max_iterations:
+            res = ck.gauss_seidel_sweep(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, p.v, p.w,
+                p.inv_m, p.inv_i, nc, pr.relaxation,
+            )  # fmt: skip
+            it += 1
+            if res <= pr.tolerance:
+                break
+        self._sync_velocities(nc, v_free, w_free, P, L)
+        return it, self._residual(nc)
+
+    def _apgd(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
+        """Accelerated projected gradient descent with adaptive step size and restart (Mazhar et al.,
+        ACM TOG 34(3), 2015, Algorithm 1), on f(γ) = ½ γᵀNγ + rᵀγ over the cones, ∇f = u(γ)."""
+        pr = self.p
+        if nc == 0:
+            self._sync_velocities(nc, v_free, w_free, P, L)
+            return 0, 0.0
+        cmu = self.cmu[:nc]
+        cscale = self.cscale[:nc]
+        gam = self.gam[:nc]
+
+        def grad(gv: np.ndarray) -> np.ndarray:
+            self.gam[:nc] = gv
+            self._sync_velocities(nc, v_free, w_free, P, L)
+            u = np.empty((nc, 4))
+            p = self.sim.particles
+            ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, p.v, p.w, nc, u)
+            return u
+
+        r_vec = grad(np.zeros((nc, 4)))  # u(0) = r
+
+        def objective(gv: np.ndarray, u: np.ndarray) -> float:
+            # f = ½ γ·(Nγ) + r·γ with Nγ = u − r
+            return float(0.5 * np.sum(gv * (u - r_vec)) + np.sum(r_vec * gv))
+
+        g0 = ck.project_cone_array(gam.copy(), cmu)
+        # step from a Lipschitz estimate: |N(γ0 − γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start
+        ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * np.array([1.0, 0, 0, 0]), cmu)
+        d = g0 - ghat
+        nd = float(np.sqrt(np.sum(d * d)))
+        if nd > 0.0:
+            lip = float(np.sqrt(np.sum((grad(g0) - grad(ghat)) ** 2))) / nd
+        else:
+            lip = 0.0
+        if not (lip > 0.0):
+            lip = float(np.max(3.0 / cscale))
+        t = 1.0 / lip
+        gam_k = g0
+        y = g0.copy()
+        theta = 1.0
+        best = gam_k.copy()
+        best_res = math.inf
+        res = math.inf
+        it = 0
+        while it < pr.max_iterations:
+            it += 1
+            gy = grad(y)
+            fy = objective(y, gy)
+            while True:
+                g_new = ck.project_cone_array(y - t * gy, cmu)
+                u_new = grad(g_new)
+                step = g_new - y
+                if objective(g_new, u_new) <= fy + float(np.sum(gy * step)) + 0.5 * lip * float(
+                    np.sum(step * step)
+                ):
+                    break
+                lip *= 2.0
+                t = 1.0 / lip
+                if lip > 1e300:
+                    break
+            theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
+            beta = theta * (1.0 - theta) / (theta * theta + theta_new)
+            y_new = g_new + beta * (g_new - gam_k)
+            res = ck.residual_max(g_new, u_new, cmu, cscale, nc)
+            if res < best_res:
+                best_res = res
+                best = g_new.copy()
+            if res <= pr.tolerance:
+                break
+            if float(np.sum(gy * (g_new - gam_k))) > 0.0:  # restart
+                y_new = g_new.copy()
+                theta_new = 1.0
+            lip *= 0.9
+            t = 1.0 / lip
+            gam_k = g_new
+            y = y_new
+            theta = theta_new
+        self.gam[:nc] = best
+        self._sync_velocities(nc, v_free, w_free, P, L)
+        return it, best_res
