@@ -333,6 +333,20 @@ def test_pvtu_index(runs):
             assert same_bits(data[name][order], a), name
 
 
+def test_render_reads_per_rank_pieces(runs):
+    """tools/render.py joins the pieces: the same snapshot as from the gathered particles.h5."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import render
+
+    for k in (0, -1):
+        a, b = render.read_frame(runs["gather"], k), render.read_frame(runs["per_rank"], k)
+        assert (a.key, a.time, a.step, a.stage) == (b.key, b.time, b.step, b.stage)
+        assert sorted(a.particles) == sorted(b.particles)
+        for name in a.particles:
+            assert same_bits(a.particles[name], b.particles[name]), name
+        assert [w[0] for w in a.walls] == [w[0] for w in b.walls] and a.walls
+
+
 _PV_SCRIPT = textwrap.dedent(
     """
     import json, sys
