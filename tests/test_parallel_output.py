@@ -30,6 +30,12 @@ from pdem.parallel.comm import SerialComm
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
 PVPYTHON = shutil.which("pvpython")
+try:
+    from vtkmodules.vtkIOXML import vtkXMLPUnstructuredGridReader  # noqa: F401
+
+    HAVE_VTK = True
+except ImportError:
+    HAVE_VTK = False
 
 
 # ---------------------------------------------------------------------------------------------
@@ -39,12 +45,13 @@ PVPYTHON = shutil.which("pvpython")
 
 def test_per_rank_writers_on_one_rank(tmp_path):
     frames = [make_frame(i) for i in range(3)]
+    empty = make_frame(2, n=0)
     with (
         HDF5Writer(tmp_path / "h5", metadata=METADATA, comm=SerialComm()) as h,
         VTKWriter(tmp_path / "vtk", comm=SerialComm()) as v,
     ):
         assert h.per_rank and v.per_rank
-        for fr in frames:
+        for fr in [*frames, empty]:
             h.write(fr)
             v.write(fr)
     assert not (tmp_path / "h5" / "particles.h5").exists()
@@ -55,14 +62,18 @@ def test_per_rank_writers_on_one_rank(tmp_path):
             assert g.attrs["time"] == fr.time and g.attrs["step"] == fr.step and g.attrs["stage"] == fr.stage
             for name, a in fr.particles.items():
                 assert same_bits(g[name][()], a), name
+        assert f["frames/000003/x"].shape == (0, 3)  # an empty piece is written
     series = check_xdmf(tmp_path / "h5" / "particles.xdmf")
-    assert [t for t, _ in series] == TIMES
+    assert [t for t, _ in series] == TIMES  # but frames without particles stay out of the index
     for (_, grids), fr in zip(series, frames, strict=True):
         assert [g["name"] for g in grids] == ["r0000"]
         assert same_bits(grids[0]["points"], fr.particles["x"])
     root = ET.parse(tmp_path / "vtk" / "particles.pvd").getroot()
     files = [ds.attrib["file"] for ds in root.iter("DataSet")]
-    assert files == [f"particles/particles_{i:06d}.pvtu" for i in range(3)]
+    assert files == [f"particles/particles_{i:06d}.pvtu" for i in range(4)]
+    assert _pvtu_sources(tmp_path / "vtk" / files[3])[0].is_file()  # an empty piece
+    if HAVE_VTK:  # (meshio cannot read an empty .vtu)
+        assert _read_pvtu(tmp_path / "vtk" / files[3])[0].shape == (0, 3)
     for i, fr in enumerate(frames):
         sources = _pvtu_sources(tmp_path / "vtk" / files[i])
         assert [s.relative_to(tmp_path / "vtk" / "particles").as_posix() for s in sources] == [
@@ -295,14 +306,14 @@ def _pvtu_sources(path: Path) -> list[Path]:
 
 def _read_pvtu(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     """Points, point data and cell count of a .pvtu, through VTK's own reader when available."""
-    try:
-        from vtkmodules.util.numpy_support import vtk_to_numpy
-        from vtkmodules.vtkIOParallelXML import vtkXMLPUnstructuredGridReader
-    except ImportError:  # meshio reads the pieces (it has no .pvtu reader)
+    if not HAVE_VTK:  # meshio reads the pieces (it has no .pvtu reader)
         meshes = [meshio.read(s) for s in _pvtu_sources(path)]
         points = np.concatenate([m.points for m in meshes])
         data = {k: np.concatenate([m.point_data[k] for m in meshes]) for k in meshes[0].point_data}
         return points, data, sum(len(c.data) for m in meshes for c in m.cells)
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPUnstructuredGridReader
+
     reader = vtkXMLPUnstructuredGridReader()
     reader.SetFileName(str(path))
     reader.Update()

@@ -162,6 +162,14 @@ class VTKWriter(Writer):
         wall_mesh = self._wall_mesh(frame, walls)
         pfile = self.particles_dir / f"particles_{key}.pvtu"
         sources = [f"{piece.name}/particles_{key}.vtu" for piece in pieces]
+        layout = [(k, shape[1:], dt) for k, (shape, dt) in pieces[0].fields.items()]
+        for piece in pieces[1:]:  # one .pvtu declares the arrays of every piece
+            if [(k, shape[1:], dt) for k, (shape, dt) in piece.fields.items()] != layout:
+                raise OutputError(
+                    f"VTKWriter frame {self.n_frames}: rank {piece.rank}'s particle fields "
+                    f"{piece.fields} differ from rank 0's {pieces[0].fields} in names, components or "
+                    f"dtypes; every rank must write the same fields"
+                )
         atomic_write_text(pfile, _pvtu_text(pieces[0].fields, sources))
         self._finish_frame(frame, key, pfile, walls, wall_mesh)
 
