@@ -6,10 +6,17 @@ value). Snapshots (HDF5 + XDMF and/or VTK), a CSV time series per stage (energie
 boundary's measurements), periodic checkpoints and one at the end of every stage. ``max_steps``
 (the CLI's ``--steps``) stops early, writing final output and a checkpoint.
 
+Snapshots under MPI are either gathered (every rank's particles collected, ordered by id, and written
+by rank 0) or written per rank (each rank writes the particles it owns with writers constructed with
+``comm``; rank 0 writes the index joining the pieces): ``output.parallel``, decided once when output
+starts (``auto``: by the particle count then) and recorded in ``summary.json`` as ``output_parallel``.
+
 Output directory layout::
 
     deck.resolved.toml      the deck with every default filled in
     particles.h5/.xdmf      snapshots (ParaView: open the .xdmf), walls.h5/.xdmf
+    particles.rRRRR.h5      instead of particles.h5 with output.parallel = "per_rank": one file per
+                            rank, joined by particles.xdmf
     particles.pvd, …        (with formats = ["vtk"])
     series_<stage>.csv      time series
     checkpoints/            step_<n>.h5, latest.h5 → newest
@@ -203,6 +210,9 @@ class Runner:
         self.progress = _Progress(progress if self.root else None)
         self.boundaries: dict[str, Any] = {}
         self.writers: list[Any] = []
+        self._gathered_writers: list[Any] = []
+        self._per_rank_writers: list[Any] = []
+        self.output_parallel: str | None = None
         self.series: dict[str, list[dict[str, float]]] = {}
         self.stopped_early = False
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
@@ -323,14 +333,21 @@ class Runner:
             self._series_writers[stage] = writer
         writer.append(row)
 
-    def frame(self, stage: str) -> Frame:
+    def frame(self, stage: str, own: bool = False) -> Frame:
+        """The snapshot of every particle (gathered on every rank), or with ``own`` of the particles
+        this rank owns (for per-rank writers). The walls and the scene bounds are the same either
+        way. A collective call."""
         sim = self.sim
-        p = sim.get_particles()
-        contacts = np.zeros(len(p["id"]), dtype=np.int32)
-        c = sim.contacts()
-        if len(c["id_i"]):  # p["id"] is sorted: map contact ends to rows by binary search
-            rows = np.searchsorted(p["id"], np.concatenate([c["id_i"], c["id_j"]]))
-            contacts = np.bincount(rows, minlength=len(p["id"])).astype(np.int32)
+        if own:
+            p = sim.own_particles(contacts=True)
+            contacts = p.pop("contacts")
+        else:
+            p = sim.get_particles()
+            contacts = np.zeros(len(p["id"]), dtype=np.int32)
+            c = sim.contacts()
+            if len(c["id_i"]):  # p["id"] is sorted: map contact ends to rows by binary search
+                rows = np.searchsorted(p["id"], np.concatenate([c["id_i"], c["id_j"]]))
+                contacts = np.bincount(rows, minlength=len(p["id"])).astype(np.int32)
         particles = {
             "id": p["id"],
             "x": p["x"],
@@ -349,8 +366,18 @@ class Runner:
             if w.active
         ]
         x = p["x"]
-        lo = x.min(axis=0) - 2 * p["r"].max() if len(x) else np.full(3, np.inf)
-        hi = x.max(axis=0) + 2 * p["r"].max() if len(x) else np.full(3, -np.inf)
+        xmin = x.min(axis=0) if len(x) else np.full(3, np.inf)
+        xmax = x.max(axis=0) if len(x) else np.full(3, -np.inf)
+        rmax = p["r"].max() if len(x) else -np.inf
+        if own and self.comm.size > 1:  # min and max are exact: the same bounds as gathered
+            ext = self.comm.allgather((xmin, xmax, rmax))
+            xmin = np.min([e[0] for e in ext], axis=0)
+            xmax = np.max([e[1] for e in ext], axis=0)
+            rmax = max(e[2] for e in ext)
+        if np.isfinite(rmax):
+            lo, hi = xmin - 2 * rmax, xmax + 2 * rmax
+        else:
+            lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for w in sim._wall_list:
             wlo, whi = w.shape.bounding_box(w.offset)
             lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
@@ -367,9 +394,14 @@ class Runner:
     def _write_frame(self, stage: str) -> None:
         if self._last_frame_step == self.sim.step_count:
             return
-        frame = self.frame(stage)  # collective
-        for w in self.writers:
-            w.write(frame)
+        if self._gathered_output:
+            frame = self.frame(stage)  # collective
+            for w in self._gathered_writers:  # rank 0 only
+                w.write(frame)
+        if self._per_rank_writers:
+            piece = self.frame(stage, own=True)  # collective
+            for w in self._per_rank_writers:
+                w.write(piece)  # collective
         self._last_frame_step = self.sim.step_count
 
     def _checkpoint(self, stage_index: int, stage_start: tuple[float, int], started: bool = True) -> Path:
@@ -416,15 +448,21 @@ class Runner:
         self._series_writers: dict[str, Any] = {}
         self._last_frame_step = -1
         out_cfg = deck.output
-        for fmt in out_cfg.formats if self.root else ():
+        self.output_parallel = out_cfg.parallel_mode(sim.count_particles(), self.comm.size)
+        self._gathered_output = False  # on every rank: frames are gathered collectively
+        for fmt in out_cfg.formats:
             cls = load("writers", fmt)
-            self.writers.append(
-                cls(
-                    self.out,
-                    fields=out_cfg.fields,
-                    metadata={"deck": self.deck_text, "pdem_version": __version__},
-                )
-            )
+            kwargs: dict[str, Any] = {
+                "fields": out_cfg.fields,
+                "metadata": {"deck": self.deck_text, "pdem_version": __version__},
+            }
+            if self.output_parallel == "per_rank" and getattr(cls, "supports_per_rank", False):
+                self._per_rank_writers.append(cls(self.out, comm=self.comm, **kwargs))  # on every rank
+            else:  # parallel = "auto" gathers frames for writers without per-rank support
+                if self.root:
+                    self._gathered_writers.append(cls(self.out, **kwargs))
+                self._gathered_output = True
+        self.writers = self._gathered_writers + self._per_rank_writers
         t_start = _time.perf_counter()
         steps_start = sim.step_count
         try:
@@ -454,6 +492,7 @@ class Runner:
             "dt": sim.dt,
             "steps_per_second": (sim.step_count - steps_start) / max(wall, 1e-9),
             "completed": not self.stopped_early,
+            "output_parallel": self.output_parallel,
             "results": {},
         }
         if sim._stepper is not None:

@@ -862,11 +862,32 @@ class Simulation:
         out["material"] = out.pop("mat")
         return out
 
-    def contacts(self) -> dict[str, np.ndarray]:
-        """Touching particle pairs of the last force evaluation: ``id_i < id_j``, overlap [m],
-        normal force [N] (positive = repulsive) and force on j [N] (on i: its negative)."""
-        if not self._prepared:
-            self._prepare()
+    def own_particles(self, contacts: bool = False) -> dict[str, np.ndarray]:
+        """Copies of the particle arrays this rank owns, ordered by id (not collective): the keys of
+        :meth:`get_particles`; with ``contacts``, also ``contacts`` (int32), each particle's number of
+        touching contacts as :meth:`contacts` reports them. The ranks' results, concatenated and
+        ordered by id, are :meth:`get_particles`."""
+        p = self.particles
+        n = p.n_owned
+        live = p.motion[:n] != REMOVED
+        out = {
+            name: getattr(p, name)[:n][live]
+            for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
+        }
+        if contacts:
+            if not self._prepared:
+                self._prepare()
+            # every contact of an owned particle is in this rank's pair list (ghosts reach further)
+            pi, pj, _, _, touching = self._touching()
+            count = np.bincount(np.concatenate([pi[touching], pj[touching]]), minlength=p.n)
+            out["contacts"] = count[:n][live].astype(np.int32)
+        order = np.argsort(out["id"], kind="stable")
+        out = {k: v[order] for k, v in out.items()}  # fancy indexing copies
+        out["material"] = out.pop("mat")
+        return out
+
+    def _touching(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pair list rows, centre offsets, distances and the touching mask of this rank's pairs."""
         p = self.particles
         pi, pj = self._pi, self._pj
         d = p.x[pj] - p.x[pi]
@@ -874,6 +895,16 @@ class Simulation:
         overlap = p.r[pi] + p.r[pj] - dist
         touching = (overlap > 0) & np.any(self._fpair != 0, axis=1)
         touching &= (p.motion[pi] != REMOVED) & (p.motion[pj] != REMOVED)
+        return pi, pj, d, dist, touching
+
+    def contacts(self) -> dict[str, np.ndarray]:
+        """Touching particle pairs of the last force evaluation: ``id_i < id_j``, overlap [m],
+        normal force [N] (positive = repulsive) and force on j [N] (on i: its negative)."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        pi, pj, d, dist, touching = self._touching()
+        overlap = p.r[pi] + p.r[pj] - dist
         n = d[touching] / dist[touching, None]
         force = self._fpair[touching]
         local = {

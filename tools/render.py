@@ -3,8 +3,10 @@
 
     python tools/render.py OUTPUT_DIR [--frame K] [--field speed] [--out PNG] [--size 1200x900] [--clip-y]
 
-Reads ``particles.h5`` and ``walls.h5`` (written with ``formats = ["hdf5"]``) and draws frame ``K``
-(Python indexing over the stored frames: ``0`` the first, ``-1`` the last, the default):
+Reads ``particles.h5`` (or the per-rank pieces ``particles.r*.h5`` of ``output.parallel =
+"per_rank"``, joined and ordered by id) and ``walls.h5`` (written with ``formats = ["hdf5"]``) and
+draws frame ``K`` (Python indexing over the stored frames: ``0`` the first, ``-1`` the last, the
+default):
 
 * particles as spheres of their true radii (a unit sphere glyph scaled by ``r``), smooth-shaded and
   coloured by ``--field``: any particle dataset of the frame (``v``, ``w``, ``f``, ``t``, ``r``,
@@ -146,34 +148,60 @@ def _deck(output_dir: Path) -> dict:
         return {}
 
 
-def read_frame(output_dir: Path | str, frame: int = -1) -> Snapshot:
-    """Particles and walls of frame ``frame`` (Python index over the stored frames)."""
-    output_dir = Path(output_dir)
+def _particle_files(output_dir: Path) -> list[Path]:
+    """``particles.h5``, or the per-rank pieces ``particles.rRRRR.h5`` in rank order."""
     ppath = output_dir / "particles.h5"
-    if not ppath.is_file():
+    if ppath.is_file():
+        return [ppath]
+    pieces = [q for q in output_dir.glob("particles.r*.h5") if re.fullmatch(r"particles\.r\d+\.h5", q.name)]
+    pieces.sort(key=lambda q: int(q.name.split(".")[1][1:]))
+    if not pieces:
         raise FileNotFoundError(
-            f"{ppath} not found: render needs the HDF5 output of a run (output.formats = ['hdf5'])"
+            f"{ppath} not found (nor per-rank pieces particles.r*.h5): render needs the HDF5 output of "
+            f"a run (output.formats = ['hdf5'])"
         )
+    return pieces
+
+
+def read_frame(output_dir: Path | str, frame: int = -1) -> Snapshot:
+    """Particles and walls of frame ``frame`` (Python index over the stored frames); per-rank
+    pieces are joined and ordered by id."""
+    output_dir = Path(output_dir)
+    paths = _particle_files(output_dir)
+    ppath = paths[0]
     with h5py.File(ppath, "r", locking=False) as f:
         keys = sorted(f["frames"]) if "frames" in f else []
-        if not keys:
-            raise ValueError(f"{ppath} holds no frames yet")
-        try:
-            key = keys[frame]
-        except IndexError:
-            raise ValueError(
-                f"frame {frame} does not exist: {ppath} holds {len(keys)} frames (0 … {len(keys) - 1}, "
-                f"or -1 … -{len(keys)} from the end)"
-            ) from None
-        g = f["frames"][key]
-        snap = Snapshot(
-            index=keys.index(key),
-            key=key,
-            time=float(g.attrs.get("time", np.nan)),
-            step=int(g.attrs.get("step", -1)),
-            stage=str(g.attrs.get("stage", "")),
-            particles={name: np.asarray(ds[()]) for name, ds in g.items()},
-        )
+    if len(paths) > 1:  # a frame is complete when every rank has written its piece
+        for q in paths[1:]:
+            with h5py.File(q, "r", locking=False) as f:
+                keys = [k for k in keys if "frames" in f and k in f["frames"]]
+    if not keys:
+        raise ValueError(f"{ppath} holds no frames yet")
+    try:
+        key = keys[frame]
+    except IndexError:
+        raise ValueError(
+            f"frame {frame} does not exist: {ppath} holds {len(keys)} frames (0 … {len(keys) - 1}, "
+            f"or -1 … -{len(keys)} from the end)"
+        ) from None
+    pieces: list[dict[str, np.ndarray]] = []
+    for q in paths:
+        with h5py.File(q, "r", locking=False) as f:
+            g = f["frames"][key]
+            attrs = dict(g.attrs)
+            pieces.append({name: np.asarray(ds[()]) for name, ds in g.items()})
+    particles = {k: np.concatenate([piece[k] for piece in pieces]) for k in pieces[0]}
+    if len(pieces) > 1:
+        order = np.argsort(particles["id"], kind="stable")
+        particles = {k: v[order] for k, v in particles.items()}
+    snap = Snapshot(
+        index=keys.index(key),
+        key=key,
+        time=float(attrs.get("time", np.nan)),
+        step=int(attrs.get("step", -1)),
+        stage=str(attrs.get("stage", "")),
+        particles=particles,
+    )
     wpath = output_dir / "walls.h5"
     if wpath.is_file():
         with h5py.File(wpath, "r", locking=False) as f:

@@ -180,6 +180,7 @@ def validate_deck(
     problems += law_problems
     boundary_classes, boundaries, bnd_problems = _validate_boundaries(data)
     problems += bnd_problems
+    problems += _validate_per_rank_writers(data)
 
     if problems:
         problems = _mark_overrides(_dedupe(problems), applied)
@@ -319,6 +320,33 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
             [(("contact",), f"contact law '{law}' rejected its parameters: {type(exc).__name__}: {exc}")],
         )
     return cls, params, []
+
+
+def _validate_per_rank_writers(data: dict) -> list[tuple[Loc, str]]:
+    """With ``output.parallel = "per_rank"``, every writer in ``output.formats`` must support it."""
+    out = data.get("output")
+    if not isinstance(out, dict) or out.get("parallel") != "per_rank":
+        return []
+    formats = out.get("formats", ["hdf5"])
+    if not isinstance(formats, list):
+        return []  # the schema reports it
+    problems: list[tuple[Loc, str]] = []
+    for k, fmt in enumerate(formats):
+        if not isinstance(fmt, str):
+            continue
+        cls, err = _load_plugin("writers", fmt)
+        if err is not None:
+            continue  # an unknown format is reported by the schema, a broken one when the run starts
+        if not getattr(cls, "supports_per_rank", False):
+            problems.append(
+                (
+                    ("output", "formats", k),
+                    f"writer '{fmt}' cannot write per-rank files, which output.parallel = \"per_rank\" "
+                    f'asks for; use parallel = "auto" (gathers output for the writers that need it) '
+                    f"or \"gather\", or remove '{fmt}' from formats",
+                )
+            )
+    return problems
 
 
 def _validate_boundaries(data: dict) -> tuple[dict[str, type], dict[str, BaseModel], list[tuple[Loc, str]]]:

@@ -5,6 +5,16 @@ per :meth:`Writer.write` call and is closed with :meth:`Writer.close` (idempoten
 context managers). Each concrete writer is registered as an entry point of group
 ``pdem.writers`` under its :attr:`Writer.name`.
 
+Per-rank output (``comm=``): a writer whose class sets :attr:`Writer.supports_per_rank` can be
+constructed on every rank of an MPI communicator. It is then collective: every rank calls
+:meth:`Writer.write` with a :class:`Frame` holding only *its own* particles (ordered by id; the walls
+are the same on every rank) and writes them to its own file (:meth:`Writer._write_piece`); rank 0
+then writes the index that joins the pieces into one dataset (:meth:`Writer._write_index`), given a
+:class:`Piece` summary (particle count, field shapes and dtypes) of every rank. Only those summaries
+travel between ranks, never particle arrays. Errors are collective too: a failure on any rank
+raises the same :class:`~pdem.errors.OutputError` on every rank. Without ``comm`` a writer is
+serial: one process writes whole frames (under MPI, rank 0 writes frames gathered from every rank).
+
 Field selection: ``fields=None`` writes every particle field present in the frame; otherwise only
 the listed ones, plus ``id`` and ``x`` (always written) and ``r`` when the frame has it (needed to
 draw the particles as spheres). A name that is not a particle field
@@ -18,17 +28,20 @@ import json
 import os
 import re
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
 from ..errors import OutputError
 from .frame import PARTICLE_FIELDS, REQUIRED_FIELDS, Frame, WallState
 
-__all__ = ["Writer", "atomic_write_text", "safe_key", "write_metadata_json"]
+__all__ = ["Piece", "Writer", "atomic_write_text", "piece_name", "safe_key", "write_metadata_json"]
+
+_T = TypeVar("_T")
 
 #: Fields written whatever ``fields`` says, when present in the frame.
 _ALWAYS = (*REQUIRED_FIELDS, "r")
@@ -66,6 +79,28 @@ def safe_key(name: str) -> str:
     return key if key.strip(".") else f"_{key}"
 
 
+def piece_name(rank: int) -> str:
+    """The name of rank ``rank``'s piece in per-rank output: ``r0000``, ``r0001``, …"""
+    return f"r{int(rank):04d}"
+
+
+@dataclass(frozen=True)
+class Piece:
+    """What rank 0 learns about one rank's piece of a frame in per-rank output.
+
+    ``fields`` maps each written particle field to its ``(shape, dtype string)``, e.g.
+    ``{"x": ((n, 3), "<f8"), "id": ((n,), "<i8"), …}``, in writing order.
+    """
+
+    rank: int
+    n: int
+    fields: dict[str, tuple[tuple[int, ...], str]]
+
+    @property
+    def name(self) -> str:
+        return piece_name(self.rank)
+
+
 class Writer:
     """Base class of writers: validation, field selection, lifecycle.
 
@@ -75,11 +110,19 @@ class Writer:
     fields : particle fields to write (``None``: all present in each frame).
     metadata : strings stored in every output file (e.g. ``{"deck": <TOML>, "pdem_version": ...}``).
     overwrite : replace this writer's existing files in ``directory`` instead of refusing.
+    comm : an MPI communicator (or :class:`pdem.parallel.comm.SerialComm`) for per-rank output:
+        the writer is then constructed, written and closed on every rank of ``comm`` together
+        (see the module doc). ``None``: serial output of whole frames.
 
-    Subclasses implement :meth:`_write` (and optionally :meth:`_close`) and set :attr:`name`.
+    Subclasses implement :meth:`_write` (and optionally :meth:`_close`) and set :attr:`name`;
+    writers that support per-rank output also set :attr:`supports_per_rank` and implement
+    :meth:`_write_piece` and :meth:`_write_index`. In per-rank mode, a subclass's constructor runs
+    its file set-up through :meth:`_collective` so that every rank raises the same error.
     """
 
     name: ClassVar[str] = ""
+    #: True when the writer can write one file per MPI rank joined by an index (``comm=``).
+    supports_per_rank: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -88,9 +131,19 @@ class Writer:
         fields: Sequence[str] | None = None,
         metadata: dict[str, str] | None = None,
         overwrite: bool = False,
+        comm: Any = None,
     ) -> None:
         self.directory = Path(directory)
         self.overwrite = bool(overwrite)
+        if comm is not None and not self.supports_per_rank:
+            raise OutputError(
+                f"{type(self).__name__} ('{self.name}') cannot write per-rank output files; "
+                f'write gathered frames instead (output.parallel = "gather", or construct it without comm)'
+            )
+        self.comm = comm
+        #: this process's rank in ``comm`` (0 for serial output)
+        self.rank = int(comm.rank) if comm is not None else 0
+        self.n_ranks = int(comm.size) if comm is not None else 1
         if fields is not None:
             if isinstance(fields, str):
                 fields = [fields]
@@ -111,6 +164,11 @@ class Writer:
                 f"offending keys: {', '.join(map(repr, bad))}; convert them with str() first"
             )
         self.metadata: dict[str, str] = meta
+        self._collective(self._make_directory, root_only=True)
+        self.n_frames = 0
+        self._closed = False
+
+    def _make_directory(self) -> None:
         if self.directory.exists() and not self.directory.is_dir():
             raise OutputError(
                 f"output directory '{self.directory}' exists and is not a directory; "
@@ -122,27 +180,91 @@ class Writer:
             raise OutputError(
                 f"cannot create output directory '{self.directory}': {exc}; check the path and permissions"
             ) from exc
-        self.n_frames = 0
-        self._closed = False
+
+    @property
+    def per_rank(self) -> bool:
+        """True when this writer writes per-rank pieces joined by an index (constructed with ``comm``)."""
+        return self.comm is not None
 
     # ---------------------------------------------------------------- lifecycle
     def write(self, frame: Frame) -> None:
-        """Append one frame to the output (files are complete and readable when this returns)."""
+        """Append one frame to the output (files are complete and readable when this returns).
+
+        Per-rank output: a collective call; ``frame`` holds this rank's particles only.
+        """
         if self._closed:
             raise OutputError(
                 f"{type(self).__name__} for '{self.directory}' is closed; create a new writer to write more"
             )
-        particles = self._select(frame)
-        walls = self._check_walls(frame)
-        try:
-            self._write(frame, particles, walls)
-        except OSError as exc:
-            raise OutputError(
-                f"{type(self).__name__}: writing frame {self.n_frames} (step {frame.step}) to "
-                f"'{self.directory}' failed: {exc}; check free disk space and permissions, and that no "
-                f"other program holds the files open"
-            ) from exc
+        if self.comm is None:
+            particles = self._select(frame)
+            walls = self._check_walls(frame)
+            try:
+                self._write(frame, particles, walls)
+            except OSError as exc:
+                raise OutputError(self._failed(frame, exc)) from exc
+        else:
+
+            def piece() -> Piece:
+                particles = self._select(frame)
+                self._check_walls(frame)
+                try:
+                    self._write_piece(frame, particles)
+                except OSError as exc:
+                    raise OutputError(self._failed(frame, exc)) from exc
+                fields = {k: (tuple(int(d) for d in a.shape), a.dtype.str) for k, a in particles.items()}
+                return Piece(self.rank, int(particles["x"].shape[0]), fields)
+
+            pieces = self._collective(piece)
+
+            def index() -> None:
+                try:
+                    self._write_index(frame, pieces, list(frame.walls))
+                except OSError as exc:
+                    raise OutputError(self._failed(frame, exc)) from exc
+
+            self._collective(index, root_only=True)
         self.n_frames += 1
+
+    def _failed(self, frame: Frame, exc: OSError) -> str:
+        return (
+            f"{type(self).__name__}: writing frame {self.n_frames} (step {frame.step}) to "
+            f"'{self.directory}' failed: {exc}; check free disk space and permissions, and that no "
+            f"other program holds the files open"
+        )
+
+    def _collective(self, action: Callable[[], _T], *, root_only: bool = False) -> list[_T]:
+        """Run ``action`` on every rank (on rank 0 only if ``root_only``) and return the results in
+        rank order (``[result of rank 0]`` if ``root_only`` or for serial output).
+
+        Per-rank output: a collective call; if ``action`` raised :class:`OutputError` or
+        :class:`OSError` on any rank, every rank raises the same :class:`OutputError`, naming the
+        ranks. Serial output: ``action``'s exceptions propagate unchanged.
+        """
+        if self.comm is None:
+            return [action()]
+        result: Any = None
+        error: str | None = None
+        if not root_only or self.rank == 0:
+            try:
+                result = action()
+            except OutputError as exc:
+                error = str(exc)
+            except OSError as exc:
+                error = f"{type(self).__name__} in '{self.directory}': {exc}"
+        if root_only:
+            error, result = self.comm.bcast((error, result), root=0)
+            results, errors = [result], [error]
+        else:
+            gathered = self.comm.allgather((result, error))
+            results = [r for r, _ in gathered]
+            errors = [e for _, e in gathered]
+        failed = [(r, e) for r, e in enumerate(errors) if e is not None]
+        if failed:
+            if self.n_ranks == 1:
+                raise OutputError(failed[0][1])
+            raise OutputError("; ".join(f"rank {r}: {e}" for r, e in failed))
+        return results
 
     def close(self) -> None:
         """Finish the output; further calls do nothing."""
@@ -165,6 +287,15 @@ class Writer:
 
     # ---------------------------------------------------------------- for subclasses
     def _write(self, frame: Frame, particles: dict[str, np.ndarray], walls: list[WallState]) -> None:
+        raise NotImplementedError  # pragma: no cover
+
+    def _write_piece(self, frame: Frame, particles: dict[str, np.ndarray]) -> None:
+        """Per-rank output, every rank: write this rank's ``particles`` of ``frame`` to its own file."""
+        raise NotImplementedError  # pragma: no cover
+
+    def _write_index(self, frame: Frame, pieces: list[Piece], walls: list[WallState]) -> None:
+        """Per-rank output, rank 0 only, after every rank wrote its piece: write the index joining
+        ``pieces`` (one per rank, in rank order) and the walls."""
         raise NotImplementedError  # pragma: no cover
 
     def _close(self) -> None:

@@ -29,9 +29,26 @@ Files written in the output directory
     mesh is empty (a plane missing the scene box) are left out of the XDMF (they stay in
     ``walls.h5``), and so are frames without any wall triangle.
 
+Per-rank output (``comm=``, deck ``output.parallel = "per_rank"``)
+-------------------------------------------------------------------
+``particles.rRRRR.h5`` (``RRRR`` = rank, 4 digits or more) instead of ``particles.h5``
+    one file per rank, laid out exactly like ``particles.h5`` but holding the particles that rank
+    owns at each frame (ordered by id; concatenating the pieces of a frame and ordering by id gives
+    the gathered frame, bitwise). Root attributes: ``metadata`` plus ``rank`` and ``n_ranks``.
+    Every rank writes a group for every frame, even with no particles.
+``particles.xdmf``
+    the index, written by rank 0 only: each frame of the ``Temporal`` collection is a ``Spatial``
+    collection (``Time``, ``step`` and ``stage`` on it) of one ``Uniform`` grid per rank piece,
+    named ``rRRRR``, referencing that rank's file, with the same topology, geometry and attributes
+    as the gathered grid. ParaView opens it as one dataset per time step (a multiblock of the
+    pieces). Pieces without particles are left out, and so are frames without any particle.
+``walls.h5``, ``walls.xdmf``
+    written by rank 0 as in gathered output.
+
 Robustness: every :meth:`HDF5Writer.write` opens each HDF5 file, appends the frame, flushes and
 closes it; then rewrites both XDMF files atomically (temp file + ``os.replace``). A run killed
-between frames leaves files that read back with everything written so far.
+between frames leaves files that read back with everything written so far. In per-rank output,
+rank 0 rewrites the index only after every rank has closed its piece of the frame.
 """
 
 from __future__ import annotations
@@ -46,7 +63,7 @@ import numpy as np
 
 from ..boundaries._geometry import KIND_NAMES
 from ..errors import OutputError
-from .base import Writer, atomic_write_text, safe_key
+from .base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .frame import Frame, WallState
 from .wall_mesh import wall_triangles
 
@@ -101,12 +118,14 @@ class HDF5Writer(Writer):
         are always written when present).
     metadata : strings stored as root attributes of both HDF5 files (and as ``Information`` in the
         XDMF domain).
-    overwrite : replace existing ``particles.h5``, ``walls.h5``, ``particles.xdmf``, ``walls.xdmf``
-        instead of raising :class:`~pdem.errors.OutputError`.
+    overwrite : replace existing ``particles.h5``, ``particles.r*.h5``, ``walls.h5``,
+        ``particles.xdmf``, ``walls.xdmf`` instead of raising :class:`~pdem.errors.OutputError`.
     resolution : segments around the axis of revolved walls and cylinders in the wall meshes.
+    comm : write per-rank files joined by ``particles.xdmf`` (collective; see the module doc).
     """
 
     name: ClassVar[str] = "hdf5"
+    supports_per_rank: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -116,28 +135,47 @@ class HDF5Writer(Writer):
         metadata: dict[str, str] | None = None,
         overwrite: bool = False,
         resolution: int = 48,
+        comm=None,
     ) -> None:
-        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite)
+        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite, comm=comm)
         self.resolution = int(resolution)
-        self.particles_path = self.directory / "particles.h5"
+        #: the particle file this process writes: particles.h5, or its rank's piece
+        self.particles_path = self.piece_path(self.rank) if self.per_rank else self.directory / "particles.h5"
         self.walls_path = self.directory / "walls.h5"
         self.particles_xdmf = self.directory / "particles.xdmf"
         self.walls_xdmf = self.directory / "walls.xdmf"
-        self._claim([self.particles_path, self.walls_path, self.particles_xdmf, self.walls_xdmf])
         # serialised once per frame: rewriting the XDMF costs one string join, not a re-serialisation
         self._particle_grids: list[str] = []
         self._wall_grids: list[str] = []
-        for path in (self.particles_path, self.walls_path):
-            try:
-                with h5py.File(path, "w-", libver=_LIBVER) as f:
-                    for k, v in self.metadata.items():
-                        f.attrs[k] = v
-                    f.create_group("frames")
-            except OSError as exc:
-                raise OutputError(
-                    f"HDF5Writer: cannot create '{path}': {exc}; "
-                    f"check the directory permissions and free space"
-                ) from exc
+        # rank 0 claims every file of either layout, so no stale piece of an earlier run lingers
+        old = [self.directory / "particles.h5", self.walls_path, self.particles_xdmf, self.walls_xdmf]
+        self._collective(
+            lambda: self._claim(old + sorted(self.directory.glob("particles.r*.h5"))), root_only=True
+        )
+        self._collective(
+            lambda: self._create(
+                self.particles_path, {"rank": self.rank, "n_ranks": self.n_ranks} if self.per_rank else {}
+            )
+        )
+        if self.rank == 0:
+            self._create(self.walls_path, {})
+
+    def piece_path(self, rank: int) -> Path:
+        """Rank ``rank``'s particle file in per-rank output: ``particles.rRRRR.h5``."""
+        return self.directory / f"particles.{piece_name(rank)}.h5"
+
+    def _create(self, path: Path, extra: dict[str, int]) -> None:
+        try:
+            with h5py.File(path, "w-", libver=_LIBVER) as f:
+                for k, v in self.metadata.items():
+                    f.attrs[k] = v
+                for k, i in extra.items():
+                    f.attrs[k] = np.int64(i)
+                f.create_group("frames")
+        except OSError as exc:
+            raise OutputError(
+                f"HDF5Writer: cannot create '{path}': {exc}; check the directory permissions and free space"
+            ) from exc
 
     # ------------------------------------------------------------------ writing
     def _write(self, frame: Frame, particles: dict[str, np.ndarray], walls: list[WallState]) -> None:
@@ -146,7 +184,33 @@ class HDF5Writer(Writer):
         self._write_particles(frame, key, particles)
         self._write_walls(frame, key, walls, meshes)
         if particles["x"].shape[0] > 0:  # ParaView's XDMF (2) reader fails on empty grids
-            self._particle_grids.append(_serialise(self._particle_grid(frame, key, particles)))
+            grid = self._particle_grid(
+                f"frame_{key}", self.particles_path.name, key, _shapes(particles), frame
+            )
+            self._particle_grids.append(_serialise(grid))
+        self._finish_frame(frame, key, walls, meshes)
+
+    def _write_piece(self, frame: Frame, particles: dict[str, np.ndarray]) -> None:
+        self._write_particles(frame, f"{self.n_frames:06d}", particles)
+
+    def _write_index(self, frame: Frame, pieces: list[Piece], walls: list[WallState]) -> None:
+        key = f"{self.n_frames:06d}"
+        meshes = [wall_triangles(w.kind, w.params, frame.bounds, self.resolution) for w in walls]
+        self._write_walls(frame, key, walls, meshes)
+        coll = ET.Element("Grid", Name=f"frame_{key}", GridType="Collection", CollectionType="Spatial")
+        self._grid_header(coll, frame)
+        for piece in pieces:
+            if piece.n > 0:  # ParaView's XDMF (2) reader fails on empty grids
+                shapes = {k: (shape, np.dtype(dt)) for k, (shape, dt) in piece.fields.items()}
+                coll.append(self._particle_grid(piece.name, self.piece_path(piece.rank).name, key, shapes))
+        if any(piece.n > 0 for piece in pieces):
+            self._particle_grids.append(_serialise(coll))
+        self._finish_frame(frame, key, walls, meshes)
+
+    def _finish_frame(
+        self, frame: Frame, key: str, walls: list[WallState], meshes: list[tuple[np.ndarray, np.ndarray]]
+    ) -> None:
+        """Add the frame's wall grid, then rewrite both XDMF files (particles are on disk by now)."""
         wall_grid = self._wall_grid(frame, key, walls, meshes)
         if wall_grid is not None:
             self._wall_grids.append(_serialise(wall_grid))
@@ -215,24 +279,35 @@ class HDF5Writer(Writer):
         ET.SubElement(grid, "Information", Name="step", Value=str(int(frame.step)))
         ET.SubElement(grid, "Information", Name="stage", Value=str(frame.stage))
 
-    def _particle_grid(self, frame: Frame, key: str, particles: dict[str, np.ndarray]) -> ET.Element:
-        h5 = self.particles_path.name
+    @classmethod
+    def _particle_grid(
+        cls,
+        name: str,
+        h5: str,
+        key: str,
+        fields: dict[str, tuple[tuple[int, ...], np.dtype]],
+        frame: Frame | None = None,
+    ) -> ET.Element:
+        """The Uniform grid of frame ``key``'s particles in file ``h5`` (``fields``: shape, dtype);
+        with the frame's time, step and stage if ``frame`` is given."""
         base = f"/frames/{key}"
-        n = particles["x"].shape[0]
-        grid = ET.Element("Grid", Name=f"frame_{key}", GridType="Uniform")
-        self._grid_header(grid, frame)
+        shape_x, dtype_x = fields["x"]
+        n = shape_x[0]
+        grid = ET.Element("Grid", Name=name, GridType="Uniform")
+        if frame is not None:
+            cls._grid_header(grid, frame)
         topo = ET.SubElement(
             grid, "Topology", TopologyType="Polyvertex", NumberOfElements=str(n), NodesPerElement="1"
         )
         _hdf_item(topo, h5, f"/vertex_index/{n}", (n,), np.dtype(np.int64))
         geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
-        _hdf_item(geo, h5, f"{base}/x", particles["x"].shape, particles["x"].dtype)
-        for name, a in particles.items():
-            if name == "x":
+        _hdf_item(geo, h5, f"{base}/x", shape_x, dtype_x)
+        for field, (shape, dtype) in fields.items():
+            if field == "x":
                 continue
-            kind = "Vector" if a.ndim == 2 else "Scalar"
-            att = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center="Node")
-            _hdf_item(att, h5, f"{base}/{name}", a.shape, a.dtype)
+            kind = "Vector" if len(shape) == 2 else "Scalar"
+            att = ET.SubElement(grid, "Attribute", Name=field, AttributeType=kind, Center="Node")
+            _hdf_item(att, h5, f"{base}/{field}", shape, dtype)
         return grid
 
     def _wall_grid(
@@ -277,6 +352,10 @@ class HDF5Writer(Writer):
             + "".join(grids)
             + "    </Grid>\n  </Domain>\n</Xdmf>\n"
         )
+
+
+def _shapes(particles: dict[str, np.ndarray]) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    return {k: (a.shape, a.dtype) for k, a in particles.items()}
 
 
 def _serialise(grid: ET.Element) -> str:

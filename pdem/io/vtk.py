@@ -21,8 +21,22 @@ Files written in the output directory
 ``metadata.json``
     the writer's ``metadata`` as a JSON object.
 
+Per-rank output (``comm=``, deck ``output.parallel = "per_rank"``)
+-------------------------------------------------------------------
+``particles/rRRRR/particles_NNNNNN.vtu`` (``RRRR`` = rank)
+    each rank's piece of frame ``NNNNNN``: the particles it owns, ordered by id, laid out like the
+    gathered ``.vtu`` (written by every rank for every frame, even with no particles).
+``particles/particles_NNNNNN.pvtu``
+    the frame's index, written by rank 0 only: a ``PUnstructuredGrid`` listing every rank's piece
+    (in rank order) with the point data arrays' names, types and components.
+``particles.pvd``
+    lists the ``.pvtu`` files, so ParaView opens one dataset per time step.
+``walls/…``, ``walls.pvd``, ``metadata.json``
+    written by rank 0 as in gathered output.
+
 Every ``.vtu`` is written to a temporary file and moved into place, so a run killed at any point
-leaves only complete files, all listed in the ``.pvd`` files.
+leaves only complete files, all listed in the ``.pvd`` files. In per-rank output, rank 0 writes the
+``.pvtu`` (atomically) only after every rank has written its piece, then the ``.pvd``.
 """
 
 from __future__ import annotations
@@ -38,7 +52,7 @@ import meshio
 import numpy as np
 
 from ..errors import OutputError
-from .base import Writer, atomic_write_text, write_metadata_json
+from .base import Piece, Writer, atomic_write_text, piece_name, write_metadata_json
 from .frame import Frame, WallState
 from .wall_mesh import wall_triangles
 
@@ -71,12 +85,15 @@ class VTKWriter(Writer):
         are always written when present).
     metadata : strings written to ``metadata.json``.
     overwrite : replace existing ``particles.pvd``, ``walls.pvd``, ``metadata.json`` and
-        ``particles/particles_*.vtu``, ``walls/walls_*.vtu`` instead of raising
+        ``particles/particles_*.vtu``, ``particles/particles_*.pvtu``,
+        ``particles/r*/particles_*.vtu``, ``walls/walls_*.vtu`` instead of raising
         :class:`~pdem.errors.OutputError` (other files are left alone).
     resolution : segments around the axis of revolved walls and cylinders in the wall meshes.
+    comm : write per-rank pieces joined by ``.pvtu`` files (collective; see the module doc).
     """
 
     name: ClassVar[str] = "vtk"
+    supports_per_rank: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -86,19 +103,31 @@ class VTKWriter(Writer):
         metadata: dict[str, str] | None = None,
         overwrite: bool = False,
         resolution: int = 48,
+        comm=None,
     ) -> None:
-        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite)
+        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite, comm=comm)
         self.resolution = int(resolution)
         self.particles_dir = self.directory / "particles"
         self.walls_dir = self.directory / "walls"
         self.particles_pvd = self.directory / "particles.pvd"
         self.walls_pvd = self.directory / "walls.pvd"
         self.metadata_path = self.directory / "metadata.json"
-        old = [self.particles_pvd, self.walls_pvd, self.metadata_path]
-        old += sorted(self.particles_dir.glob("particles_*.vtu")) + sorted(self.walls_dir.glob("walls_*.vtu"))
-        self._claim(old)
+        #: the directory of this rank's pieces in per-rank output
+        self.piece_dir = self.particles_dir / piece_name(self.rank)
         self._particle_entries: list[dict[str, str]] = []
         self._wall_entries: list[dict[str, str]] = []
+        self._collective(self._set_up, root_only=True)
+        if self.per_rank:
+            self._collective(self._make_piece_dir)
+
+    def _set_up(self) -> None:
+        """Claim the files of either layout (so no stale piece lingers), make the directories."""
+        old = [self.particles_pvd, self.walls_pvd, self.metadata_path]
+        old += sorted(self.particles_dir.glob("particles_*.vtu"))
+        old += sorted(self.particles_dir.glob("particles_*.pvtu"))
+        old += sorted(self.particles_dir.glob("r*/particles_*.vtu"))
+        old += sorted(self.walls_dir.glob("walls_*.vtu"))
+        self._claim(old)
         try:
             self.particles_dir.mkdir(exist_ok=True)
             self.walls_dir.mkdir(exist_ok=True)
@@ -109,16 +138,46 @@ class VTKWriter(Writer):
                 f"'particles' and 'walls' there are directories (or absent), the permissions and free space"
             ) from exc
 
+    def _make_piece_dir(self) -> None:
+        try:
+            self.piece_dir.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise OutputError(
+                f"VTKWriter: cannot create '{self.piece_dir}' for rank {self.rank}'s pieces ({exc}); "
+                f"check that it is a directory (or absent) and the permissions"
+            ) from exc
+
     def _write(self, frame: Frame, particles: dict[str, np.ndarray], walls: list[WallState]) -> None:
         key = f"{self.n_frames:06d}"
-        time = repr(float(frame.time))
         wall_mesh = self._wall_mesh(frame, walls)  # first: a bad wall must not leave half a frame
-        x = particles["x"]
-        n = x.shape[0]
-        point_data = {k: a for k, a in particles.items() if k != "x"}
-        cells = [("vertex", np.arange(n, dtype=np.int64).reshape(-1, 1))]
         pfile = self.particles_dir / f"particles_{key}.vtu"
-        write_vtu(pfile, meshio.Mesh(x, cells, point_data=point_data))
+        write_vtu(pfile, _particle_mesh(particles))
+        self._finish_frame(frame, key, pfile, walls, wall_mesh)
+
+    def _write_piece(self, frame: Frame, particles: dict[str, np.ndarray]) -> None:
+        write_vtu(self.piece_dir / f"particles_{self.n_frames:06d}.vtu", _particle_mesh(particles))
+
+    def _write_index(self, frame: Frame, pieces: list[Piece], walls: list[WallState]) -> None:
+        key = f"{self.n_frames:06d}"
+        wall_mesh = self._wall_mesh(frame, walls)
+        pfile = self.particles_dir / f"particles_{key}.pvtu"
+        sources = [f"{piece.name}/particles_{key}.vtu" for piece in pieces]
+        layout = [(k, shape[1:], dt) for k, (shape, dt) in pieces[0].fields.items()]
+        for piece in pieces[1:]:  # one .pvtu declares the arrays of every piece
+            if [(k, shape[1:], dt) for k, (shape, dt) in piece.fields.items()] != layout:
+                raise OutputError(
+                    f"VTKWriter frame {self.n_frames}: rank {piece.rank}'s particle fields "
+                    f"{piece.fields} differ from rank 0's {pieces[0].fields} in names, components or "
+                    f"dtypes; every rank must write the same fields"
+                )
+        atomic_write_text(pfile, _pvtu_text(pieces[0].fields, sources))
+        self._finish_frame(frame, key, pfile, walls, wall_mesh)
+
+    def _finish_frame(
+        self, frame: Frame, key: str, pfile: Path, walls: list[WallState], wall_mesh: meshio.Mesh | None
+    ) -> None:
+        """Write the walls' file, then add the frame to both .pvd files (particles are on disk)."""
+        time = repr(float(frame.time))
         particle_entry = {
             "timestep": time,
             "group": "",
@@ -167,6 +226,68 @@ class VTKWriter(Writer):
             [("triangle", np.concatenate(tri_all))],
             cell_data={name: [np.concatenate(parts)] for name, parts in cdata.items()},
         )
+
+
+def _particle_mesh(particles: dict[str, np.ndarray]) -> meshio.Mesh:
+    """Points = ``x``, one vertex cell per particle, the other fields as point data."""
+    x = particles["x"]
+    point_data = {k: a for k, a in particles.items() if k != "x"}
+    cells = [("vertex", np.arange(x.shape[0], dtype=np.int64).reshape(-1, 1))]
+    return meshio.Mesh(x, cells, point_data=point_data)
+
+
+#: VTK XML type names of NumPy dtypes (what meshio writes in the pieces)
+_VTK_TYPES = {
+    np.dtype(t).str: name
+    for t, name in [
+        (np.int8, "Int8"),
+        (np.uint8, "UInt8"),
+        (np.int16, "Int16"),
+        (np.uint16, "UInt16"),
+        (np.int32, "Int32"),
+        (np.uint32, "UInt32"),
+        (np.int64, "Int64"),
+        (np.uint64, "UInt64"),
+        (np.float32, "Float32"),
+        (np.float64, "Float64"),
+    ]
+}
+
+
+def _vtk_type(dtype: str) -> str:
+    try:
+        return _VTK_TYPES[np.dtype(dtype).newbyteorder("<").str]
+    except KeyError:
+        raise OutputError(
+            f"no VTK data type for dtype {np.dtype(dtype)}; write float or integer arrays"
+        ) from None
+
+
+def _pvtu_text(fields: dict[str, tuple[tuple[int, ...], str]], sources: list[str]) -> str:
+    """A PUnstructuredGrid joining the ``.vtu`` pieces ``sources`` (paths relative to the file).
+
+    ``fields`` (shape, dtype string) describes the pieces' arrays: ``x`` the points, the others the
+    point data. The cell arrays are declared as meshio writes them (Int64).
+    """
+    root = ET.Element("VTKFile", type="PUnstructuredGrid", version="0.1", byte_order="LittleEndian")
+    grid = ET.SubElement(root, "PUnstructuredGrid", GhostLevel="0")
+    pdata = ET.SubElement(grid, "PPointData")
+    for name, (shape, dtype) in fields.items():
+        if name == "x":
+            continue
+        att = {"type": _vtk_type(dtype), "Name": name}
+        if len(shape) == 2:
+            att["NumberOfComponents"] = str(shape[1])
+        ET.SubElement(pdata, "PDataArray", att)
+    points = ET.SubElement(grid, "PPoints")
+    ET.SubElement(points, "PDataArray", type=_vtk_type(fields["x"][1]), Name="Points", NumberOfComponents="3")
+    pcells = ET.SubElement(grid, "PCells")
+    for name in ("connectivity", "offsets", "types"):
+        ET.SubElement(pcells, "PDataArray", type="Int64", Name=name)
+    for src in sources:
+        ET.SubElement(grid, "Piece", Source=src)
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
 def _pvd_text(entries: list[dict[str, str]]) -> str:
