@@ -280,3 +280,80 @@ def test_gauss_seidel_and_apgd_refuse_mpi():
     sim.comm = FakeComm()
     with pytest.raises(InputError, match="solver = 'jacobi'"):
         law.make_stepper(sim)
+
+
+# ----------------------------------------------------------------------------------- decks
+def test_one_key_switches_the_hopper_deck_and_per_law_tables(tmp_path):
+    """contact.law selects the method; [contact.<law>] tables carry each method's own keys."""
+    from pathlib import Path
+
+    from pdem.deck import load_deck
+    from pdem.errors import DeckError
+
+    deck = Path(__file__).resolve().parents[1] / "inputs" / "hopper.toml"
+    p = load_deck(deck)
+    assert p.deck.contact.law == "hertz_mindlin"
+    c = load_deck(deck, overrides=["contact.law=complementarity"])
+    assert c.deck.contact.law == "complementarity"
+    assert c.law_params.solver == "jacobi" and c.law_params.max_iterations == 100
+    c2 = load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.solver=apgd"])
+    assert c2.law_params.solver == "apgd"
+    with pytest.raises(DeckError, match="relaxation"):
+        load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.relaxation=1.5"])
+    with pytest.raises(DeckError, match="solver"):
+        load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.solver=newton"])
+
+
+def test_dem_c_deck_run_writes_solver_series(tmp_path):
+    """A small deck under DEM-C: summary.json reports the solver, solver_<stage>.csv every step."""
+    import json
+    import subprocess
+    import sys
+
+    from pdem.io.series import read_series
+
+    deck = tmp_path / "pile.toml"
+    deck.write_text(
+        """
+[run]
+gravity = [0.0, 0.0, -9.81]
+dt = 1e-4
+[contact]
+law = "complementarity"
+tolerance = 1e-6
+max_iterations = 2000
+[materials.glass]
+density = 2500.0
+friction = 0.5
+[[particles]]
+source = "lattice"
+lattice = "sc"
+material = "glass"
+region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.006, 0.006, 0.006] }
+radius = 1e-3
+[boundaries.floor]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "glass"
+[[stages]]
+name = "settle"
+end = { steps = 50 }
+[output]
+formats = []
+series_every_steps = 10
+"""
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "pdem.cli", str(deck), "--output", str(tmp_path / "out"), "--quiet"],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["solver"]["solver"] == "jacobi" and summary["solver"]["steps"] == 50
+    log = read_series(tmp_path / "out" / "solver_settle.csv")
+    assert list(log["step"]) == list(range(1, 51))
+    assert np.all(log["iterations"] >= 1) and np.all(log["residual"] >= 0)
+    series = read_series(tmp_path / "out" / "series_settle.csv")
+    assert "solver_iterations" in series
