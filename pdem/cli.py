@@ -83,6 +83,19 @@ def _print_summary(summary: dict, out: Path) -> None:
     for name, res in summary.get("results", {}).items():
         items = ", ".join(f"{k} = {v:.6g}" for k, v in res.items())
         print(f"pdem: {name}: {items}")
+    solver = summary.get("solver")
+    if solver:
+        note = (
+            f"; {solver['unconverged_steps']} step(s) hit max_iterations = {solver['max_iterations']} "
+            f"before reaching tolerance = {solver['tolerance']:g} m/s (largest residual "
+            f"{solver['max_residual']:.3g} m/s; see solver_<stage>.csv)"
+            if solver["unconverged_steps"]
+            else "; every step converged"
+        )
+        print(
+            f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step on average"
+            + note
+        )
     if not summary.get("completed", True):
         print(f"pdem: stopped early (--steps); resume with: pdem resume {out / 'checkpoints' / 'latest.h5'}")
 

@@ -357,3 +357,26 @@ series_every_steps = 10
     assert np.all(log["iterations"] >= 1) and np.all(log["residual"] >= 0)
     series = read_series(tmp_path / "out" / "series_settle.csv")
     assert "solver_iterations" in series
+
+
+def test_moving_floor_carries_a_sphere_and_reports_its_weight():
+    """A floor rising at constant speed: the sphere on it moves with it (constraint with the wall's
+    velocity) and the reported load is the weight, as DEM-P would report it."""
+    from pdem.boundaries.walls import ConstantVelocity
+
+    vw = 0.05
+    sim = make_sim("jacobi", tolerance=1e-10, max_iterations=1000)
+    sim.add_particles([[0.0, 0.0, R]], R, material="glass", velocities=[[0.0, 0.0, vw]])
+    sim.add_wall(
+        shapes.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+        material="glass",
+        name="floor",
+        motion=ConstantVelocity((0.0, 0.0, vw)),
+    )
+    m = float(sim.particles.mass[0])
+    for _ in range(100):
+        sim.step()
+        assert -sim.walls["floor"].force[2] == pytest.approx(m * G, rel=1e-6)
+    assert sim.particles.v[0, 2] == pytest.approx(vw, abs=1e-9)
+    # the sphere stays on the floor (gap ~0), which has risen by vw t
+    assert sim.particles.x[0, 2] - R == pytest.approx(vw * sim.time, abs=1e-9 * R + 1e-12)

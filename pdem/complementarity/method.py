@@ -143,6 +143,7 @@ class Stepper:
         self.last_residual = 0.0
         self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
         self._cap = 0
+        self._base_envelope = sim._envelope  # 0.1 r_min or the deck's value
 
     # ------------------------------------------------------------------ work arrays
     def _reserve(self, nc: int) -> None:
@@ -166,8 +167,14 @@ class Stepper:
         sim = self.sim
         p = sim.particles
         h = sim.dt
-        self._grow_envelope()
+        need = self._needed_envelope()
+        if need > sim._envelope:
+            self._set_envelope(1.25 * need)
         if sim._needs_rebuild():
+            if need < sim._envelope and self.p.envelope is None:
+                # a rebuild may narrow the envelope again once the grains slow down: fewer
+                # speculative contacts (the list is built with the narrower reach)
+                self._set_envelope(max(1.25 * need, self._base_envelope), force=False)
             sim._force_rebuild = False
             sim._rebuild()
         elif sim._decomp is not None:
@@ -257,23 +264,27 @@ class Stepper:
         if any_rank(sim.comm, flags != 0):
             sim._raise_for_flags(flags)
 
-    def _grow_envelope(self) -> None:
-        """Automatic envelope: it must hold every pair that can close its gap within the step, so it
-        grows (never shrinks) to 2.5 × the fastest grain's travel per step; the list is then rebuilt
-        with the wider reach. The speed is a global max, so every rank decides alike."""
+    def _needed_envelope(self) -> float:
+        """Automatic envelope: every pair that can close its gap within the step must be in the
+        problem, so 2.5 × the fastest grain's travel per step (at least 0.1 r_min). The speed is a
+        global max, so every rank decides alike."""
         sim = self.sim
         if self.p.envelope is not None:
-            return
+            return float(self.p.envelope)
         p = sim.particles
         n = p.n_owned
         vmax = math.sqrt(float(np.max(np.einsum("ij,ij->i", p.v[:n], p.v[:n])))) if n else 0.0
-        need = 2.5 * all_max(sim.comm, vmax) * sim.dt
-        if need > sim._envelope:
-            sim._envelope = max(need, 1.25 * sim._envelope)
-            sim._list_skin = sim.skin + sim._envelope
-            sim._ghost_width = sim._ghost_width_base + sim._list_skin
-            if sim._decomp is not None:
-                sim._decomp.widen(sim._ghost_width)
+        return max(2.5 * all_max(sim.comm, vmax) * sim.dt, self._base_envelope)
+
+    def _set_envelope(self, envelope: float, force: bool = True) -> None:
+        """Change the envelope; a wider one needs a rebuild with the wider reach (``force``)."""
+        sim = self.sim
+        sim._envelope = envelope
+        sim._list_skin = sim.skin + envelope
+        sim._ghost_width = sim._ghost_width_base + sim._list_skin
+        if sim._decomp is not None:
+            sim._decomp.widen(sim._ghost_width)
+        if force:
             sim._force_rebuild = True
 
     def summary(self) -> dict[str, object]:
