@@ -55,6 +55,38 @@ def test_hopper_identical_on_1_2_3_ranks(tmp_path):
     assert int(last.split(":")[1].split()[0]) < 300
 
 
+# the periodic column collapse: as many steps as tests/test_periodic.py shows to be enough for beads to
+# cross both periodic faces and touch images across them
+PERIODIC_DECK = ROOT / "inputs" / "examples" / "periodic_column_collapse.toml"
+PERIODIC_STEPS = 1000
+
+
+def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
+    """tools/determinism.py: periodic x and y; the default grids split x (2, 3, 4 subdomains, the
+    periodic face between two ranks, or the same rank on both sides when split in two), and a 2x2x1
+    grid splits y as well (edges and corners forwarded across both periodic faces)."""
+    cmd = [
+        sys.executable,
+        str(ROOT / "tools" / "determinism.py"),
+        str(PERIODIC_DECK),
+        "--ranks",
+        "1",
+        "2",
+        "3",
+        "4",
+        "4:2x2x1",
+        "--steps",
+        str(PERIODIC_STEPS),
+        "--keep",
+        str(tmp_path),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    print(proc.stdout, proc.stderr)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.count("bitwise identical") == 4
+    assert "400 particles at step 1000" in proc.stdout
+
+
 _FAIL = textwrap.dedent(
     """
     import sys
