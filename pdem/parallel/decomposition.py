@@ -117,12 +117,12 @@ class Decomposition:
         idx = (np.arange(1, k) * sorted_x.size) // k
         return self._spread(sorted_x[idx].astype(float), d)
 
-    def _spread(self, cuts: np.ndarray, d: int) -> np.ndarray:
+    def _spread(self, cuts: np.ndarray, d: int | None = None) -> np.ndarray:
         """Keep subdomains at least ``min_width`` wide (ghosts move one subdomain per swap): the interior
-        ones, and along a periodic axis the outer ones too (they end at the box faces)."""
+        ones, and along a periodic axis ``d`` the outer ones too (they end at the box faces)."""
         cuts = np.array(cuts, dtype=float)
         w = self.min_width
-        if self.periodic[d] and cuts.size:
+        if d is not None and self.periodic[d] and cuts.size:
             lo, hi = self.box.lo[d], self.box.hi[d]
             cuts[0] = max(cuts[0], lo + w)
             for i in range(1, cuts.size):
