@@ -12,6 +12,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,3 +155,30 @@ def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
     resumed, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
     assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == 9000
     assert compare(full, resumed) is None
+
+
+def test_periodic_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
+    """n -> m resume across periodic faces: 2 ranks to step 500, 3 ranks on to 1000 == 1 rank to 1000."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from determinism import compare
+
+    from pdem.io.checkpoint import read_checkpoint
+
+    def pdem(ranks, *args):
+        cmd = [MPIEXEC, "-n", str(ranks), sys.executable, "-m", "pdem.cli", *map(str, args), "--quiet"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+
+    pdem(1, PERIODIC_DECK, "--steps", PERIODIC_STEPS, "--output", "full")
+    pdem(2, PERIODIC_DECK, "--steps", PERIODIC_STEPS // 2, "--output", "part")
+    pdem(3, "resume", "part/checkpoints/latest.h5", "--steps", PERIODIC_STEPS, "--output", "resumed")
+    full, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
+    half, _ = read_checkpoint(tmp_path / "part" / "checkpoints" / "latest.h5")
+    resumed, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
+    assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == PERIODIC_STEPS
+    assert compare(full, resumed) is None
+    # the checkpoint holds contacts across a periodic face
+    ids, x, keys = half["particles/id"], half["particles/x"], half["pairs/keys"]
+    raw = x[np.searchsorted(ids, keys & 0xFFFFFFFF)] - x[np.searchsorted(ids, keys >> 32)]
+    period = half["domain/hi"] - half["domain/lo"]
+    assert np.any(np.abs(raw[:, :2]) > 0.5 * period[:2])
