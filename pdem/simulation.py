@@ -357,12 +357,14 @@ class Simulation:
         """Walls are not periodic: along a periodic axis a wall must look the same from every image
         of a particle (an infinite plane parallel to the axis), or stay a ghost width away from the
         box faces (so that no particle near a face can touch it)."""
-        from .boundaries.shapes import Plane
+        from .boundaries.shapes import Cylinder, Plane
 
         box, w = self.box, self._ghost_width
         for wall in self._wall_list:
             for d in np.flatnonzero(box.periodic):
                 ax = "xyz"[d]
+                if isinstance(wall.shape, Cylinder) and abs(wall.shape.axis[d]) == 1.0:
+                    continue  # an infinite cylinder along the axis (a periodic pipe)
                 if isinstance(wall.shape, Plane):
                     if wall.shape.normal[d] != 0.0:
                         raise InputError(
@@ -379,7 +381,7 @@ class Simulation:
                         f"{ax}, closer than the ghost width {w:.4g} m to the box faces {box.lo[d]:.4g} / "
                         f"{box.hi[d]:.4g} m; walls are not periodic (a particle and its image would see "
                         "different walls). Keep finite walls inside the box away from its faces, or use "
-                        f"infinite planes parallel to {ax}"
+                        f"infinite planes parallel to {ax} or an infinite cylinder along {ax}"
                     )
 
     def exact_sum(self, values) -> float:

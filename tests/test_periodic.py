@@ -314,6 +314,29 @@ def test_walls_that_cut_the_periodic_box_are_rejected(shape, message):
         sim.run(steps=1)
 
 
+def test_pipe_along_a_periodic_axis_is_allowed():
+    from pdem.boundaries.shapes import Cylinder
+
+    sim = _sim("z")
+    # particle 0 crosses the face z = 0 and bounces off the pipe wall
+    sim.add_particles(
+        [[1.9e-3, 0.0, 0.05e-3], [0.0, 0.0, 5e-3]], 1e-3, velocities=[(1.0, 0.0, -0.5), (0, 0, 0)]
+    )
+    sim.add_wall(Cylinder((0, 0, 0), (0, 0, 1), 3e-3), name="pipe")
+    sim.dt = 1e-6
+    loads = []
+    sim.run(steps=300, callback=lambda s: loads.append(s.walls["pipe"].force[0]))
+    p = sim.get_particles()
+    assert max(loads) > 0.0 and p["v"][0, 0] < 0.0, "the particle hit the pipe and bounced back"
+    assert p["x"][0, 2] > 0.5 * L, "and crossed the periodic face z = 0"
+    with pytest.raises(pdem.InputError, match="along the periodic axis x"):
+        other = _sim("xz")
+        other.add_particles([[0.0, 0.0, 1e-3]], 1e-3)
+        other.add_wall(Cylinder((0, 0, 0), (0, 0, 1), 3e-3), name="pipe")
+        other.dt = 1e-6
+        other.run(steps=1)
+
+
 def test_floor_and_small_obstacle_are_allowed():
     sim = _sim("xy")
     sim.add_particles([[0.5 * L, 0.5 * L, 2e-3]], 1e-3)
