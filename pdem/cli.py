@@ -93,8 +93,8 @@ def _print_summary(summary: dict, out: Path) -> None:
             else "; every step converged"
         )
         print(
-            f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step on average"
-            + note
+            f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "
+            "on average" + note
         )
     if not summary.get("completed", True):
         print(f"pdem: stopped early (--steps); resume with: pdem resume {out / 'checkpoints' / 'latest.h5'}")

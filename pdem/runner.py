@@ -236,6 +236,8 @@ class Runner:
         sim.max_overlap = run.max_overlap
         sim.decomposition_dims = tuple(run.decomposition) if run.decomposition else None
         sim.balance_threshold = run.balance_threshold
+        if deck.domain.periodic:
+            sim.set_periodic(deck.domain.lo, deck.domain.hi, deck.domain.periodic)
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
             b = cls(name, params)

@@ -8,6 +8,7 @@ Python API (SI units throughout)::
                      restitution=0.5, friction=0.5)
     sim.add_particles(positions, radii, material="glass")
     sim.add_wall(pdem.shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
+    sim.set_periodic(lo=(0, 0, 0), hi=(0.05, 0.02, 0), axes="xy")   # optional: periodic sides
     sim.gravity = (0, 0, -9.81)
     sim.run(steps=1000)            # or sim.run(until=0.1)
     p = sim.get_particles()        # arrays ordered by particle id
@@ -17,7 +18,8 @@ The DEM-P time step (velocity Verlet, architecture §3)::
 
     initial_integrate   v += a dt/2; x += v dt; ω half step
     move walls
-    if max displacement (particles + walls) > skin/2 → rebuild neighbours, carry history
+    if max displacement (particles + walls) > skin/2 → wrap into the periodic box, migrate, ghosts
+                        and periodic images, rebuild neighbours, carry history
     forces              pairs (sorted by id pair) → walls (in order) → body forces
     final_integrate     v += a dt/2; ω
     check flags         overlap runaway, non-finite state → InstabilityError
@@ -35,6 +37,7 @@ import numpy as np
 from .boundaries.walls import Motion, Wall
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
 from .contact.law import ContactLaw
+from .domain import PeriodicBox
 from .errors import GeometryError, InputError, InstabilityError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
@@ -67,7 +70,9 @@ class Simulation:
 
     def __init__(self, comm=None, law: str | ContactLaw = "hertz_mindlin", **law_params: Any) -> None:
         self.comm = comm if comm is not None else SerialComm()
-        self._decomp = None  # a Decomposition when running on several ranks
+        self._decomp = None  # a Decomposition when running on several ranks, or periodic
+        self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
+        self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
         self._swaps: list = []
         self._removed_ids: list[np.ndarray] = []
         self.decomposition_dims: tuple[int, int, int] | None = None
@@ -102,6 +107,24 @@ class Simulation:
         self._stepper = None
         self._prepared = False
 
+    def set_periodic(self, lo, hi, axes="xyz") -> PeriodicBox:
+        """Make the box ``lo <= x < hi`` [m] periodic along ``axes`` (``"xy"``, ``["x", "z"]``, …).
+
+        Only the components of ``lo``/``hi`` along periodic axes are used; they are rounded to the
+        position grid of :mod:`pdem.domain` (a relative change below 1e-15; ``sim.box`` holds the
+        values in force). Particles outside the box along a periodic axis are wrapped into it.
+        Every periodic length must be at least twice the largest pair cutoff 2 r_max + skin
+        (checked when the run starts). Walls are not periodic: along a periodic axis use infinite
+        planes parallel to it, and keep finite walls a ghost width away from the box faces.
+        Call before the first step.
+        """
+        if self._pair_keys is not None:
+            raise InputError("set_periodic must be called before the first step (the run has started)")
+        self.box = PeriodicBox(lo, hi, axes)
+        self._snap = self.box.snap.copy()
+        self._prepared = False
+        return self.box
+
     def add_material(self, material: Material | str, **props: float) -> int:
         """Add a :class:`Material` (or build one from a name and keyword properties)."""
         mat = material if isinstance(material, Material) else Material(material, **props)
@@ -130,6 +153,10 @@ class Simulation:
         r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
         if not np.all(np.isfinite(x)):
             raise GeometryError("positions contain non-finite values")
+        if self.box is not None:  # onto the periodic grid and into the box (exact, idempotent)
+            x = x.copy()
+            self.box.snap_positions(x)
+            self.box.wrap(x)
         if not np.all((r > 0) & np.isfinite(r)):
             bad = r[~((r > 0) & np.isfinite(r))][0]
             raise GeometryError(f"radius = {bad!r} is invalid; radii must be positive and finite (metres)")
@@ -290,7 +317,12 @@ class Simulation:
         self._list_skin = self.skin + self._envelope
         self._ghost_width_base = 2.0 * r_max
         self._ghost_width = self._ghost_width_base + self._list_skin
-        if self.comm.size > 1 and self._decomp is None:
+        if self.box is not None:
+            self.box.check_width(self._ghost_width)
+            self._check_walls_periodic()
+            self.box.snap_positions(p.x[:n])  # particles added before set_periodic
+            self.box.wrap(p.x[:n])
+        if (self.comm.size > 1 or self.box is not None) and self._decomp is None:
             self._decompose()
             n = p.n_owned
         self._g = np.asarray(self.gravity, dtype=float)
@@ -329,12 +361,45 @@ class Simulation:
 
         p = self.particles
         n = p.n_owned
-        self._decomp = Decomposition(self.comm, p.x[:n], self.decomposition_dims, min_width=self._ghost_width)
+        self._decomp = Decomposition(
+            self.comm, p.x[:n], self.decomposition_dims, min_width=self._ghost_width, box=self.box
+        )
         self._decomp.check_ghost_width(self._ghost_width)
         keep = self._decomp.owned_mask(p.x[:n])
         self._permute_storage(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
         p.n_owned = int(keep.sum())
         self._n_expected = global_count(self.comm, p.n_owned)
+
+    def _check_walls_periodic(self) -> None:
+        """Walls are not periodic: along a periodic axis a wall must look the same from every image
+        of a particle (an infinite plane parallel to the axis), or stay a ghost width away from the
+        box faces (so that no particle near a face can touch it)."""
+        from .boundaries.shapes import Cylinder, Plane
+
+        box, w = self.box, self._ghost_width
+        for wall in self._wall_list:
+            for d in np.flatnonzero(box.periodic):
+                ax = "xyz"[d]
+                if isinstance(wall.shape, Cylinder) and abs(wall.shape.axis[d]) == 1.0:
+                    continue  # an infinite cylinder along the axis (a periodic pipe)
+                if isinstance(wall.shape, Plane):
+                    if wall.shape.normal[d] != 0.0:
+                        raise InputError(
+                            f"wall '{wall.name}' is a plane with a normal component along the periodic axis "
+                            f"{ax}; walls are not periodic, so such a plane would cut the periodic box. Use "
+                            f"planes parallel to {ax} (normal along a non-periodic axis), or drop {ax} from "
+                            "the periodic axes"
+                        )
+                    continue
+                lo, hi = wall.shape.bounding_box(wall.offset)
+                if not (lo[d] >= box.lo[d] + w and hi[d] <= box.hi[d] - w):
+                    raise InputError(
+                        f"wall '{wall.name}' spans [{lo[d]:.4g}, {hi[d]:.4g}] m along the periodic axis "
+                        f"{ax}, closer than the ghost width {w:.4g} m to the box faces {box.lo[d]:.4g} / "
+                        f"{box.hi[d]:.4g} m; walls are not periodic (a particle and its image would see "
+                        "different walls). Keep finite walls inside the box away from its faces, or use "
+                        f"infinite planes parallel to {ax} or an infinite cylinder along {ax}"
+                    )
 
     def exact_sum(self, values) -> float:
         """Correctly rounded sum over all ranks (collective; independent of the partition)."""
@@ -389,18 +454,22 @@ class Simulation:
         n = p.n_owned
         live = p.motion[:n] != REMOVED
         local = {k: getattr(p, k)[:n][live].copy() for k in self._PARTICLE_FIELDS}
+        if self.box is not None:  # wrapped (exact: the trajectory does not depend on it)
+            self.box.wrap(local["x"])
         for k, wall in enumerate(self._wall_list):
             local[f"wall{k}"] = wall.hist[:n][live].copy()
         g = self._gather_by_id(local)
         out: dict[str, object] = {f"particles/{k}": g[k] for k in self._PARTICLE_FIELDS}
         live = np.any(self._pair_hist != 0.0, axis=1)
         keys, hist = self._pair_keys[live], self._pair_hist[live]
-        if self.comm.size > 1:  # a pair across ranks is held by both, identically: keep one
+        if self.comm.size > 1:
             parts = self.comm.allgather((keys, hist))
             keys = np.concatenate([q[0] for q in parts])
             hist = np.concatenate([q[1] for q in parts]).reshape(-1, self._pair_hist.shape[1])
-            keys, first = np.unique(keys, return_index=True)
-            hist = hist[first]
+        # a pair across ranks is held by both, and a pair across the periodic boundary twice (by each
+        # end's image), identically: keep one
+        keys, first = np.unique(keys, return_index=True)
+        hist = hist[first]
         out["pairs/keys"] = keys.copy()
         out["pairs/hist"] = hist.copy()
         for k, wall in enumerate(self._wall_list):
@@ -414,6 +483,8 @@ class Simulation:
         out["scalars/step"] = np.array(self.step_count)
         out["scalars/dt"] = np.array(self.dt)
         out["scalars/next_id"] = np.array(self._next_id)
+        if self.box is not None:
+            out.update(self.box.state())
         return out
 
     def load_state(self, state: dict[str, object]) -> None:
@@ -432,6 +503,19 @@ class Simulation:
             raise CheckpointError(
                 f"the checkpoint's walls {sorted(saved)} differ from the deck's "
                 f"{sorted(names)}; resume with the deck the checkpoint was written from"
+            )
+        saved = {k: np.asarray(state[k]) for k in ("domain/periodic", "domain/lo", "domain/hi") if k in state}
+        mine = self.box.state() if self.box is not None else {}
+        if saved.keys() != mine.keys() or not all(np.array_equal(saved[k], mine[k]) for k in saved):
+
+            def show(b):
+                if not b:
+                    return "none"
+                return ", ".join(f"{k.split('/')[1]} {b[k].tolist()}" for k in sorted(b))
+
+            raise CheckpointError(
+                f"the checkpoint's periodic box ({show(saved)}) differs from this simulation's "
+                f"({show(mine)}); resume with the deck (or set_periodic call) it was written with"
             )
         g = {k: np.asarray(state[f"particles/{k}"]) for k in self._PARTICLE_FIELDS}
         self.particles.append_owned(
@@ -535,13 +619,18 @@ class Simulation:
     def _rebuild(self) -> None:
         p = self.particles
         self._compact_removed()
+        if self.box is not None:
+            p.n_ghost = 0
+            self.box.wrap(p.x[: p.n_owned])  # exact, so it does not matter at which rebuild it happens
         if self._decomp is not None:
             from .parallel.exchange import borders, migrate
 
-            self._work_weights()  # before migration: indices refer to the last force evaluation
+            parallel = self.comm.size > 1
+            if parallel:
+                self._work_weights()  # before migration: indices refer to the last force evaluation
             migrate(self)
             n_own = p.n_owned
-            if self.balance_threshold:
+            if parallel and self.balance_threshold:
                 work = self._last_work if hasattr(self, "_last_work") else float(n_own)
                 if self._decomp.imbalance(work) > self.balance_threshold:
                     self._decomp.rebalance(p.x[:n_own], self._work_weights_now())
@@ -579,6 +668,12 @@ class Simulation:
         else:
             pi = pj = np.zeros(0, dtype=np.int64)
         keys = nk.pair_keys(pi, pj, p.id)
+        if keys.size > 1 and np.any(keys[1:] < keys[:-1]):
+            # a particle stored more than once (its periodic images) interleaves its pairs with those
+            # of its copies; a stable sort by key restores (id_lo, id_hi) order. Each owned particle
+            # meets each partner once (L >= 2 cutoffs), so its contributions stay in partner-id order
+            order = np.argsort(keys, kind="stable")
+            pi, pj, keys = pi[order], pj[order], keys[order]
         hist = np.empty((keys.shape[0], self._pair_hist.shape[1]))
         nk.carry_history(self._pair_keys, self._pair_hist, keys, hist)
         self._pi, self._pj, self._pair_keys, self._pair_hist = pi, pj, keys, hist
@@ -764,7 +859,9 @@ class Simulation:
             return
         p = self.particles
         dt = self.dt
-        integ.initial_integrate(p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned)
+        integ.initial_integrate(
+            p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned, self._snap
+        )
         for k in self._moving_walls:
             wall = self._wall_list[k]
             wall.advance(self.time, dt)
@@ -853,12 +950,13 @@ class Simulation:
         p = self.particles
         n = p.n_owned
         live = p.motion[:n] != REMOVED
-        out = self._gather_by_id(
-            {
-                name: getattr(p, name)[:n][live].copy()
-                for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
-            }
-        )
+        local = {
+            name: getattr(p, name)[:n][live].copy()
+            for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
+        }
+        if self.box is not None:  # between rebuilds a particle may be up to skin/2 past a face
+            self.box.wrap(local["x"])
+        out = self._gather_by_id(local)
         out["material"] = out.pop("mat")
         return out
 
@@ -914,11 +1012,13 @@ class Simulation:
             "normal_force": np.einsum("ij,ij->i", force, n),
             "force": force.copy(),
         }
+        # a contact across ranks is computed on both, one across the periodic boundary by each end's
+        # image: keep one copy (they are identical)
         if self.comm.size == 1:
-            return local
-        # a contact across ranks is computed on both: keep one copy (they are identical)
-        parts = self.comm.allgather(local)
-        allc = {k: np.concatenate([q[k] for q in parts]) for k in local}
+            allc = local
+        else:
+            parts = self.comm.allgather(local)
+            allc = {k: np.concatenate([q[k] for q in parts]) for k in local}
         key = (allc["id_i"] << 32) | allc["id_j"]
         _, first = np.unique(key, return_index=True)
         return {k: v[first] for k, v in allc.items()}

@@ -601,3 +601,53 @@ def test_docs_example_is_valid(tmp_path):
     (tmp_path / "packing.txt").write_text("0 0 0.01 0.002\n")
     r = validate_deck(copy.deepcopy(data), path=tmp_path / "example.toml")
     assert r.deck.stages
+
+
+# ------------------------------------------------------------------------------------------- [domain]
+
+
+def test_domain_periodic_box_loads(deck_dir, base):
+    base["domain"] = {"periodic": ["x", "y"], "lo": [-0.05, -0.05, 0.0], "hi": [0.05, 0.05, 0.0]}
+    r = validate_deck(copy.deepcopy(base), path=deck_dir / "deck.toml")
+    assert r.deck.domain.periodic == ["x", "y"]
+    box = r.deck.domain.box()
+    assert box.axes == ["x", "y"] and abs(box.length[0] - 0.1) < 1e-15
+    # round trip through the resolved deck
+    again = validate_deck(tomllib.loads(r.resolved_toml()), path=deck_dir / "deck.toml")
+    assert again.deck.domain == r.deck.domain
+    # without periodic axes the section is left out of the resolved deck
+    plain = validate_deck(tomllib.loads(FULL), path=deck_dir / "deck.toml")
+    assert "[domain]" not in plain.resolved_toml() and plain.deck.domain.box() is None
+
+
+def test_domain_problems(deck_dir, base):
+    base["domain"] = {"periodic": ["x", "w", "x"], "lo": [0, 0, 0]}
+    problems = problems_of(deck_dir, base)
+    expect(problems, "domain.periodic.1", "'x'", "'y'", "'z'")
+    expect(problems, "domain.periodic", "'x' listed more than once")
+    expect(problems, "domain.hi", "needs the box corners lo and hi", "domain.hi")
+    base["domain"] = {"periodic": ["y"], "lo": [0, 0.1, 0], "hi": [1, 0.1, 0]}
+    expect(problems_of(deck_dir, base), "domain.hi", "must exceed lo", "periodic axis y")
+    base["domain"] = {"lo": [0, 0, 0], "hi": [1, 1, 1]}
+    expect(problems_of(deck_dir, base), "domain.lo", "only used with periodic axes", "periodic = ['x', …]")
+
+
+def test_domain_too_small_for_the_particles(deck_dir, base):
+    # radii up to 1.1 mm and skin 0.1 mm: periodic lengths of at least 2 (2.2 + 0.1) = 4.6 mm
+    base["domain"] = {"periodic": ["x"], "lo": [0, 0, 0], "hi": [0.0045, 0, 0]}
+    del base["particles"][1:]
+    base["particles"][0]["region"] = {"type": "box", "lo": [0, 0, 0], "hi": [0.0045, 0.04, 0.04]}
+    base["particles"][0]["n"] = 50
+    msg = expect(problems_of(deck_dir, base), "domain.hi", "along x", "two images", "at least 0.0046 m")
+    assert "domain.lo, domain.hi" in msg
+    base["domain"]["hi"] = [0.0047, 0, 0]
+    base["particles"][0]["region"]["hi"] = [0.0047, 0.04, 0.04]
+    validate_deck(copy.deepcopy(base), path=deck_dir / "deck.toml")
+
+
+def test_source_region_wider_than_the_periodic_box(deck_dir, base):
+    base["domain"] = {"periodic": ["x", "y"], "lo": [-0.03, -0.03, 0], "hi": [0.03, 0.03, 0]}
+    # the cylinder of the first source is 0.08 m across
+    probs = problems_of(deck_dir, base)
+    msg = expect(probs, "particles.0.region", "along the periodic axis x", "would overlap")
+    assert "wider than the periodic box (0.06 m)" in msg

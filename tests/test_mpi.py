@@ -12,6 +12,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,6 +83,38 @@ def test_dem_c_jacobi_identical_on_1_to_4_ranks(tmp_path):
     assert 0 < left < 300  # mid-discharge: grains are flowing through the orifice
 
 
+# the periodic column collapse: as many steps as tests/test_periodic.py shows to be enough for beads to
+# cross both periodic faces and touch images across them
+PERIODIC_DECK = ROOT / "inputs" / "examples" / "periodic_column_collapse.toml"
+PERIODIC_STEPS = 1000
+
+
+def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
+    """tools/determinism.py: periodic x and y; the default grids split x (2, 3, 4 subdomains, the
+    periodic face between two ranks, or the same rank on both sides when split in two), and a 2x2x1
+    grid splits y as well (edges and corners forwarded across both periodic faces)."""
+    cmd = [
+        sys.executable,
+        str(ROOT / "tools" / "determinism.py"),
+        str(PERIODIC_DECK),
+        "--ranks",
+        "1",
+        "2",
+        "3",
+        "4",
+        "4:2x2x1",
+        "--steps",
+        str(PERIODIC_STEPS),
+        "--keep",
+        str(tmp_path),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    print(proc.stdout, proc.stderr)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.count("bitwise identical") == 4
+    assert "400 particles at step 1000" in proc.stdout
+
+
 _FAIL = textwrap.dedent(
     """
     import sys
@@ -149,3 +182,30 @@ def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
     resumed, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
     assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == 9000
     assert compare(full, resumed) is None
+
+
+def test_periodic_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
+    """n -> m resume across periodic faces: 2 ranks to step 500, 3 ranks on to 1000 == 1 rank to 1000."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from determinism import compare
+
+    from pdem.io.checkpoint import read_checkpoint
+
+    def pdem(ranks, *args):
+        cmd = [MPIEXEC, "-n", str(ranks), sys.executable, "-m", "pdem.cli", *map(str, args), "--quiet"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+
+    pdem(1, PERIODIC_DECK, "--steps", PERIODIC_STEPS, "--output", "full")
+    pdem(2, PERIODIC_DECK, "--steps", PERIODIC_STEPS // 2, "--output", "part")
+    pdem(3, "resume", "part/checkpoints/latest.h5", "--steps", PERIODIC_STEPS, "--output", "resumed")
+    full, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
+    half, _ = read_checkpoint(tmp_path / "part" / "checkpoints" / "latest.h5")
+    resumed, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
+    assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == PERIODIC_STEPS
+    assert compare(full, resumed) is None
+    # the checkpoint holds contacts across a periodic face
+    ids, x, keys = half["particles/id"], half["particles/x"], half["pairs/keys"]
+    raw = x[np.searchsorted(ids, keys & 0xFFFFFFFF)] - x[np.searchsorted(ids, keys >> 32)]
+    period = half["domain/hi"] - half["domain/lo"]
+    assert np.any(np.abs(raw[:, :2]) > 0.5 * period[:2])

@@ -38,7 +38,9 @@ MAT = dict(density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.
 
 def column_iterations(n: int, solver: str, tol: float = 1e-8, cap: int = 200000) -> int:
     relax = {"jacobi": 1.0, "gauss_seidel": 1.0, "apgd": 1.0}[solver]
-    sim = pdem.Simulation(law="complementarity", solver=solver, tolerance=tol, max_iterations=cap, relaxation=relax)
+    sim = pdem.Simulation(
+        law="complementarity", solver=solver, tolerance=tol, max_iterations=cap, relaxation=relax
+    )
     sim.add_material("glass", **MAT)
     x = np.zeros((n, 3))
     x[:, 2] = R + 2 * R * np.arange(n)
@@ -103,7 +105,9 @@ def cost_per_contact(repeat: int = 5) -> dict[str, float]:
     for _ in range(repeat):
         t0 = time.perf_counter()
         for _ in range(20):
-            ck.jacobi_update(st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.gam, p.v, p.w, nc, 0.3)
+            ck.jacobi_update(
+                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.gam, p.v, p.w, nc, 0.3
+            )
         t1 = time.perf_counter()
         for _ in range(20):
             ck.accumulate(st.cb, st.cn, st.ca, st.gam, nc, P, L)
@@ -169,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         for cap in (1, 5, 25, 200):
             s = chain_front_speed(n_chain, "DEM-C", dt, cap)
             chain.append({"method": "DEM-C", "dt": dt, "cap": cap, "speed": s, "bound": cap * 2 * R / dt})
-            print(f"DEM-C  h = {dt:.0e} s, cap {cap:4d}: {s:10.1f}   (bound k d/h = {cap * 2 * R / dt:10.1f})")
+            print(
+                f"DEM-C  h = {dt:.0e} s, cap {cap:4d}: {s:10.1f}   (bound k d/h = {cap * 2 * R / dt:10.1f})"
+            )
     results["chain_front_speed"] = chain
 
     print("\n3. cost per contact (median of 5 × 20 repetitions)")

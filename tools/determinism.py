@@ -3,7 +3,9 @@
 
     python tools/determinism.py DECK --ranks 1 2 3 4 --steps N [--set KEY=VALUE ...]
 
-Each run is ``mpiexec -n K pdem DECK --steps N`` (ranks may be oversubscribed); the final checkpoint
+Each run is ``mpiexec -n K pdem DECK --steps N`` (ranks may be oversubscribed). A rank count may name
+its grid of subdomains, ``4:2x2x1`` (``--set run.decomposition=[2, 2, 1]`` for that run only), to
+exercise a split the default choice would not make. The final checkpoint
 of every run (particles ordered by id, contact history keyed by id pairs, wall histories) is compared
 with the first run's. Exit code 0 only if every field of every particle is bitwise identical;
 otherwise the first differing particle id and field are named (exit 1). Exit 2 if a run fails.
@@ -19,6 +21,21 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
+
+def parse_ranks(text: str) -> tuple[int, tuple[int, int, int] | None]:
+    """``"4"`` → (4, None); ``"4:2x2x1"`` → (4, (2, 2, 1))."""
+    head, _, dims = text.partition(":")
+    try:
+        ranks = int(head)
+        grid = tuple(int(v) for v in dims.split("x")) if dims else None
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a rank count, optionally with a grid: 4 or 4:2x2x1"
+        ) from None
+    if ranks < 1 or (grid is not None and (len(grid) != 3 or grid[0] * grid[1] * grid[2] != ranks)):
+        raise argparse.ArgumentTypeError(f"{text!r}: the grid NXxNYxNZ must have as many subdomains as ranks")
+    return ranks, grid
 
 
 def run(deck: Path, ranks: int, steps: int, sets: list[str], out: Path, timeout: float) -> Path:
@@ -74,7 +91,9 @@ def compare(ref: dict, other: dict) -> str | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("deck", type=Path)
-    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 3, 4])
+    ap.add_argument(
+        "--ranks", type=parse_ranks, nargs="+", default=["1", "2", "3", "4"], metavar="K[:NXxNYxNZ]"
+    )
     ap.add_argument("--steps", type=int, required=True)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--keep", type=Path, default=None, help="keep the runs' output here")
@@ -84,16 +103,22 @@ def main(argv=None) -> int:
 
     base = args.keep or Path(tempfile.mkdtemp(prefix="pdem-determinism-"))
     results = {}
-    for k in args.ranks:
-        path = run(args.deck, k, args.steps, args.sets, base / f"ranks{k}", args.timeout)
-        results[k], _ = read_checkpoint(path)
+    runs = [parse_ranks(r) if isinstance(r, str) else r for r in args.ranks]
+    labels = []
+    for k, grid in runs:
+        label = f"{k}" + (f" ({grid[0]}x{grid[1]}x{grid[2]})" if grid else "")
+        sets = args.sets + ([f"run.decomposition=[{grid[0]}, {grid[1]}, {grid[2]}]"] if grid else [])
+        tag = f"ranks{k}" + (f"_{grid[0]}x{grid[1]}x{grid[2]}" if grid else "")
+        path = run(args.deck, k, args.steps, sets, base / tag, args.timeout)
+        results[label], _ = read_checkpoint(path)
+        labels.append(label)
         print(
-            f"{k} rank(s): {len(results[k]['particles/id'])} particles "
-            f"at step {int(results[k]['scalars/step'])}"
+            f"{label} rank(s): {len(results[label]['particles/id'])} particles "
+            f"at step {int(results[label]['scalars/step'])}"
         )
-    ref = args.ranks[0]
+    ref = labels[0]
     ok = True
-    for k in args.ranks[1:]:
+    for k in labels[1:]:
         diff = compare(results[ref], results[k])
         if diff is None:
             print(f"{ref} vs {k} ranks: bitwise identical")

@@ -424,15 +424,20 @@ def free_velocities(v, w, motion, gx, gy, gz, h, n, v_free, w_free):
 
 
 @njit
-def finish_step(x, v, w, f, t, P, L, mass, motion, gx, gy, gz, inv_h, h, n):
-    """x += h v⁺ (free and prescribed); report f = P/h + m g and τ = L/h. Returns a flag word."""
+def finish_step(x, v, w, f, t, P, L, mass, motion, gx, gy, gz, inv_h, h, n, snap):
+    """x += h v⁺ (free and prescribed); report f = P/h + m g and τ = L/h. Returns a flag word.
+
+    ``snap[c]`` > 0 rounds the displacement along a periodic axis c to the position grid (as the
+    DEM-P integrator does), so that images shifted by the period stay exact."""
     flags = 0
     for i in range(n):
         mo = motion[i]
         if mo == 0 or mo == 2:
-            x[i, 0] += h * v[i, 0]
-            x[i, 1] += h * v[i, 1]
-            x[i, 2] += h * v[i, 2]
+            for c in range(3):
+                d = h * v[i, c]
+                if snap[c] != 0.0:
+                    d = (d + snap[c]) - snap[c]
+                x[i, c] += d
         f[i, 0] = P[i, 0] * inv_h
         f[i, 1] = P[i, 1] * inv_h
         f[i, 2] = P[i, 2] * inv_h

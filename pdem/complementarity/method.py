@@ -247,8 +247,9 @@ class Stepper:
                 self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair,
                 np.zeros(1, np.int64), np.zeros((1, 6)), np.zeros(0, np.int64), np.zeros(1, np.int64),
             )  # fmt: skip
-        flags |= ck.finish_step(p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h,
-                                n_own)  # fmt: skip
+        flags |= ck.finish_step(
+            p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own, sim._snap
+        )  # fmt: skip
         sim._force_time = getattr(sim, "_force_time", 0.0) + (_time.perf_counter() - t0)
         converged = res <= self.p.tolerance
         if not converged:

@@ -86,6 +86,8 @@ class ResolvedDeck:
         """The whole deck as plain data with defaults filled in (keys without a value left out)."""
         data = self.deck.model_dump(mode="json", exclude_none=True)
         data["particles"] = [{"source": p.pop("source"), **p} for p in data["particles"]]
+        if not data.get("domain", {}).get("periodic"):  # no periodic axes: the section is its default
+            data.pop("domain", None)
         # empty sections are their defaults; TOML would have to write them as `key = []` up front
         return {k: v for k, v in data.items() if v != [] and v != {}}
 

@@ -49,6 +49,7 @@ from ..materials import Material
 __all__ = [
     "Deck",
     "RunSection",
+    "DomainSection",
     "ContactSection",
     "MaterialSpec",
     "MaterialPair",
@@ -234,6 +235,82 @@ class RunSection(_DeckModel):
         description="under MPI, move the cut planes when the slowest rank's force time exceeds the mean "
         "by this factor (measured between neighbour-list rebuilds); omit or set null to never rebalance",
     )
+
+
+_AXIS_NAMES = ("x", "y", "z")
+
+
+class DomainSection(_DeckModel):
+    """``[domain]``: periodic boundaries.
+
+    Along each axis named in ``periodic`` the box ``lo <= x < hi`` wraps around: a particle leaving
+    through one face comes back through the other, and particles near a face interact with the
+    images of those near the opposite face. The components of ``lo``/``hi`` along the other axes are
+    not used.
+    """
+
+    periodic: list[Literal["x", "y", "z"]] = Field(
+        default_factory=list,
+        description="periodic axes, e.g. ['x', 'y']; default none. Each periodic length hi - lo must be "
+        "at least twice the largest pair cutoff 2 r_max + skin",
+    )
+    lo: Vec3 | None = Field(
+        None, description="low corner of the periodic box (x, y, z) [m]; required with periodic axes"
+    )
+    hi: Vec3 | None = Field(
+        None,
+        description="high corner of the periodic box (x, y, z) [m]; above lo along every periodic axis; "
+        "required with periodic axes",
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        axes = data.get("periodic")
+        names = [a for a in axes if isinstance(a, str)] if isinstance(axes, list) else []
+        dup = sorted({a for a in names if names.count(a) > 1})
+        if dup:
+            out.append((("periodic",), f"axis {_listing(dup)} listed more than once"))
+        if names:
+            for key in ("lo", "hi"):
+                if not _given(data, key):
+                    out.append(
+                        (
+                            (key,),
+                            f"periodic = {names} needs the box corners lo and hi (three numbers each, "
+                            "metres); give domain.lo and domain.hi",
+                        )
+                    )
+        elif isinstance(axes, list) or axes is None:
+            extra = [k for k in ("lo", "hi") if _given(data, k)]
+            if extra:
+                out.append(
+                    (
+                        (extra[0],),
+                        f"domain.{extra[0]} is only used with periodic axes; add periodic = ['x', …] "
+                        f"or remove {' and '.join('domain.' + k for k in extra)}",
+                    )
+                )
+        lo, hi = data.get("lo"), data.get("hi")
+        if names and _is_vec3(lo) and _is_vec3(hi):
+            bad = [a for a in _AXIS_NAMES if a in names and hi["xyz".index(a)] <= lo["xyz".index(a)]]
+            if bad:
+                out.append(
+                    (
+                        ("hi",),
+                        f"hi = {list(hi)} must exceed lo = {list(lo)} along the periodic axis "
+                        f"{', '.join(bad)}",
+                    )
+                )
+        return out
+
+    def box(self):
+        """The :class:`pdem.domain.PeriodicBox`, or None without periodic axes."""
+        if not self.periodic:
+            return None
+        from ..domain import PeriodicBox
+
+        return PeriodicBox(self.lo, self.hi, self.periodic)
 
 
 class ContactSection(_DeckModel):
@@ -939,6 +1016,9 @@ class Deck(_DeckModel):
 
     title: Str | None = Field(None, description="free-text title of the run")
     run: RunSection = Field(default_factory=RunSection, description="time step, gravity, skin, seed")
+    domain: DomainSection = Field(
+        default_factory=DomainSection, description="periodic boundaries: periodic axes and the box lo, hi"
+    )
     contact: ContactSection = Field(
         default_factory=ContactSection, description="the contact law and its parameters"
     )
@@ -959,10 +1039,74 @@ class Deck(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        return _cross_checks(data)
+        return _cross_checks(data) + _domain_checks(data)
 
     def stage_names(self) -> list[str]:
         return [s.name for s in self.stages]
+
+
+def _source_r_max(src: dict) -> float | None:
+    """Largest radius of a raw ``[[particles]]`` table, if it is known before the run."""
+    if src.get("source") == "lattice":
+        r = src.get("radius")
+        return float(r) if _is_num(r) else None
+    sizes = _try_build(_SIZE_MODELS, src.get("sizes"))
+    return float(sizes.r_max) if sizes is not None else None
+
+
+def _domain_checks(data: dict) -> Problems:
+    """With periodic axes: the box is long enough for the particles (the run checks it again with
+    the actual skin), and no source region is wider than the box (it would overlap itself)."""
+    domain = data.get("domain")
+    if not isinstance(domain, dict):
+        return []
+    axes = domain.get("periodic")
+    lo, hi = domain.get("lo"), domain.get("hi")
+    if not (isinstance(axes, list) and axes and _is_vec3(lo) and _is_vec3(hi)):
+        return []
+    periodic = [d for d, a in enumerate("xyz") if a in axes and hi[d] > lo[d]]
+    out: Problems = []
+    particles = data.get("particles")
+    sources = [s for s in particles if isinstance(s, dict)] if isinstance(particles, list) else []
+    radii = [r for r in (_source_r_max(s) for s in sources) if r is not None]
+    run = data.get("run")
+    skin = run.get("skin") if isinstance(run, dict) else None
+    skin = float(skin) if _is_num(skin) and skin >= 0 else 0.0
+    if radii:
+        cutoff = 2.0 * max(radii) + skin
+        for d in periodic:
+            length = hi[d] - lo[d]
+            if length < 2.0 * cutoff:
+                what = "2 r_max + skin" if skin else "2 r_max (+ skin)"
+                out.append(
+                    (
+                        ("domain", "hi"),
+                        f"the periodic box is {length:.4g} m long along {'xyz'[d]}, less than twice the "
+                        f"largest pair cutoff {what} = {cutoff:.4g} m, so a pair of particles could "
+                        f"interact with two images of each other; make it at least {2.0 * cutoff:.4g} m "
+                        "long (domain.lo, domain.hi) or use smaller particles",
+                    )
+                )
+    for k, src in enumerate(particles if isinstance(particles, list) else []):
+        if not isinstance(src, dict) or "region" not in src:
+            continue
+        region = _try_build(_REGION_MODELS, src.get("region"))
+        if region is None:
+            continue
+        rlo, rhi = region.bounds
+        for d in periodic:
+            length = hi[d] - lo[d]
+            if rhi[d] - rlo[d] > length * (1 + 1e-12):
+                out.append(
+                    (
+                        ("particles", k, "region"),
+                        f"the region is {rhi[d] - rlo[d]:.4g} m wide along the periodic axis "
+                        f"{'xyz'[d]}, wider than the periodic box ({length:.4g} m): wrapped into the box, "
+                        "its particles would overlap; make the region at most as wide as the box (it may "
+                        "straddle a periodic face: positions are wrapped)",
+                    )
+                )
+    return out
 
 
 def _cross_checks(data: dict) -> Problems:

@@ -2,6 +2,7 @@
 
 initial: v += (dt/2) f/m, ω += (dt/2) τ/I, x += dt v   (free particles)
          x += dt v                                      (prescribed particles; v set from outside)
+         (along periodic axes dt v is rounded to the position grid of pdem.domain)
 final:   v += (dt/2) f/m, ω += (dt/2) τ/I              (free particles)
 Fixed particles never move. Body forces are added to ``f`` before ``final``.
 """
@@ -16,7 +17,10 @@ FLAG_NONFINITE = 2
 
 
 @njit
-def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dt, n):
+def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dt, n, snap):
+    """``snap[c]`` > 0 rounds the displacement along axis c to the periodic position grid:
+    (d + C) − C with C = 1.5·2⁵²·q is d rounded to a multiple of q (see :mod:`pdem.domain`);
+    0 leaves the axis alone."""
     h = 0.5 * dt
     for i in range(n):
         mo = motion[i]
@@ -24,10 +28,16 @@ def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dt, n):
             for c in range(3):
                 v[i, c] += h * f[i, c] * inv_m[i]
                 w[i, c] += h * t[i, c] * inv_i[i]
-                x[i, c] += dt * v[i, c]
+                d = dt * v[i, c]
+                if snap[c] != 0.0:
+                    d = (d + snap[c]) - snap[c]
+                x[i, c] += d
         elif mo == 2:
             for c in range(3):
-                x[i, c] += dt * v[i, c]
+                d = dt * v[i, c]
+                if snap[c] != 0.0:
+                    d = (d + snap[c]) - snap[c]
+                x[i, c] += d
 
 
 @njit

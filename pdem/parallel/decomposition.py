@@ -1,9 +1,14 @@
 """Spatial domain decomposition: a Cartesian grid of subdomains, one per rank.
 
-The grid spans the global bounds of the scene (particles and finite walls) when the simulation is
-prepared; cut planes are uniform in each direction. The outermost subdomains extend to infinity in
-non-periodic directions, so a particle can never be outside every subdomain. The grid shape is
+Cut planes sit at particle-count quantiles when the simulation is first prepared. The outermost
+subdomains extend to infinity in non-periodic directions, so a particle can never be outside every
+subdomain; along a periodic axis they end at the box faces, and the first and last subdomains are
+neighbours across the periodic boundary (the same rank when the axis is not split: a rank is then its
+own neighbour, and its ghosts along that axis are its own particles' images). The grid shape is
 chosen to minimise the total area of the cut planes (communication volume), unless given.
+
+A serial periodic run uses the same object with one subdomain (no MPI calls: every neighbour is
+the rank itself).
 """
 
 from __future__ import annotations
@@ -17,21 +22,35 @@ from ..errors import InputError
 __all__ = ["Decomposition", "choose_dims"]
 
 
-def choose_dims(size: int, extent: np.ndarray) -> tuple[int, int, int]:
-    """(nx, ny, nz) with nx·ny·nz = size minimising the cut area (ties: split x, then y, then z)."""
+def choose_dims(
+    size: int, extent: np.ndarray, periodic=(False, False, False), min_width: float = 0.0
+) -> tuple[int, int, int]:
+    """(nx, ny, nz) with nx·ny·nz = size minimising the cut area (ties: split x, then y, then z).
+
+    A periodic axis split in k > 1 has k cut planes (its faces become one); it may be split only
+    into subdomains at least ``min_width`` wide (its ``extent`` is the box length)."""
     best = None
     for nx, ny in itertools.product(range(1, size + 1), repeat=2):
         if size % (nx * ny):
             continue
         nz = size // (nx * ny)
+        dims = (nx, ny, nz)
+        if any(periodic[d] and dims[d] > 1 and extent[d] / dims[d] < min_width for d in range(3)):
+            continue
+        planes = [dims[d] if (periodic[d] and dims[d] > 1) else dims[d] - 1 for d in range(3)]
         area = (
-            (nx - 1) * extent[1] * extent[2]
-            + (ny - 1) * extent[0] * extent[2]
-            + (nz - 1) * extent[0] * extent[1]
+            planes[0] * extent[1] * extent[2]
+            + planes[1] * extent[0] * extent[2]
+            + planes[2] * extent[0] * extent[1]
         )
         key = (area, -nx, -ny)
         if best is None or key < best[0]:
-            best = (key, (nx, ny, nz))
+            best = (key, dims)
+    if best is None:
+        raise InputError(
+            f"{size} ranks cannot split the periodic box into subdomains at least {min_width:.3g} m wide "
+            "(the ghost width 2 r_max + skin); run on fewer ranks"
+        )
     return best[1]
 
 
@@ -47,27 +66,47 @@ class Decomposition:
     subdomain; ``neighbours[d] = (lower, upper)`` ranks along axis d (``None`` at an outer face).
     """
 
-    def __init__(self, comm, x_all: np.ndarray, dims=None, min_width: float = 0.0) -> None:
-        from mpi4py import MPI
-
+    def __init__(self, comm, x_all: np.ndarray, dims=None, min_width: float = 0.0, box=None) -> None:
         x_all = np.atleast_2d(np.asarray(x_all, dtype=float))
+        self.box = box
+        self.periodic = tuple(bool(p) for p in box.periodic) if box is not None else (False, False, False)
         if x_all.shape[0]:
             extent = np.maximum(x_all.max(axis=0) - x_all.min(axis=0), 1e-12)
         else:
             extent = np.ones(3)
-        self.dims = tuple(int(d) for d in (dims or choose_dims(comm.size, extent)))
-        if int(np.prod(self.dims)) != comm.size:
+        if box is not None:
+            extent = np.where(box.periodic, box.length, extent)
+        self.dims = tuple(int(d) for d in (dims or choose_dims(comm.size, extent, self.periodic, min_width)))
+        if len(self.dims) != 3 or int(np.prod(self.dims)) != comm.size:
             raise InputError(f"decomposition {self.dims} does not match {comm.size} ranks")
-        self.comm = comm.Create_cart(list(self.dims), periods=[False, False, False], reorder=False)
-        self.rank = self.comm.Get_rank()
-        self.coords = tuple(self.comm.Get_coords(self.rank))
         self.min_width = min_width
         self.neighbours = []
+        if comm.size == 1:  # serial (periodic): no MPI; along a periodic axis the rank is its own neighbour
+            self.comm = comm
+            self.rank = 0
+            self.coords = (0, 0, 0)
+            for d in range(3):
+                self.neighbours.append((0, 0) if self.periodic[d] else (None, None))
+        else:
+            from mpi4py import MPI
+
+            self.comm = comm.Create_cart(list(self.dims), periods=list(self.periodic), reorder=False)
+            self.rank = self.comm.Get_rank()
+            self.coords = tuple(self.comm.Get_coords(self.rank))
+            for d in range(3):
+                lower, upper = self.comm.Shift(d, 1)
+                self.neighbours.append(
+                    (None if lower == MPI.PROC_NULL else lower, None if upper == MPI.PROC_NULL else upper)
+                )
+        # a ghost sent down across the periodic boundary appears at x + L, one sent up at x − L
+        self.shift_down = np.zeros(3)
+        self.shift_up = np.zeros(3)
         for d in range(3):
-            lower, upper = self.comm.Shift(d, 1)
-            self.neighbours.append(
-                (None if lower == MPI.PROC_NULL else lower, None if upper == MPI.PROC_NULL else upper)
-            )
+            if self.periodic[d]:
+                if self.coords[d] == 0:
+                    self.shift_down[d] = box.length[d]
+                if self.coords[d] == self.dims[d] - 1:
+                    self.shift_up[d] = -box.length[d]
         self.set_cuts([self._quantile_cuts(np.sort(x_all[:, d]), d) for d in range(3)])
         self.n_rebalances = 0
 
@@ -76,22 +115,39 @@ class Decomposition:
         if k == 1 or sorted_x.size == 0:
             return np.zeros(0)
         idx = (np.arange(1, k) * sorted_x.size) // k
-        return self._spread(sorted_x[idx].astype(float))
+        return self._spread(sorted_x[idx].astype(float), d)
 
-    def _spread(self, cuts: np.ndarray) -> np.ndarray:
-        """Keep interior subdomains at least ``min_width`` wide (ghosts move one subdomain per swap)."""
+    def _spread(self, cuts: np.ndarray, d: int | None = None) -> np.ndarray:
+        """Keep subdomains at least ``min_width`` wide (ghosts move one subdomain per swap): the interior
+        ones, and along a periodic axis ``d`` the outer ones too (they end at the box faces)."""
         cuts = np.array(cuts, dtype=float)
+        w = self.min_width
+        if d is not None and self.periodic[d] and cuts.size:
+            lo, hi = self.box.lo[d], self.box.hi[d]
+            cuts[0] = max(cuts[0], lo + w)
+            for i in range(1, cuts.size):
+                cuts[i] = max(cuts[i], cuts[i - 1] + w)
+            cuts[-1] = min(cuts[-1], hi - w)
+            for i in range(cuts.size - 2, -1, -1):
+                cuts[i] = min(cuts[i], cuts[i + 1] - w)
+            return cuts
         for i in range(1, cuts.size):
-            cuts[i] = max(cuts[i], cuts[i - 1] + self.min_width)
+            cuts[i] = max(cuts[i], cuts[i - 1] + w)
         return cuts
 
     def set_cuts(self, cuts: list[np.ndarray]) -> None:
         self.cuts = [np.asarray(c, dtype=float) for c in cuts]
+        # outer faces: infinity, or the box face along a periodic axis
+        outer_lo = self.box.lo if self.box is not None else np.full(3, -np.inf)
+        outer_hi = self.box.hi if self.box is not None else np.full(3, np.inf)
         self.sub_lo = np.array(
-            [-np.inf if self.coords[d] == 0 else self.cuts[d][self.coords[d] - 1] for d in range(3)]
+            [outer_lo[d] if self.coords[d] == 0 else self.cuts[d][self.coords[d] - 1] for d in range(3)]
         )
         self.sub_hi = np.array(
-            [np.inf if self.coords[d] == self.dims[d] - 1 else self.cuts[d][self.coords[d]] for d in range(3)]
+            [
+                outer_hi[d] if self.coords[d] == self.dims[d] - 1 else self.cuts[d][self.coords[d]]
+                for d in range(3)
+            ]
         )
 
     def cell_coords(self, x: np.ndarray) -> np.ndarray:
@@ -101,6 +157,10 @@ class Decomposition:
         for d in range(3):
             out[:, d] = np.searchsorted(self.cuts[d], x[:, d], side="right")
         return out
+
+    def axis_coords(self, xd: np.ndarray, d: int) -> np.ndarray:
+        """Subdomain coordinate along axis ``d`` of coordinates ``xd``."""
+        return np.searchsorted(self.cuts[d], xd, side="right")
 
     def owner(self, x: np.ndarray) -> np.ndarray:
         c = self.cell_coords(x)
@@ -142,7 +202,7 @@ class Decomposition:
             cum = np.cumsum(total)
             edges = np.linspace(lo, hi, bins + 1)
             targets = np.arange(1, self.dims[d]) * cum[-1] / self.dims[d]
-            new.append(self._spread(edges[np.searchsorted(cum, targets) + 1]))
+            new.append(self._spread(edges[np.searchsorted(cum, targets) + 1], d))
         self.set_cuts(new)
         self.n_rebalances += 1
 
@@ -151,12 +211,18 @@ class Decomposition:
         needed; particles move to their new owners at the next migration (collective decision: every
         rank calls it with the same width)."""
         self.min_width = max(self.min_width, min_width)
-        self.set_cuts([self._spread(c) for c in self.cuts])
+        self.set_cuts([self._spread(c, d) for d, c in enumerate(self.cuts)])
+        if self.box is not None:
+            self.box.check_width(min_width)
 
     def check_ghost_width(self, width: float) -> None:
-        """Interior subdomains must be at least one ghost width wide."""
+        """Interior subdomains (and, along a split periodic axis, all) must be at least one ghost width
+        wide."""
         for d in range(3):
-            widths = np.diff(self.cuts[d])
+            edges = self.cuts[d]
+            if self.periodic[d] and self.dims[d] > 1:
+                edges = np.concatenate([[self.box.lo[d]], edges, [self.box.hi[d]]])
+            widths = np.diff(edges)
             if widths.size and widths.min() < width * (1 - 1e-12):
                 raise InputError(
                     f"{self.dims[d]} subdomains along axis {'xyz'[d]}: an interior one is "

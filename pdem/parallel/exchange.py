@@ -11,6 +11,14 @@
 
 Contacts between an owned particle and a ghost are computed on both ranks, identically, and each
 rank applies the result to its own particle only ("newton off" across ranks).
+
+Periodic boundaries go through the same three functions: a ghost sent across the periodic boundary
+(down from the first subdomain along a periodic axis, or up from the last) is shifted by ±L on the
+way (exactly: positions sit on the grid of :mod:`pdem.domain`). When an axis is not split, the rank
+is its own neighbour and the "message" is a local copy; this is also how a serial periodic run makes
+its images. Migration does not wrap: the simulation wraps owned positions into the box first (an
+exact operation), and particles then travel to their owner through the interior or across the
+periodic boundary, whichever is shorter.
 """
 
 from __future__ import annotations
@@ -23,11 +31,18 @@ _FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", 
 _GHOST_FIELDS = ("id", "x", "v", "w", "r", "mass", "inv_m", "inv_i", "mat", "motion")
 
 
-def _sendrecv(comm, obj, dest, source):
+def _sendrecv(dec, obj, dest, source, tag):
+    """Exchange with neighbours (``None``: no neighbour); to oneself it is a local hand-over."""
+    if dest is not None and dest == source == dec.rank:
+        return obj
     from mpi4py import MPI
 
-    return comm.sendrecv(
-        obj, dest=MPI.PROC_NULL if dest is None else dest, source=MPI.PROC_NULL if source is None else source
+    return dec.comm.sendrecv(
+        obj,
+        dest=MPI.PROC_NULL if dest is None else dest,
+        sendtag=tag,
+        source=MPI.PROC_NULL if source is None else source,
+        recvtag=tag,
     )
 
 
@@ -53,17 +68,24 @@ def _migrate_pass(sim) -> None:
     p = sim.particles
     for d in range(3):
         lower, upper = dec.neighbours[d]
+        if dec.dims[d] == 1:  # one subdomain along d: everything is home along this axis
+            continue
         n = p.n_owned
-        x = p.x[:n, d]
-        go_down = x < dec.sub_lo[d] if lower is not None else np.zeros(n, bool)
-        go_up = x >= dec.sub_hi[d] if upper is not None else np.zeros(n, bool)
+        target = dec.axis_coords(p.x[:n, d], d)
+        mine = dec.coords[d]
+        if dec.periodic[d]:  # the shorter way round (positions are already wrapped into the box)
+            k = dec.dims[d]
+            ahead = (target - mine) % k
+            go_up = (ahead >= 1) & (ahead <= k // 2)
+            go_down = ahead > k // 2
+        else:
+            go_down = target < mine
+            go_up = target > mine
         down = _pack(sim, np.flatnonzero(go_down))
         up = _pack(sim, np.flatnonzero(go_up))
         _remove(sim, go_down | go_up)
-        if lower is None and upper is None:
-            continue
-        from_up = _sendrecv(dec.comm, down, lower, upper)
-        from_down = _sendrecv(dec.comm, up, upper, lower)
+        from_up = _sendrecv(dec, down, lower, upper, 0)
+        from_down = _sendrecv(dec, up, upper, lower, 1)
         for parcel in (from_down, from_up):
             if parcel is not None and len(parcel["id"]):
                 _unpack(sim, parcel)
@@ -130,26 +152,34 @@ def _unpack(sim, parcel: dict) -> None:
 
 
 def borders(sim, width: float) -> None:
-    """Receive ghost copies of the particles within ``width`` of this subdomain (collective)."""
+    """Receive ghost copies of the particles within ``width`` of this subdomain (collective).
+
+    Each swap is recorded as ``[send_idx, dest, source, start, end, axis, shift]``: the ghosts it
+    delivers occupy ``[start, end)``, and ``shift`` (±L or 0) is added to the sent coordinate along
+    ``axis`` (a ghost crossing the periodic boundary)."""
     dec = sim._decomp
     p = sim.particles
     swaps = []
     for d in range(3):
         lower, upper = dec.neighbours[d]
+        if lower is None and upper is None:
+            continue
         n = p.n  # owned + ghosts of previous axes: forwarding covers edges and corners
         x = p.x[:n, d]
         to_lower = np.flatnonzero(x < dec.sub_lo[d] + width) if lower is not None else np.zeros(0, np.int64)
         to_upper = np.flatnonzero(x >= dec.sub_hi[d] - width) if upper is not None else np.zeros(0, np.int64)
         recv = []
-        for send_idx, dest, source in ((to_lower, lower, upper), (to_upper, upper, lower)):
-            parcel = {k: getattr(p, k)[send_idx].copy() for k in _GHOST_FIELDS} if dest is not None else None
-            got = (
-                _sendrecv(dec.comm, parcel, dest, source)
-                if (dest is not None or source is not None)
-                else None
-            )
+        for tag, (send_idx, dest, source, shift) in enumerate(
+            ((to_lower, lower, upper, dec.shift_down[d]), (to_upper, upper, lower, dec.shift_up[d]))
+        ):
+            parcel = None
+            if dest is not None:
+                parcel = {k: getattr(p, k)[send_idx].copy() for k in _GHOST_FIELDS}
+                if shift != 0.0:
+                    parcel["x"][:, d] += shift  # exact on the periodic position grid
+            got = _sendrecv(dec, parcel, dest, source, tag)
             recv.append(got)
-            swaps.append([send_idx, dest, source, 0, 0])
+            swaps.append([send_idx, dest, source, 0, 0, d, shift])
         for got, swap in zip(recv, swaps[-2:], strict=True):
             start = p.n
             if got is not None and len(got["id"]):
@@ -175,31 +205,46 @@ def forward(sim) -> None:
     The two swaps of an axis read only data from before that axis, so they run concurrently
     (non-blocking receives and sends, then one wait): a sequential exchange in alternating
     directions cost a rendezvous round trip per swap (~200 µs per step on 2 ranks, against ~20 µs
-    now). Buffers hold (k, 9) floats; swaps with no partner cost nothing."""
-    from mpi4py import MPI
-
-    comm = sim._decomp.comm
+    now). Buffers hold (k, 9) floats; swaps with no partner cost nothing; a swap with oneself (an
+    unsplit periodic axis) is a local copy. Messages are tagged by swap direction, because along a
+    periodic axis split in two both swaps have the same partner."""
+    dec = sim._decomp
+    comm = dec.comm
     p = sim.particles
     x, v, w = p.x, p.v, p.w
     swaps = sim._swaps
     for a in range(0, len(swaps), 2):
         requests = []
         received = []
-        for _send_idx, _dest, source, start, end in swaps[a : a + 2]:
+        for tag, (send_idx, dest, source, start, end, d, shift) in enumerate(swaps[a : a + 2]):
+            if dest is not None and dest == source == dec.rank:  # our own images
+                if end > start:
+                    x[start:end] = x[send_idx]
+                    if shift != 0.0:
+                        x[start:end, d] += shift
+                    v[start:end] = v[send_idx]
+                    w[start:end] = w[send_idx]
+                continue
             if source is not None and end > start:
                 buf = np.empty((end - start, 9))
-                requests.append(comm.Irecv(buf, source=source))
+                requests.append(comm.Irecv(buf, source=source, tag=tag))
                 received.append((buf, start, end))
-        for send_idx, dest, _source, _start, _end in swaps[a : a + 2]:
+        for tag, (send_idx, dest, source, _start, _end, d, shift) in enumerate(swaps[a : a + 2]):
+            if dest is not None and dest == source == dec.rank:
+                continue
             # the receiver posts a receive only for a non-empty swap (its count was set by borders)
             if dest is not None and send_idx.shape[0] > 0:
                 buf = np.empty((send_idx.shape[0], 9))
                 buf[:, 0:3] = x[send_idx]
+                if shift != 0.0:
+                    buf[:, d] += shift
                 buf[:, 3:6] = v[send_idx]
                 buf[:, 6:9] = w[send_idx]
-                requests.append(comm.Isend(buf, dest=dest))
+                requests.append(comm.Isend(buf, dest=dest, tag=tag))
                 received.append((buf, -1, -1))  # keep the send buffer alive until Waitall
         if requests:
+            from mpi4py import MPI
+
             MPI.Request.Waitall(requests)
         for buf, start, end in received:
             if start >= 0:
