@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import pack_xvw, unpack_xvw
+
 __all__ = ["migrate", "borders", "forward"]
 
 _FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion", "x_build")
@@ -219,11 +221,9 @@ def forward(sim) -> None:
         for tag, (send_idx, dest, source, start, end, d, shift) in enumerate(swaps[a : a + 2]):
             if dest is not None and dest == source == dec.rank:  # our own images
                 if end > start:
-                    x[start:end] = x[send_idx]
-                    if shift != 0.0:
-                        x[start:end, d] += shift
-                    v[start:end] = v[send_idx]
-                    w[start:end] = w[send_idx]
+                    buf = np.empty((end - start, 9))
+                    pack_xvw(x, v, w, send_idx, d, shift, buf)
+                    unpack_xvw(buf, start, x, v, w)
                 continue
             if source is not None and end > start:
                 buf = np.empty((end - start, 9))
@@ -235,19 +235,13 @@ def forward(sim) -> None:
             # the receiver posts a receive only for a non-empty swap (its count was set by borders)
             if dest is not None and send_idx.shape[0] > 0:
                 buf = np.empty((send_idx.shape[0], 9))
-                buf[:, 0:3] = x[send_idx]
-                if shift != 0.0:
-                    buf[:, d] += shift
-                buf[:, 3:6] = v[send_idx]
-                buf[:, 6:9] = w[send_idx]
+                pack_xvw(x, v, w, send_idx, d, shift, buf)
                 requests.append(comm.Isend(buf, dest=dest, tag=tag))
                 received.append((buf, -1, -1))  # keep the send buffer alive until Waitall
         if requests:
             from mpi4py import MPI
 
             MPI.Request.Waitall(requests)
-        for buf, start, end in received:
+        for buf, start, _end in received:
             if start >= 0:
-                x[start:end] = buf[:, 0:3]
-                v[start:end] = buf[:, 3:6]
-                w[start:end] = buf[:, 6:9]
+                unpack_xvw(buf, start, x, v, w)
