@@ -30,7 +30,7 @@ HOPPER_SETS = [
 ]
 
 
-def test_hopper_identical_on_1_2_3_ranks(tmp_path):
+def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
     """tools/determinism.py: the hopper (grains crossing subdomains, leaving through the sink)."""
     cmd = [
         sys.executable,
@@ -40,6 +40,7 @@ def test_hopper_identical_on_1_2_3_ranks(tmp_path):
         "1",
         "2",
         "3",
+        "4",
         "--steps",
         "9000",
         "--keep",
@@ -50,7 +51,7 @@ def test_hopper_identical_on_1_2_3_ranks(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     print(proc.stdout, proc.stderr)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 2
+    assert proc.stdout.count("bitwise identical") == 3
     # the scene really flowed out: fewer beads than inserted
     last = [ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0]
     assert int(last.split(":")[1].split()[0]) < 300
