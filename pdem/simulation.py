@@ -862,19 +862,8 @@ class Simulation:
         integ.initial_integrate(
             p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned, self._snap
         )
-        for k in self._moving_walls:
-            wall = self._wall_list[k]
-            wall.advance(self.time, dt)
-            self._w_params[k] = wall.params
-            self._w_vel[k] = wall.velocity
-            self._w_centre[k] = wall.reference_point
-        if self._needs_rebuild():
-            self._force_rebuild = False
-            self._rebuild()
-        elif self._decomp is not None:
-            from .parallel.exchange import forward
-
-            forward(self)
+        self._advance_walls(dt)
+        self._update_neighbours()
         flags = self._compute_forces()
         g = self._g
         flags |= integ.add_body_force_and_final_integrate(
@@ -884,6 +873,28 @@ class Simulation:
         self.step_count += 1
         if any_rank(self.comm, flags != 0):
             self._raise_for_flags(flags)
+
+    def _advance_walls(self, dt: float) -> None:
+        """Move the walls with prescribed motion over [t, t + dt] (positions and velocities)."""
+        for k in self._moving_walls:
+            wall = self._wall_list[k]
+            wall.advance(self.time, dt)
+            self._w_params[k] = wall.params
+            self._w_vel[k] = wall.velocity
+            self._w_centre[k] = wall.reference_point
+
+    def _update_neighbours(self, before_rebuild: Callable[[], Any] | None = None) -> None:
+        """Rebuild the neighbour list (and migrate, re-send ghosts) if anything may have moved more
+        than the skin allows, else forward the ghosts' current state (collective)."""
+        if self._needs_rebuild():
+            if before_rebuild is not None:
+                before_rebuild()
+            self._force_rebuild = False
+            self._rebuild()
+        elif self._decomp is not None:
+            from .parallel.exchange import forward
+
+            forward(self)
 
     def run(
         self,

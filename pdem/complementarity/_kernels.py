@@ -268,26 +268,36 @@ def _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu):
     return math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b
 
 
+@njit(inline="always")
+def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax):
+    """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities; returns the residual of the old γ_c
+    and the old and new impulses."""
+    u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+    b = cscale[c]
+    mu = cmu[c]
+    g0 = gam[c, 0]
+    g1 = gam[c, 1]
+    g2 = gam[c, 2]
+    g3 = gam[c, 3]
+    rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+    s = omega_relax * b
+    n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+    gam[c, 0] = n0
+    gam[c, 1] = n1
+    gam[c, 2] = n2
+    gam[c, 3] = n3
+    return rc, g0, g1, g2, g3, n0, n1, n2, n3
+
+
 @njit
 def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax):
     """One projected Jacobi sweep: every contact from the same velocities. Returns the largest
     residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
-        b = cscale[c]
-        mu = cmu[c]
-        g0 = gam[c, 0]
-        g1 = gam[c, 1]
-        g2 = gam[c, 2]
-        g3 = gam[c, 3]
-        rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+        rc = _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax)[0]
         if rc > res or rc != rc:
             res = rc
-        s = omega_relax * b
-        gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3] = project_cone(
-            g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu
-        )
     return res
 
 
@@ -297,22 +307,11 @@ def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, in
     Returns the largest residual met during the sweep."""
     res = 0.0
     for c in range(nc):
-        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
-        b = cscale[c]
-        mu = cmu[c]
-        g0 = gam[c, 0]
-        g1 = gam[c, 1]
-        g2 = gam[c, 2]
-        g3 = gam[c, 3]
-        rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+        rc, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax
+        )
         if rc > res or rc != rc:
             res = rc
-        s = omega_relax * b
-        n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
-        gam[c, 0] = n0
-        gam[c, 1] = n1
-        gam[c, 2] = n2
-        gam[c, 3] = n3
         # apply the change at once
         nx = cn[c, 0]
         ny = cn[c, 1]

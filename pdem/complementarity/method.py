@@ -170,17 +170,14 @@ class Stepper:
         need = self._needed_envelope()
         if need > sim._envelope:
             self._set_envelope(1.25 * need)
-        if sim._needs_rebuild():
-            if need < sim._envelope and self.p.envelope is None:
-                # a rebuild may narrow the envelope again once the grains slow down: fewer
-                # speculative contacts (the list is built with the narrower reach)
-                self._set_envelope(max(1.25 * need, self._base_envelope), force=False)
-            sim._force_rebuild = False
-            sim._rebuild()
-        elif sim._decomp is not None:
-            from ..parallel.exchange import forward
 
-            forward(sim)
+        def narrow() -> None:
+            # a rebuild may narrow the envelope again once the grains slow down: fewer speculative
+            # contacts (the list is built with the narrower reach)
+            if need < sim._envelope and self.p.envelope is None:
+                self._set_envelope(max(1.25 * need, self._base_envelope), force=False)
+
+        sim._update_neighbours(before_rebuild=narrow)
         t0 = _time.perf_counter()
         env = sim._envelope
         v_rec = self.p.recovery_speed or 0.0
@@ -195,12 +192,7 @@ class Stepper:
         # geometry at the start of the step (walls where they are now) ...
         w_params = sim._w_params.copy() if sim._wall_list else None
         # ... with the velocity the walls move at during the step
-        for k in sim._moving_walls:
-            wall = sim._wall_list[k]
-            wall.advance(sim.time, h)
-            sim._w_params[k] = wall.params
-            sim._w_vel[k] = wall.velocity
-            sim._w_centre[k] = wall.reference_point
+        sim._advance_walls(h)
         n_pair, flags = ck.assemble_pairs(
             sim._pi, sim._pj, sim._pair_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim._coef, h, env, v_rec,
             sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale,
