@@ -422,3 +422,39 @@ def test_periodic_box_shift_invariance():
         crossed |= bool(np.any(pa["x"][:, 0] < x0 - 0.5 * L))
     assert crossed
     assert a._stepper.log[-1][3] > 20  # a pile with many contacts
+
+
+def test_penetration_recovery_speed_cap():
+    """A sphere starting 0.1 r deep in the floor is pushed out at φ/h (no cap), or at the capped
+    recovery speed, and never faster; gravity off."""
+    depth = 0.1 * R
+    for cap in (None, 0.05):
+        kw = {} if cap is None else {"recovery_speed": cap}
+        sim = make_sim("apgd", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=500, **kw)
+        sim.add_particles([[0.0, 0.0, R - depth]], R, material="glass")
+        floor(sim)
+        sim.max_overlap = 0.5  # the start is deliberately overlapping
+        sim.step()
+        expected = depth / sim.dt if cap is None else cap
+        assert sim.particles.v[0, 2] == pytest.approx(expected, rel=1e-9)
+
+
+def test_automatic_envelope_catches_fast_grains():
+    """A sphere falling at 3 m/s travels 0.6 r per step at h = 2e-4 s: the automatic envelope
+    (2.5 × travel) puts the floor in the problem before the sphere reaches it, so it stops on the
+    surface; a fixed envelope narrower than the travel lets it pass into the floor."""
+    v0 = -3.0
+    results = {}
+    for env in (None, 0.01 * R):
+        kw = {} if env is None else {"envelope": env}
+        sim = make_sim("apgd", gravity=(0, 0, 0), dt=2e-4, tolerance=1e-12, max_iterations=500, **kw)
+        sim.add_particles([[0.0, 0.0, 3.5 * R]], R, material="glass", velocities=[[0.0, 0.0, v0]])
+        floor(sim)
+        sim.max_overlap = 10.0  # observe, do not stop
+        z_min = math.inf
+        for _ in range(12):
+            sim.step()
+            z_min = min(z_min, sim.particles.x[0, 2])
+        results[env] = z_min
+    assert results[None] >= R - 1e-9 * R
+    assert results[0.01 * R] < R - 0.3 * R  # lands 0.5 r deep: 3.5 r - 5 × 0.6 r

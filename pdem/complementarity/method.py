@@ -147,7 +147,7 @@ class Stepper:
 
     # ------------------------------------------------------------------ work arrays
     def _reserve(self, nc: int) -> None:
-        if nc <= self._cap:
+        if nc <= self._cap and self._cap > 0:
             return
         cap = max(int(nc * 1.3) + 64, 256)
         self.cb = np.empty((cap, 2), dtype=np.int64)
