@@ -309,12 +309,17 @@ class Simulation:
         r_max = all_max(self.comm, float(p.r[:n].max()) if n else 0.0)
         if self.law.kind == "complementarity":
             r_min = all_min(self.comm, float(p.r[:n].min()) if n else math.inf)
-            self._envelope = self.law.envelope(np.array([r_min]) if math.isfinite(r_min) else np.zeros(0))
+            self._envelope_base = self.law.envelope(
+                np.array([r_min]) if math.isfinite(r_min) else np.zeros(0)
+            )
+            self._envelope = self._envelope_base
+            # the list's reach may be wider than this step's envelope (the stepper keeps it ≥)
+            self._list_envelope = max(getattr(self, "_list_envelope", 0.0), self._envelope_base)
         else:
-            self._envelope = 0.0
+            self._envelope = self._list_envelope = 0.0
         # the list holds every pair within skin + envelope at the build; it is rebuilt when particles
         # may have moved more than the skin, so every pair within the envelope is always listed
-        self._list_skin = self.skin + self._envelope
+        self._list_skin = self.skin + self._list_envelope
         self._ghost_width_base = 2.0 * r_max
         self._ghost_width = self._ghost_width_base + self._list_skin
         if self.box is not None:
@@ -342,7 +347,9 @@ class Simulation:
         self._rebuild()
         self._check_initial_overlaps()
         if self.law.kind == "complementarity":
-            self._stepper = self.law.make_stepper(self)
+            if self._stepper is None:
+                self._stepper = self.law.make_stepper(self)
+                self._stepper.restore(getattr(self, "_restored", {}))
             integ.zero_forces(p.f, p.t, p.n)
             self._add_body_forces_only()
             return
@@ -483,6 +490,8 @@ class Simulation:
         out["scalars/step"] = np.array(self.step_count)
         out["scalars/dt"] = np.array(self.dt)
         out["scalars/next_id"] = np.array(self._next_id)
+        if self._stepper is not None:  # DEM-C: solver counters
+            out.update(self._stepper.state())
         if self.box is not None:
             out.update(self.box.state())
         return out
@@ -539,6 +548,7 @@ class Simulation:
         self.step_count = int(state["scalars/step"])
         self.dt = float(state["scalars/dt"])
         self._next_id = int(state["scalars/next_id"])
+        self._restored = {k: v for k, v in state.items() if k.startswith("solver/")}
         self._prepare()
         # the forces that start the next step are the saved ones, not a re-evaluation
         p = self.particles

@@ -238,14 +238,14 @@ def test_oblique_impact_on_floor():
 
 
 # ----------------------------------------------------------------------------------- solvers agree
-def _packing(solver, add=True, **kw):
+def _packing(solver, add=True, v0=0.0, **kw):
     rng = np.random.default_rng(3)
     sim = make_sim(solver, mu=0.4, dt=2e-4, **kw)
     # a loose lattice with jitter, dropped into a box
     g = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
     x = (g * 2.2 * R + 1.2 * R).astype(float) + rng.uniform(-0.05 * R, 0.05 * R, size=g.shape)
     if add:
-        sim.add_particles(x, R, material="glass")
+        sim.add_particles(x, R, material="glass", velocities=np.tile([0.0, 0.0, v0], (len(x), 1)))
     for k, plane in enumerate(shapes.box_planes((0, 0, 0), (11.4 * R, 11.4 * R, 20 * R))):
         sim.add_wall(plane, material="glass", name=f"side{k}")
     return sim
@@ -262,7 +262,7 @@ def test_solvers_reach_the_same_velocities_on_a_packing():
         sim = _packing(solver, add=False, tolerance=1e-9, max_iterations=200000, relaxation=relax)
         sim.load_state(state)
         sim.step()
-        assert sim._stepper.n_unconverged == 0, solver
+        assert sim._stepper.last_residual <= 1e-9, solver  # this step converged
         p = sim.get_particles()
         states[solver] = p["v"]
         n_contacts = sim._stepper.log[-1][3]
@@ -458,3 +458,28 @@ def test_automatic_envelope_catches_fast_grains():
         results[env] = z_min
     assert results[None] >= R - 1e-9 * R
     assert results[0.01 * R] < R - 0.3 * R  # lands 0.5 r deep: 3.5 r - 5 × 0.6 r
+
+
+def test_resume_is_bitwise_identical():
+    """N steps, checkpoint (state_dict), a new simulation resumes for N more: bitwise equal to 2N
+    uninterrupted steps (the envelope follows the state, not the rebuild history), solver counters
+    included."""
+
+    def scene():
+        sim = _packing("jacobi", add=False, tolerance=1e-6, max_iterations=60)
+        return sim
+
+    ref = _packing("jacobi", v0=-1.0, tolerance=1e-6, max_iterations=60)
+    ref.run(steps=80)
+    half = _packing("jacobi", v0=-1.0, tolerance=1e-6, max_iterations=60)
+    half.run(steps=40)
+    state = half.state_dict()
+    assert half._envelope > 0.1 * R  # grown by the falling grains
+    resumed = scene()
+    resumed.load_state(state)
+    resumed.run(steps=40)
+    a, b = ref.state_dict(), resumed.state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), k
+    assert ref._stepper.summary() == resumed._stepper.summary()

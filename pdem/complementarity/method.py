@@ -143,7 +143,7 @@ class Stepper:
         self.last_residual = 0.0
         self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
         self._cap = 0
-        self._base_envelope = sim._envelope  # 0.1 r_min or the deck's value
+        self._base_envelope = sim._envelope_base  # 0.1 r_min or the deck's value
 
     # ------------------------------------------------------------------ work arrays
     def _reserve(self, nc: int) -> None:
@@ -167,15 +167,16 @@ class Stepper:
         sim = self.sim
         p = sim.particles
         h = sim.dt
+        # this step's envelope is a function of the state alone (not of when the list was built), so
+        # results do not depend on rebuild timing, checkpoints or the partition
         need = self._needed_envelope()
-        if need > sim._envelope:
-            self._set_envelope(1.25 * need)
+        sim._envelope = need
+        if need > sim._list_envelope:
+            self._set_list_envelope(1.25 * need)
 
         def narrow() -> None:
-            # a rebuild may narrow the envelope again once the grains slow down: fewer speculative
-            # contacts (the list is built with the narrower reach)
-            if need < sim._envelope and self.p.envelope is None:
-                self._set_envelope(max(1.25 * need, self._base_envelope), force=False)
+            # at a rebuild the list's reach follows the grains' speed down again (fewer pairs)
+            self._set_list_envelope(max(1.25 * need, self._base_envelope), force=False)
 
         sim._update_neighbours(before_rebuild=narrow)
         t0 = _time.perf_counter()
@@ -269,16 +270,31 @@ class Stepper:
         vmax = math.sqrt(float(np.max(np.einsum("ij,ij->i", p.v[:n], p.v[:n])))) if n else 0.0
         return max(2.5 * all_max(sim.comm, vmax) * sim.dt, self._base_envelope)
 
-    def _set_envelope(self, envelope: float, force: bool = True) -> None:
-        """Change the envelope; a wider one needs a rebuild with the wider reach (``force``)."""
+    def _set_list_envelope(self, envelope: float, force: bool = True) -> None:
+        """Change the reach of the neighbour list (skin + envelope); a wider one needs a rebuild
+        (``force``), and under MPI wider ghost layers and subdomains."""
         sim = self.sim
-        sim._envelope = envelope
+        sim._list_envelope = envelope
         sim._list_skin = sim.skin + envelope
         sim._ghost_width = sim._ghost_width_base + sim._list_skin
         if sim._decomp is not None:
             sim._decomp.widen(sim._ghost_width)
         if force:
             sim._force_rebuild = True
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Counters for checkpoints (the envelope is saved by the simulation)."""
+        return {
+            "solver/counters": np.array([self.n_steps, self.n_unconverged, self.total_iterations]),
+            "solver/max_residual": np.array(self.max_residual),
+        }
+
+    def restore(self, state: dict) -> None:
+        if "solver/counters" in state:
+            self.n_steps, self.n_unconverged, self.total_iterations = (
+                int(c) for c in state["solver/counters"]
+            )
+            self.max_residual = float(state["solver/max_residual"])
 
     def summary(self) -> dict[str, object]:
         """Solver statistics of this run (summary.json)."""
