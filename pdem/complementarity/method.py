@@ -74,8 +74,8 @@ class ComplementarityParams(LawParams):
         default=None,
         ge=0,
         description="collision envelope [m]: contacts enter the problem when their gap is below it; "
-        "default: automatic, 0.1 of the smallest radius, grown to 2.5 × the fastest grain's travel per "
-        "step when that is larger (a fixed envelope narrower than the travel lets grains overlap)",
+        "default: automatic, at every step the larger of 0.1 of the smallest radius and 2.5 × the "
+        "fastest grain's travel per step (a fixed envelope narrower than the travel lets grains overlap)",
     )
     recovery_speed: float | None = Field(
         default=None,
