@@ -483,3 +483,16 @@ def test_resume_is_bitwise_identical():
     for k in a:
         assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), k
     assert ref._stepper.summary() == resumed._stepper.summary()
+
+
+def test_a_key_given_at_top_level_and_in_the_law_table_is_an_error(tmp_path):
+    from pdem.deck import load_deck
+    from pdem.errors import DeckError
+
+    deck = tmp_path / "clash.toml"
+    deck.write_text(
+        '[contact]\nlaw = "complementarity"\ntolerance = 1e-4\n[contact.complementarity]\ntolerance = 1e-5\n'
+        '[materials.glass]\ndensity = 2500.0\n[[stages]]\nname = "a"\nend = { steps = 1 }\n'
+    )
+    with pytest.raises(DeckError, match=r"contact\.complementarity\.tolerance: given both"):
+        load_deck(deck)
