@@ -1,0 +1,131 @@
+#!/usr/bin/env python
+"""Bitwise fingerprints of reduced reference scenes, to hold engine refactors to identical results.
+
+    python tools/regression_checksums.py                 # print the fingerprints of this checkout
+    python tools/regression_checksums.py --write FILE    # store them (tests/data/regression_checksums.json)
+
+Scenes (each small enough for CI):
+
+* ``hopper_dem_p``: inputs/hopper.toml shortened (300 beads, the plug opens at 0.03 s), 3,000 steps;
+* ``hopper_dem_c``: the same with ``contact.law = "complementarity"`` (Jacobi), 700 steps;
+* ``periodic_column``: inputs/examples/periodic_column_collapse.toml, 1,000 steps;
+* ``bench_column``: the benchmark scene of tools/bench_vs_lammps.py (five planes, dt = 2 µs,
+  skin 0.1 mm) on a jittered lattice column of 1,500 spheres, 600 steps, through the Python API.
+
+A fingerprint is the SHA-256 of the final particle state ordered by id (id, x, v, w, f, t) and of
+the pair history keyed by id pair, as raw bytes: equal fingerprints mean bitwise-equal states.
+tests/test_regression_checksums.py compares a checkout with the stored values, which were made on
+the main branch before the engine-seams refactor (issue 10).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+HOPPER_SETS = [
+    "particles.0.n=300",
+    "particles.0.region.height=0.008",
+    "stages.fill.end.time=0.03",
+    "stages.fill.end.kinetic_energy_below=1e-12",
+    "output.every_time=0.05",
+    "boundaries.hopper.outflow_depth=0.004",
+]
+PARTICLE_FIELDS = ("id", "x", "v", "w", "f", "t")
+
+
+def fingerprint(particles: dict[str, np.ndarray], pair_keys: np.ndarray, pair_hist: np.ndarray) -> str:
+    """SHA-256 of the particle fields (ordered by id) and the pair history (ordered by key)."""
+    order = np.argsort(particles["id"], kind="stable")
+    h = hashlib.sha256()
+    for name in PARTICLE_FIELDS:
+        h.update(np.ascontiguousarray(np.asarray(particles[name])[order], dtype=None).tobytes())
+    korder = np.argsort(pair_keys, kind="stable")
+    h.update(np.ascontiguousarray(pair_keys[korder], dtype=np.int64).tobytes())
+    h.update(np.ascontiguousarray(pair_hist[korder], dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _deck_run(deck: Path, steps: int, sets: list[str]) -> str:
+    from pdem.cli import main
+    from pdem.io.checkpoint import read_checkpoint
+
+    with tempfile.TemporaryDirectory(prefix="pdem-fingerprint-") as tmp:
+        out = Path(tmp) / "out"
+        args = [str(deck), "--steps", str(steps), "--output", str(out), "--quiet"]
+        for s in sets:
+            args += ["--set", s]
+        code = main(args)
+        if code != 0:
+            raise RuntimeError(f"{deck.name} failed with exit code {code}")
+        state, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+    parts = {k: np.asarray(state[f"particles/{k}"]) for k in PARTICLE_FIELDS}
+    return fingerprint(parts, np.asarray(state["pairs/keys"]), np.asarray(state["pairs/hist"]))
+
+
+def bench_column(n: int = 1500, steps: int = 600) -> str:
+    """The benchmark scene (tools/bench_vs_lammps.py) on a jittered lattice column."""
+    import pdem
+    from pdem.boundaries.shapes import Plane
+
+    rng = np.random.default_rng(7)
+    d = 1.1e-3
+    nx = ny = 18
+    nz = int(np.ceil(n / (nx * ny)))
+    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    x = (g[:n] + 0.5) * d + rng.uniform(-0.04e-3, 0.04e-3, (n, 3))
+    r = rng.uniform(0.45e-3, 0.5e-3, n)
+    sim = pdem.Simulation()
+    sim.add_material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.5)
+    sim.add_particles(x, r)
+    for name, point, normal in [("floor", (0, 0, 0), (0, 0, 1)), ("x0", (0, 0, 0), (1, 0, 0)),
+                                ("x1", (0.08, 0, 0), (-1, 0, 0)), ("y0", (0, 0, 0), (0, 1, 0)),
+                                ("y1", (0, 0.0198, 0), (0, -1, 0))]:
+        sim.add_wall(Plane(point, normal), name=name)
+    sim.gravity = (0.0, 0.0, -9.81)
+    sim.dt = 2e-6
+    sim.skin = 1e-4
+    sim.run(steps=steps)
+    p = sim.get_particles()
+    c = sim.state_dict()
+    return fingerprint(p, np.asarray(c["pairs/keys"]), np.asarray(c["pairs/hist"]))
+
+
+def scenes() -> dict[str, object]:
+    hopper = ROOT / "inputs" / "hopper.toml"
+    periodic = ROOT / "inputs" / "examples" / "periodic_column_collapse.toml"
+    return {
+        "hopper_dem_p": lambda: _deck_run(hopper, 3000, HOPPER_SETS),
+        "hopper_dem_c": lambda: _deck_run(hopper, 700, HOPPER_SETS + ["contact.law=complementarity"]),
+        "periodic_column": lambda: _deck_run(periodic, 1000, []),
+        "bench_column": bench_column,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--write", type=Path, default=None, help="store the fingerprints in this JSON file")
+    ap.add_argument("--only", nargs="*", default=None, help="scene names (default: all)")
+    args = ap.parse_args(argv)
+    out = {}
+    for name, fn in scenes().items():
+        if args.only and name not in args.only:
+            continue
+        out[name] = fn()
+        print(f"{name}: {out[name]}", flush=True)
+    if args.write:
+        args.write.parent.mkdir(parents=True, exist_ok=True)
+        args.write.write_text(json.dumps(out, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
