@@ -240,9 +240,7 @@ class Runner:
             sim.set_periodic(deck.domain.lo, deck.domain.hi, deck.domain.periodic)
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
-            b = cls(name, params)
-            b.build(sim)
-            self.boundaries[name] = b
+            self.boundaries[name] = sim.add_boundary(cls(name, params))
         self.sim = sim
         return sim
 
@@ -284,14 +282,14 @@ class Runner:
         return {
             "imbalance_particles": float(counts[:, 0].max() / max(mean[0], 1e-300)),
             "imbalance_work": float(counts[:, 1].max() / max(mean[1], 1e-300)),
-            "rebalances": float(sim._decomp.n_rebalances if sim._decomp else 0),
+            "rebalances": float(sim.decomposition.n_rebalances if sim.decomposition else 0),
         }
 
     def _solver_columns(self, stage: str) -> dict[str, float]:
         """DEM-C: the last step's iterations and residual, the count of unconverged steps; every
         step's values since the last row go to ``solver_<stage>.csv`` (rank 0)."""
-        st = self.sim._stepper
-        if st is None:
+        st = self.sim.integrator
+        if not hasattr(st, "log"):
             return {}
         log, st.log = st.log, []
         if self.root and log:
@@ -364,7 +362,7 @@ class Runner:
         }
         walls = [
             WallState(w.name, w.shape.kind, w.params.copy(), w.force, w.torque)
-            for w in sim._wall_list
+            for w in sim.walls.values()
             if w.active
         ]
         x = p["x"]
@@ -380,7 +378,7 @@ class Runner:
             lo, hi = xmin - 2 * rmax, xmax + 2 * rmax
         else:
             lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for w in sim._wall_list:
+        for w in sim.walls.values():
             wlo, whi = w.shape.bounding_box(w.offset)
             lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
             hi = np.maximum(hi, np.where(np.isfinite(whi), whi, hi))
@@ -497,8 +495,9 @@ class Runner:
             "output_parallel": self.output_parallel,
             "results": {},
         }
-        if sim._stepper is not None:
-            summary["solver"] = sim._stepper.summary()
+        solver = sim.integrator.summary() if sim.integrator is not None else None
+        if solver is not None:
+            summary["solver"] = solver
         merged = self._merged_series()
         for name, b in self.boundaries.items():
             res = b.summary(merged)
@@ -516,16 +515,10 @@ class Runner:
     def _run_stage(self, index: int, stage: Any, stage_start: tuple[float, int], resumed: bool) -> bool:
         """Run one stage; False if ``max_steps`` stopped the run."""
         sim = self.sim
-        sim.stage_name = stage.name
-        for b in self.boundaries.values():
-            active = b.params.stages is None or stage.name in b.params.stages
-            b.set_active(sim, active)
+        sim.set_stage(stage.name)
         if stage.dt is not None and sim.dt != stage.dt:
-            sim.dt = stage.dt
-            sim._prepared = False
-        if not sim._prepared:
-            sim._prepare()
-        active = [b for b in self.boundaries.values() if b.active]
+            sim.dt = stage.dt  # checked against the law's stability estimate
+        sim.prepare()
         end = stage.end
         out = self.resolved.output_for(stage.name)
         every_steps = out.every_steps
@@ -575,11 +568,7 @@ class Runner:
                 self._write_frame(stage.name)
                 self._checkpoint(index, stage_start)
                 return False
-            for b in active:
-                b.before_step(sim)
-            sim.step()
-            for b in active:
-                b.after_step(sim)
+            sim.step()  # runs the boundaries' hooks
             in_stage = sim.step_count - stage_start[1]
             if in_stage % series_every == 0:
                 self._series_row(stage.name)

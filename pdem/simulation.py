@@ -37,6 +37,7 @@ import numpy as np
 from .boundaries.walls import Motion, Wall
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
 from .contact.law import ContactLaw
+from .contact.store import ContactStore
 from .domain import PeriodicBox
 from .errors import GeometryError, InputError, InstabilityError
 from .integrate import _kernels as integ
@@ -45,7 +46,7 @@ from .neighbor import _kernels as nk
 from .parallel.comm import SerialComm, all_max, all_min, any_rank
 from .parallel.exact import exact_sum, global_count
 from .plugins import load_contact_law
-from .state.particles import FREE, MOTION_NAMES, REMOVED, ParticleStore
+from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, dof_mask
 
 __all__ = ["Simulation"]
 
@@ -73,7 +74,6 @@ class Simulation:
         self._decomp = None  # a Decomposition when running on several ranks, or periodic
         self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
         self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
-        self._swaps: list = []
         self._removed_ids: list[np.ndarray] = []
         self.decomposition_dims: tuple[int, int, int] | None = None
         self.balance_threshold = 1.05  # rebalance when max/mean estimated work exceeds this
@@ -81,9 +81,14 @@ class Simulation:
         self.particles = ParticleStore()
         self.walls: dict[str, Wall] = {}
         self._wall_list: list[Wall] = []
+        self.boundaries: dict[str, Any] = {}
+        self._hooks: dict[str, list] = {"before_step": [], "apply_forces": [], "after_step": []}
+        self.stage: str | None = None
+        self.contact_store = ContactStore(1)
+        self._started = False
         self.set_law(law, **law_params)
         self.gravity = (0.0, 0.0, 0.0)
-        self.dt: float | None = None
+        self._dt: float | None = None
         self.force_dt = False
         self.skin: float | None = None
         self.max_overlap = 0.25
@@ -93,19 +98,144 @@ class Simulation:
         self._next_id = 0
         self._prepared = False
         self._force_rebuild = False
-        self._walls_changed = True
-        self._moving_walls: list[int] = []
-        self._pair_keys: np.ndarray | None = None
         self.dt_critical = math.nan
-        self._stepper = None  # the time step of a complementarity method (DEM-C), else None
-        self._envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
+        self.integrator = None  # made by the law at preparation (velocity Verlet, DEM-C stepper, …)
+        self.envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
+        self._force_time = 0.0
 
     # ------------------------------------------------------------------ setup
     def set_law(self, law: str | ContactLaw, **params: Any) -> None:
-        """Choose the contact law by entry-point name (``"hertz_mindlin"``) or instance."""
+        """Choose the contact law by entry-point name (``"hertz_mindlin"``) or instance (before the
+        first step)."""
+        if self._started:
+            raise InputError("set_law must be called before the first step (the run has started)")
         self.law = load_contact_law(law, **params) if isinstance(law, str) else law
-        self._stepper = None
+        walls = self.contact_store.walls
+        self.contact_store = ContactStore(self.law.history_size)
+        self.contact_store.walls = walls
+        self.integrator = None
         self._prepared = False
+
+    # ------------------------------------------------------------------ time step, gravity
+    @property
+    def dt(self) -> float | None:
+        """The time step [s] (None: chosen by the law at the first step). Checked when set: positive
+        and finite, and once the run is prepared not above the law's stability estimate
+        ``dt_critical`` unless ``force_dt``."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value: float | None) -> None:
+        if value is None:
+            if self._started:
+                raise InputError("dt cannot be unset once the run has started")
+            self._dt = None
+            return
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"dt = {value!r} is invalid; give a positive time step in seconds") from None
+        if not (value > 0 and math.isfinite(value)):
+            raise InputError(f"dt = {value!r} is invalid; give a positive time step in seconds")
+        if self._prepared:
+            self._check_dt(value)
+        self._dt = value
+
+    def _check_dt(self, dt: float) -> None:
+        if dt > self.dt_critical and not self.force_dt:
+            raise InputError(
+                f"dt = {dt:.4g} s exceeds the stability estimate {self.dt_critical:.4g} s of law "
+                f"'{self.law.name}'; use dt ≤ {self.dt_critical:.4g} s (practice: 0.1–0.3 of it), or set "
+                "force_dt = true to run anyway"
+            )
+
+    @property
+    def g(self) -> np.ndarray:
+        """Gravity as a validated array [m/s²] (set ``gravity``; checked at preparation)."""
+        return self._g
+
+    @property
+    def position_snap(self) -> np.ndarray:
+        """Per-axis rounding constants of displacements along periodic axes (0: not periodic); see
+        :mod:`pdem.domain`. Integrators pass it to their position update."""
+        return self._snap
+
+    @property
+    def decomposition(self):
+        """The :class:`~pdem.parallel.decomposition.Decomposition` (None in a serial non-periodic run)."""
+        return self._decomp
+
+    # ------------------------------------------------------------------ boundaries
+    _HOOKS = ("before_step", "apply_forces", "after_step")
+
+    def add_boundary(self, boundary: Any, build: bool = True) -> Any:
+        """Add a boundary (an instance of :class:`pdem.boundaries.api.Boundary`): its ``build`` is
+        called now (unless ``build=False``), and its hooks run inside every :meth:`step`, whether the
+        step is driven by a deck's runner or by :meth:`run`: ``before_step`` (servo control),
+        ``apply_forces`` (adds forces and torques to owned particles after the contact forces;
+        DEM-C takes them into the free velocity) and ``after_step`` (sinks, probes). Boundaries run
+        in the order they were added; inactive ones (``set_stage``) are skipped."""
+        name = boundary.name
+        if name in self.boundaries:
+            raise InputError(f"boundary name '{name}' is used twice; give each boundary a unique name")
+        self.boundaries[name] = boundary
+        if build:
+            boundary.build(self)
+        from .boundaries.api import Boundary
+
+        for hook in self._HOOKS:
+            impl = getattr(type(boundary), hook, None)
+            if impl is not None and impl is not getattr(Boundary, hook, None):
+                self._hooks[hook].append(boundary)
+        self._prepared = False
+        return boundary
+
+    def set_stage(self, name: str) -> None:
+        """Enter stage ``name``: every boundary is told (``on_stage``) and switches itself on or off."""
+        self.stage = name
+        for b in self.boundaries.values():
+            b.on_stage(self, name)
+
+    def _run_hooks(self, hook: str) -> None:
+        for b in self._hooks[hook]:
+            if b.active:
+                getattr(b, hook)(self)
+
+    # ------------------------------------------------------------------ per-particle fields
+    def register_field(self, name: str, dtype: str = "float64", width: int = 0, **flags: Any) -> Field:
+        """Register a per-particle field (see :class:`pdem.state.particles.Field` for the flags
+        ``migrate``, ``ghost``, ``checkpoint``, ``output``, ``default``); it is then the array
+        ``sim.particles.<name>`` (storage order, owned particles first), kept through migration,
+        ghosting and checkpoints as declared. Registering an identical field twice is allowed."""
+        spec = Field(name, dtype, width, **flags)
+        try:
+            self.particles.register(spec)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        return spec
+
+    def set_dof(self, ids, translation: str = "", rotation: str = "") -> None:
+        """Lock the translation along and the rotation about the named axes (``"xyz"``, ``"y"``, ``""``:
+        free) of the particles with ``ids`` (all ranks call it alike). Locked velocity components are
+        set to zero and stay zero, in both methods. 2-D motion in the xz plane:
+        ``set_dof(ids, translation="y", rotation="xz")``."""
+        try:
+            mask = dof_mask(translation, rotation)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        p = self.particles
+        n = p.n_owned
+        rows = np.flatnonzero(np.isin(p.id[:n], np.asarray(ids, dtype=np.int64)))
+        p.dof[rows] = mask
+        self._zero_locked(rows)
+
+    def _zero_locked(self, rows: np.ndarray) -> None:
+        p = self.particles
+        for c in range(3):
+            lock_t = (p.dof[rows] >> c) & 1 == 1
+            p.v[rows[lock_t], c] = 0.0
+            lock_r = (p.dof[rows] >> (3 + c)) & 1 == 1
+            p.w[rows[lock_r], c] = 0.0
 
     def set_periodic(self, lo, hi, axes="xyz") -> PeriodicBox:
         """Make the box ``lo <= x < hi`` [m] periodic along ``axes`` (``"xy"``, ``["x", "z"]``, …).
@@ -118,7 +248,7 @@ class Simulation:
         planes parallel to it, and keep finite walls a ghost width away from the box faces.
         Call before the first step.
         """
-        if self._pair_keys is not None:
+        if self._started:
             raise InputError("set_periodic must be called before the first step (the run has started)")
         self.box = PeriodicBox(lo, hi, axes)
         self._snap = self.box.snap.copy()
@@ -139,12 +269,18 @@ class Simulation:
         velocities=None,
         angular_velocities=None,
         motion: str = "free",
+        group: int = 0,
+        fixed_translation: str = "",
+        fixed_rotation: str = "",
+        **fields: Any,
     ) -> np.ndarray:
         """Add spheres; returns their ids (consecutive, in the order given).
 
         ``radii`` may be a scalar. ``motion``: ``"free"`` (integrated), ``"fixed"`` (never moves) or
         ``"prescribed"`` (moves with its given velocity, unaffected by forces). Fixed and prescribed
-        particles act as infinitely massive in contacts.
+        particles act as infinitely massive in contacts. ``group``: an integer tag (scalar or per
+        particle). ``fixed_translation``/``fixed_rotation``: axes along/about which the particles may
+        not move or turn (see :meth:`set_dof`). Other keywords give values of registered fields.
         """
         x = np.array(positions, dtype=np.float64, ndmin=2)
         if x.ndim != 2 or x.shape[1] != 3:
@@ -185,21 +321,38 @@ class Simulation:
         free = mo == FREE
         inv_m = 1.0 / mass if free else np.zeros(n)
         inv_i = 1.0 / inertia if free else np.zeros(n)
+        try:
+            dof = dof_mask(fixed_translation, fixed_rotation)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         if ids.size and ids[-1] >= 2**31:
             raise InputError("more than 2**31 particles are not supported")
+        values = {
+            "id": ids, "x": x, "v": v, "w": w, "r": r, "mass": mass, "inv_m": inv_m, "inv_i": inv_i,
+            "mat": np.full(n, mat_idx, np.int32), "motion": np.full(n, mo, np.int8),
+            "group": np.broadcast_to(np.asarray(group, dtype=np.int32), (n,)),
+            "dof": np.full(n, dof, np.uint8),
+        }  # fmt: skip
+        for name, val in fields.items():
+            spec = self.particles.fields.get(name)
+            if spec is None or name in values or name == "x_build":
+                raise InputError(
+                    f"add_particles: unknown keyword {name!r}; registered fields: "
+                    f"{', '.join(sorted(set(self.particles.fields) - set(values) - {'x_build', 'f', 't'}))}"
+                    " (register_field adds one)"
+                )
+            values[name] = np.broadcast_to(np.asarray(val, dtype=spec.dtype), spec.shape(n))
         self._next_id += n
-        mats, mos = np.full(n, mat_idx, np.int32), np.full(n, mo, np.int8)
         if self._decomp is not None:  # every rank is given all new particles and keeps its own
             keep = self._decomp.owned_mask(x)
-            ids_k, x, v, w, r, mass, inv_m, inv_i, mats, mos = (
-                a[keep] for a in (ids, x, v, w, r, mass, inv_m, inv_i, mats, mos)
-            )
+            values = {k: a[keep] for k, a in values.items()}
             self.particles.n_ghost = 0
             self._n_expected += n
-        else:
-            ids_k = ids
-        self.particles.append_owned(ids_k, x, v, w, r, mass, inv_m, inv_i, mats, mos)
+        n0 = self.particles.n_owned
+        self.particles.append_owned(values)
+        if dof:
+            self._zero_locked(np.arange(n0, self.particles.n_owned))
         self._prepared = False
         return ids
 
@@ -225,6 +378,8 @@ class Simulation:
         wall = Wall(shape, mat_idx, name, motion, omega)
         self.walls[name] = wall
         self._wall_list.append(wall)
+        self.contact_store.walls = self._wall_list
+        self.contact_store.walls_changed = True
         self._prepared = False
         return wall
 
@@ -236,11 +391,10 @@ class Simulation:
         if wall.active == active:
             return
         wall.active = active
-        if wall.hist is not None:
-            wall.hist[:] = 0.0
+        self.contact_store.reset_wall(self._wall_list.index(wall))
         wall.record_load(0)
         self._force_rebuild = True
-        self._walls_changed = True
+        self.contact_store.walls_changed = True
 
     def remove_particles(self, mask: np.ndarray) -> tuple[int, float]:
         """Remove the owned particles where ``mask`` is true (an outflow); returns (count, mass).
@@ -276,32 +430,31 @@ class Simulation:
         if k == 0:
             return
         p.n_ghost = 0
-        self._permute_storage(np.concatenate([np.flatnonzero(~gone), np.flatnonzero(gone)]))
-        for wall in self._wall_list:
-            if wall.hist is not None:
-                wall.hist[n - k : n] = 0.0
+        self.particles.permute(np.concatenate([np.flatnonzero(~gone), np.flatnonzero(gone)]))
         p.n_owned = n - k
 
     # ------------------------------------------------------------------ preparation
+    def prepare(self) -> None:
+        """Validate and set up for stepping if anything changed since the last preparation
+        (particles, walls, materials, boundaries added): the time step against the law's stability
+        estimate, initial overlaps, decomposition, the neighbour list, the first forces. ``step`` and
+        ``run`` call it when needed."""
+        if not self._prepared:
+            self._prepare()
+
     def _prepare(self) -> None:
         p = self.particles
         n = p.n_owned
         if len(self.materials) == 0:
             raise InputError("no material defined; add one with add_material()")
-        self._coef = self.law.coefficients(self.materials)
+        self.coefficients = self.law.coefficients(self.materials)
         self.dt_critical = all_min(self.comm, self.law.critical_dt(self.materials, p.r, p.mat, p.mass))
-        if self.dt is None:
-            self.dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
-            if not math.isfinite(self.dt):
+        if self._dt is None:
+            dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
+            if not math.isfinite(dt):
                 raise InputError("no time step given and none can be estimated without particles; set dt")
-        if not (self.dt > 0 and math.isfinite(self.dt)):
-            raise InputError(f"dt = {self.dt!r} is invalid; give a positive time step in seconds")
-        if self.dt > self.dt_critical and not self.force_dt:
-            raise InputError(
-                f"dt = {self.dt:.4g} s exceeds the stability estimate {self.dt_critical:.4g} s of law "
-                f"'{self.law.name}'; use dt ≤ {self.dt_critical:.4g} s (practice: 0.1–0.3 of it), or set "
-                "force_dt = true to run anyway"
-            )
+            self.dt = dt
+        self._check_dt(self._dt)
         if self.skin is None:
             self.skin = 0.1 * 2.0 * float(np.mean(p.r)) if n else 0.0
         if not (self.skin >= 0 and math.isfinite(self.skin)):
@@ -309,14 +462,14 @@ class Simulation:
         r_max = all_max(self.comm, float(p.r[:n].max()) if n else 0.0)
         if self.law.kind == "complementarity":
             r_min = all_min(self.comm, float(p.r[:n].min()) if n else math.inf)
-            self._envelope_base = self.law.envelope(
+            self.envelope_base = self.law.envelope(
                 np.array([r_min]) if math.isfinite(r_min) else np.zeros(0)
             )
-            self._envelope = self._envelope_base
+            self.envelope = self.envelope_base
             # the list's reach may be wider than this step's envelope (the stepper keeps it ≥)
-            self._list_envelope = max(getattr(self, "_list_envelope", 0.0), self._envelope_base)
+            self._list_envelope = max(getattr(self, "_list_envelope", 0.0), self.envelope_base)
         else:
-            self._envelope = self._list_envelope = 0.0
+            self.envelope = self._list_envelope = 0.0
         # the list holds every pair within skin + envelope at the build; it is rebuilt when particles
         # may have moved more than the skin, so every pair within the envelope is always listed
         self._list_skin = self.skin + self._list_envelope
@@ -333,34 +486,18 @@ class Simulation:
         self._g = np.asarray(self.gravity, dtype=float)
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
             raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
-        hsize = max(self.law.history_size, 1)
-        if self._pair_keys is None:  # first preparation; later ones (particles or walls added) keep history
-            self._pair_keys = np.zeros(0, dtype=np.int64)
-            self._pair_hist = np.zeros((0, hsize))
-            self._pi = np.zeros(0, dtype=np.int64)
-            self._pj = np.zeros(0, dtype=np.int64)
-            self._fpair = np.zeros((0, 3))
-            self._pair_capacity = max(8 * n, 64)
-        self._allocate_wall_history(n, hsize)
-        self._walls_changed = True
+        store = self.contact_store
+        if not self._started:  # first preparation; later ones (particles or walls added) keep history
+            store.pair_capacity = max(8 * n, 64, store.pair_capacity)
+            self._started = True
+        store.walls_changed = True
         self._prepared = True
         self._rebuild()
         self._check_initial_overlaps()
-        if self.law.kind == "complementarity":
-            if self._stepper is None:
-                self._stepper = self.law.make_stepper(self)
-                self._stepper.restore(getattr(self, "_restored", {}))
-            integ.zero_forces(p.f, p.t, p.n)
-            self._add_body_forces_only()
-            return
-        # forces for the first half kick; like LAMMPS's setup, this evaluation must not advance the
-        # contact history (the next step does)
-        saved = [self._pair_hist.copy()] + [w.hist.copy() for w in self._wall_list]
-        self._compute_forces()
-        self._pair_hist[:] = saved[0]
-        for wall, h in zip(self._wall_list, saved[1:], strict=True):
-            wall.hist[:] = h
-        self._add_body_forces_only()
+        if self.integrator is None:
+            self.integrator = self.law.make_integrator(self)
+            self.integrator.restore(getattr(self, "_restored", {}))
+        self.integrator.prepare()
 
     def _decompose(self) -> None:
         """Split space over the ranks (first preparation: every rank still holds every particle)."""
@@ -373,7 +510,7 @@ class Simulation:
         )
         self._decomp.check_ghost_width(self._ghost_width)
         keep = self._decomp.owned_mask(p.x[:n])
-        self._permute_storage(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
+        self.particles.permute(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
         p.n_owned = int(keep.sum())
         self._n_expected = global_count(self.comm, p.n_owned)
 
@@ -421,58 +558,36 @@ class Simulation:
         p = self.particles
         return global_count(self.comm, int(np.count_nonzero(p.motion[: p.n_owned] != REMOVED)))
 
-    def _allocate_wall_history(self, n: int, hsize: int) -> None:
-        """One (walls, particles, H) array; each wall's ``hist`` is a view of its slice."""
-        nw = len(self._wall_list)
-        old = getattr(self, "_wall_hist", None)
-        if old is not None and old.shape[0] == nw and old.shape[1] >= n and old.shape[2] == hsize:
-            return
-        new = np.zeros((nw, max(n, 1), hsize))
-        for k, wall in enumerate(self._wall_list):
-            if wall.hist is not None:
-                m = min(wall.hist.shape[0], new.shape[1])
-                new[k, :m] = wall.hist[:m]
-            wall.hist = new[k]
-        self._wall_hist = new
-
-    def _pack_walls(self) -> None:
-        """Stack the walls' geometry and state into the arrays of the wall kernel."""
-        walls = self._wall_list
-        nw = len(walls)
-        self._w_kinds = np.array([w.shape.kind for w in walls], dtype=np.int64)
-        self._w_params = np.array([w.params for w in walls], dtype=np.float64).reshape(nw, -1)
-        self._w_vel = np.array([w.velocity for w in walls], dtype=np.float64).reshape(nw, 3)
-        self._w_omega = np.array([w.omega for w in walls], dtype=np.float64).reshape(nw, 3)
-        self._w_centre = np.array([w.reference_point for w in walls], dtype=np.float64).reshape(nw, 3)
-        self._w_mat = np.array([w.material for w in walls], dtype=np.int64)
-        self._moving_walls = [k for k, w in enumerate(walls) if w.moving]
-
     # ------------------------------------------------------------------ checkpoint state
-    _PARTICLE_FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion")
-
     def state_dict(self) -> dict[str, object]:
-        """Everything needed to continue bitwise-identically: particles ordered by id (forces
-        included: velocity Verlet starts a step from them), contact history keyed by id pairs,
-        per-wall history by particle id, wall positions, time and step. Independent of the storage
-        order and (with MPI) of the number of ranks."""
+        """Everything needed to continue bitwise-identically: particles ordered by id (every field
+        registered with ``checkpoint``; forces included: velocity Verlet starts a step from them),
+        contact history keyed by id pairs, per-wall history by particle id, wall positions, time and
+        step. Independent of the storage order and (with MPI) of the number of ranks."""
         if not self._prepared:
             self._prepare()
         p = self.particles
         n = p.n_owned
         live = p.motion[:n] != REMOVED
-        local = {k: getattr(p, k)[:n][live].copy() for k in self._PARTICLE_FIELDS}
+        names = p.names(checkpoint=True)
+        local = {k: getattr(p, k)[:n][live].copy() for k in names}
         if self.box is not None:  # wrapped (exact: the trajectory does not depend on it)
             self.box.wrap(local["x"])
-        for k, wall in enumerate(self._wall_list):
-            local[f"wall{k}"] = wall.hist[:n][live].copy()
         g = self._gather_by_id(local)
-        out: dict[str, object] = {f"particles/{k}": g[k] for k in self._PARTICLE_FIELDS}
-        live = np.any(self._pair_hist != 0.0, axis=1)
-        keys, hist = self._pair_keys[live], self._pair_hist[live]
+        out: dict[str, object] = {f"particles/{k}": g[k] for k in names}
+        store = self.contact_store
+        live = np.any(store.hist != 0.0, axis=1)
+        keys, hist = store.keys[live], store.hist[live]
+        walls = [store.wall_history_of(k) for k in range(len(self._wall_list))]
         if self.comm.size > 1:
-            parts = self.comm.allgather((keys, hist))
+            parts = self.comm.allgather((keys, hist, walls))
             keys = np.concatenate([q[0] for q in parts])
-            hist = np.concatenate([q[1] for q in parts]).reshape(-1, self._pair_hist.shape[1])
+            hist = np.concatenate([q[1] for q in parts]).reshape(-1, store.history_size)
+            walls = [
+                (np.concatenate([q[2][k][0] for q in parts]),
+                 np.concatenate([q[2][k][1] for q in parts]).reshape(-1, store.history_size))
+                for k in range(len(self._wall_list))
+            ]  # fmt: skip
         # a pair across ranks is held by both, and a pair across the periodic boundary twice (by each
         # end's image), identically: keep one
         keys, first = np.unique(keys, return_index=True)
@@ -481,7 +596,10 @@ class Simulation:
         out["pairs/hist"] = hist.copy()
         for k, wall in enumerate(self._wall_list):
             key = f"walls/{wall.name}/"
-            out[key + "hist"] = g[f"wall{k}"]
+            ids, whist = walls[k]
+            order = np.argsort(ids, kind="stable")
+            out[key + "ids"] = ids[order].copy()
+            out[key + "hist"] = whist[order].copy()
             out[key + "offset"] = wall.offset.copy()
             out[key + "velocity"] = wall.velocity.copy()
             out[key + "active"] = np.array(wall.active)
@@ -490,8 +608,7 @@ class Simulation:
         out["scalars/step"] = np.array(self.step_count)
         out["scalars/dt"] = np.array(self.dt)
         out["scalars/next_id"] = np.array(self._next_id)
-        if self._stepper is not None:  # DEM-C: solver counters
-            out.update(self._stepper.state())
+        out.update(self.integrator.state())  # e.g. DEM-C solver counters
         if self.box is not None:
             out.update(self.box.state())
         return out
@@ -526,19 +643,25 @@ class Simulation:
                 f"the checkpoint's periodic box ({show(saved)}) differs from this simulation's "
                 f"({show(mine)}); resume with the deck (or set_periodic call) it was written with"
             )
-        g = {k: np.asarray(state[f"particles/{k}"]) for k in self._PARTICLE_FIELDS}
-        self.particles.append_owned(
-            g["id"], g["x"], g["v"], g["w"], g["r"], g["mass"], g["inv_m"], g["inv_i"], g["mat"], g["motion"]
-        )
-        hsize = max(self.law.history_size, 1)
-        self._pair_keys = np.asarray(state["pairs/keys"], dtype=np.int64)
-        self._pair_hist = np.asarray(state["pairs/hist"], dtype=np.float64).reshape(-1, hsize)
-        self._pi = self._pj = np.zeros(0, dtype=np.int64)
-        self._fpair = np.zeros((0, 3))
-        self._pair_capacity = max(8 * len(g["id"]), 64)
-        for wall in self._wall_list:
+        p = self.particles
+        g = {
+            k: np.asarray(state[f"particles/{k}"])
+            for k in p.names(checkpoint=True)
+            if f"particles/{k}" in state  # fields registered after the checkpoint was written: defaults
+        }
+        p.append_owned({k: v for k, v in g.items() if k not in ("f", "t")})
+        store = self.contact_store
+        hsize = store.history_size
+        store.keys = np.asarray(state["pairs/keys"], dtype=np.int64)
+        store.hist = np.asarray(state["pairs/hist"], dtype=np.float64).reshape(-1, hsize)
+        store.pi = store.pj = np.zeros(0, dtype=np.int64)
+        store.force = np.zeros((0, 3))
+        store.pair_capacity = max(8 * len(g["id"]), 64)
+        for k, wall in enumerate(self._wall_list):
             key = f"walls/{wall.name}/"
-            wall.hist = np.array(state[key + "hist"], dtype=np.float64).reshape(len(g["id"]), hsize)
+            whist = np.asarray(state[key + "hist"], dtype=np.float64).reshape(-1, hsize)
+            ids = np.asarray(state[key + "ids"]) if key + "ids" in state else g["id"]  # dense before 0.2
+            store.set_wall_history(k, ids, whist)
             wall.set_offset(np.array(state[key + "offset"], dtype=float))
             wall.velocity = np.array(state[key + "velocity"], dtype=float)
             wall.active = bool(state[key + "active"])
@@ -549,9 +672,9 @@ class Simulation:
         self.dt = float(state["scalars/dt"])
         self._next_id = int(state["scalars/next_id"])
         self._restored = {k: v for k, v in state.items() if k.startswith("solver/")}
+        self._started = True
         self._prepare()
         # the forces that start the next step are the saved ones, not a re-evaluation
-        p = self.particles
         rows = np.searchsorted(g["id"], p.id[: p.n_owned])
         p.f[: p.n_owned] = g["f"][rows]
         p.t[: p.n_owned] = g["t"][rows]
@@ -562,16 +685,19 @@ class Simulation:
 
         p = self.particles
         worst, who = -math.inf, "nobody"
-        if self._pi.size:
-            d = np.linalg.norm(p.x[self._pj] - p.x[self._pi], axis=1)
-            ratio = (p.r[self._pi] + p.r[self._pj] - d) / np.minimum(p.r[self._pi], p.r[self._pj])
+        pi, pj = self.contact_store.pi, self.contact_store.pj
+        if pi.size:
+            d = np.linalg.norm(p.x[pj] - p.x[pi], axis=1)
+            ratio = (p.r[pi] + p.r[pj] - d) / np.minimum(p.r[pi], p.r[pj])
             ratio = np.where(np.isfinite(ratio), ratio, np.inf)
             k = int(np.argmax(ratio))
-            worst, who = float(ratio[k]), f"particles {p.id[self._pi[k]]} and {p.id[self._pj[k]]}"
+            worst, who = float(ratio[k]), f"particles {p.id[pi[k]]} and {p.id[pj[k]]}"
         n = p.n_owned
         for wall in self._wall_list:
             if n == 0:
                 break
+            if not wall.active:  # a switched-off wall (an opened plug) may cut through the grains
+                continue
             gap = wall_contact_numpy(wall.shape.kind, wall.params, p.x[:n], p.r[:n])[0]
             ratio = np.where(np.isfinite(gap), -gap / p.r[:n], np.inf)
             k = int(np.argmax(ratio))
@@ -594,37 +720,22 @@ class Simulation:
             )
 
     # ------------------------------------------------------------------ neighbours
-    def _permute_storage(self, perm: np.ndarray) -> None:
-        """Reorder owned particles in memory (ids unchanged). Must be followed by a rebuild.
+    def permute_storage(self, perm: np.ndarray) -> None:
+        """Reorder owned particles in memory (ids unchanged); no ghosts may be present, and a rebuild
+        must follow before the next force evaluation.
 
-        Results do not depend on the storage order: every sum is ordered by particle ids (this is what
-        MPI migration relies on). Memory locality comes from spatially coherent ids, which pdem's
-        sources produce, because the pair loop runs in id order.
+        Results do not depend on the storage order: every sum is ordered by particle ids and all
+        history is keyed by ids (this is what MPI migration relies on). Memory locality comes from
+        spatially coherent ids, which pdem's sources produce, because the pair loop runs in id order.
+        The next step rebuilds the neighbour list first.
         """
-        p = self.particles
-        n = p.n_owned
-        if p.n_ghost:
-            raise RuntimeError("storage can only be permuted without ghosts")
-        for name in (
-            "id",
-            "x",
-            "v",
-            "w",
-            "f",
-            "t",
-            "r",
-            "mass",
-            "inv_m",
-            "inv_i",
-            "mat",
-            "motion",
-            "x_build",
-        ):
-            arr = getattr(p, name)
-            arr[:n] = arr[:n][perm]
-        for wall in self._wall_list:
-            if wall.hist is not None:
-                wall.hist[:n] = wall.hist[:n][perm]
+        self.particles.permute(perm)
+        self._force_rebuild = True
+
+    def request_rebuild(self) -> None:
+        """Rebuild the neighbour list (and exchange ghosts) at the start of the next step, e.g. after
+        particles were moved or changed by hand."""
+        self._force_rebuild = True
 
     def _rebuild(self) -> None:
         p = self.particles
@@ -650,11 +761,12 @@ class Simulation:
             # order, so keep the storage in id order for memory locality (results do not depend on it)
             ids = p.id[: p.n_owned]
             if ids.size > 1 and np.any(ids[1:] < ids[:-1]):
-                self._permute_storage(np.argsort(ids, kind="stable"))
+                self.particles.permute(np.argsort(ids, kind="stable"))
             borders(self, self._ghost_width)
         n = p.n
         x = p.x
         r = p.r
+        store = self.contact_store
         if n:
             lo = x.min(axis=0) - 1e-12
             hi = x.max(axis=0) + 1e-12
@@ -668,11 +780,11 @@ class Simulation:
             inv_cell = 1.0 / cell
             while True:
                 pi, pj, count = nk.build_pairs(
-                    x, r, p.id, p.n_owned, n, self._list_skin, lo, inv_cell, dims, self._pair_capacity
+                    x, r, p.id, p.n_owned, n, self._list_skin, lo, inv_cell, dims, store.pair_capacity
                 )
-                if count <= self._pair_capacity:
+                if count <= store.pair_capacity:
                     break
-                self._pair_capacity = int(count * 1.3) + 64
+                store.pair_capacity = int(count * 1.3) + 64
             pi = pi[:count].copy()
             pj = pj[:count].copy()
         else:
@@ -684,10 +796,7 @@ class Simulation:
             # meets each partner once (L >= 2 cutoffs), so its contributions stay in partner-id order
             order = np.argsort(keys, kind="stable")
             pi, pj, keys = pi[order], pj[order], keys[order]
-        hist = np.empty((keys.shape[0], self._pair_hist.shape[1]))
-        nk.carry_history(self._pair_keys, self._pair_hist, keys, hist)
-        self._pi, self._pj, self._pair_keys, self._pair_hist = pi, pj, keys, hist
-        self._fpair = np.zeros((keys.shape[0], 3))
+        store.set_pairs(pi, pj, keys)
         p.x_build[:] = x
         # wall candidates: particles within the skin of each (active) wall, concatenated
         from .boundaries._geometry import wall_contact_numpy
@@ -696,21 +805,11 @@ class Simulation:
         for wall in self._wall_list:
             if p.n_owned and wall.active:
                 gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
-                wall.candidates = np.flatnonzero(gap < self._list_skin).astype(np.int64)
+                cands.append(np.flatnonzero(gap < self._list_skin).astype(np.int64))
             else:
-                wall.candidates = np.zeros(0, dtype=np.int64)
-            cands.append(wall.candidates)
+                cands.append(np.zeros(0, dtype=np.int64))
             wall.offset_build = wall.offset.copy()
-        sizes = [c.shape[0] for c in cands]
-        self._w_cstart = np.zeros(len(cands) + 1, dtype=np.int64)
-        self._w_cstart[1:] = np.cumsum(sizes)
-        self._w_cand = np.concatenate(cands) if cands else np.zeros(0, dtype=np.int64)
-        total = max(int(self._w_cstart[-1]), 1)
-        self._w_out_idx = np.empty(total, dtype=np.int64)
-        self._w_out_val = np.empty((total, 6))
-        self._w_counts = np.zeros(len(cands), dtype=np.int64)
-        for k, wall in enumerate(self._wall_list):
-            wall.record_load(0, self._w_out_val[self._w_cstart[k] : self._w_cstart[k + 1]])
+        store.set_wall_candidates(cands, p.id)
         self.n_rebuilds += 1
 
     # cost model of a step, fitted to per-rank kernel times on the 20k column collapse (units of ~5 ns):
@@ -723,11 +822,12 @@ class Simulation:
         p = self.particles
         n = p.n_owned
         w = np.full(n, self._W_PARTICLE, dtype=np.int64)
-        if self._pi.size and self._fpair.shape[0] == self._pi.size and n:
-            touching = np.any(self._fpair != 0.0, axis=1)
+        cs = self.contact_store
+        if cs.pi.size and cs.force.shape[0] == cs.pi.size and n:
+            touching = np.any(cs.force != 0.0, axis=1)
             for ends, inc in (
-                (np.concatenate([self._pi, self._pj]), self._W_PAIR_END),
-                (np.concatenate([self._pi[touching], self._pj[touching]]), self._W_TOUCH_END),
+                (np.concatenate([cs.pi, cs.pj]), self._W_PAIR_END),
+                (np.concatenate([cs.pi[touching], cs.pj[touching]]), self._W_TOUCH_END),
             ):
                 ends = ends[ends < n]
                 np.add.at(w, ends, inc)
@@ -785,115 +885,96 @@ class Simulation:
         p = self.particles
         disp = math.sqrt(nk.max_displacement2(p.x, p.x_build, p.n_owned))
         walls = self._wall_list
-        wall_disp = max((walls[k].displacement_since_build() for k in self._moving_walls), default=0.0)
+        moving = self.contact_store.moving
+        wall_disp = max((walls[k].displacement_since_build() for k in moving), default=0.0)
         return any_rank(
             self.comm, self._force_rebuild or 2.0 * disp > self.skin or disp + wall_disp > self.skin
         )
 
-    # ------------------------------------------------------------------ forces
-    def _compute_forces(self) -> int:
+    # ------------------------------------------------------------------ the integrator's API
+    # What an Integrator (pdem.integrate) calls during a step; plugins implementing a new method use
+    # these, never private state.
+    def compute_forces(self) -> int:
+        """Zero the forces of owned and ghost particles, then add: pair contacts (in id-pair order),
+        wall contacts (walls in order), the boundaries' ``apply_forces`` hooks. Body forces are the
+        integrator's. Returns the kernels' flag word (combine, then :meth:`check_flags`)."""
         t0 = _time.perf_counter()
         try:
-            return self._compute_forces_inner()
+            flags = self._contact_forces()
+            self._run_hooks("apply_forces")
+            return flags
         finally:
-            self._force_time = getattr(self, "_force_time", 0.0) + (_time.perf_counter() - t0)
+            self._force_time += _time.perf_counter() - t0
 
-    def _compute_forces_inner(self) -> int:
+    def external_forces(self) -> bool:
+        """Zero the forces, then let the boundaries' ``apply_forces`` hooks add theirs (DEM-C: these
+        enter the free velocity). Returns whether any boundary has such a hook."""
         p = self.particles
         integ.zero_forces(p.f, p.t, p.n)
+        if not self._hooks["apply_forces"]:
+            return False
+        self._run_hooks("apply_forces")
+        return True
+
+    def _contact_forces(self) -> int:
+        p = self.particles
+        cs = self.contact_store
+        integ.zero_forces(p.f, p.t, p.n)
         flags = self.law.pair_kernel(
-            self._pi,
-            self._pj,
-            self._pair_hist,
-            p.x,
-            p.v,
-            p.w,
-            p.r,
-            p.inv_m,
-            p.inv_i,
-            p.mat,
-            self._coef,
-            p.f,
-            p.t,
-            self._fpair,
-            self.dt,
-            self.max_overlap,
-        )
+            cs.pi, cs.pj, cs.hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, self.coefficients, p.f,
+            p.t, cs.force, self.dt, self.max_overlap,
+        )  # fmt: skip
         if self._wall_list:
-            if self._walls_changed:
-                self._pack_walls()
-                self._walls_changed = False
+            if cs.walls_changed:
+                cs.pack_walls()
             flags |= self.law.wall_kernel(
-                self._w_kinds,
-                self._w_params,
-                self._w_vel,
-                self._w_omega,
-                self._w_centre,
-                self._w_mat,
-                self._w_cstart,
-                self._w_cand,
-                self._wall_hist,
-                p.x,
-                p.v,
-                p.w,
-                p.r,
-                p.inv_m,
-                p.inv_i,
-                p.mat,
-                self._coef,
-                p.f,
-                p.t,
-                self.dt,
-                self.max_overlap,
-                self._w_out_idx,
-                self._w_out_val,
-                self._w_counts,
-            )
-            for k, wall in enumerate(self._wall_list):
-                wall.record_load(int(self._w_counts[k]))
-                wall._comm = self.comm
+                cs.kinds, cs.params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand, cs.wall_hist,
+                p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, self.coefficients, p.f, p.t, self.dt,
+                self.max_overlap, cs.out_idx, cs.out_val, cs.counts,
+            )  # fmt: skip
+            self.record_wall_loads()
         return flags
 
-    def _add_body_forces_only(self) -> None:
-        p = self.particles
-        free = p.motion == FREE
-        p.f[free] += p.mass[free, None] * self._g
+    def record_wall_loads(self) -> None:
+        """Tell every wall how many load rows this step wrote for it (summed lazily, exactly)."""
+        counts = self.contact_store.counts
+        for k, wall in enumerate(self._wall_list):
+            wall.record_load(int(counts[k]))
+            wall._comm = self.comm
+
+    def add_work_time(self, seconds: float) -> None:
+        """Account time spent on contacts (the load balancer weighs ranks by it)."""
+        self._force_time += seconds
 
     # ------------------------------------------------------------------ the time step
     def step(self) -> None:
-        """Advance one time step (DEM-P velocity Verlet)."""
+        """Advance one time step: the boundaries' ``before_step`` hooks, the integrator's step (DEM-P
+        velocity Verlet or the law's own, e.g. DEM-C), the ``after_step`` hooks."""
         if not self._prepared:
             self._prepare()
-        if self._stepper is not None:
-            self._stepper.step()
-            return
-        p = self.particles
-        dt = self.dt
-        integ.initial_integrate(
-            p.x, p.v, p.w, p.f, p.t, p.inv_m, p.inv_i, p.motion, dt, p.n_owned, self._snap
-        )
-        self._advance_walls(dt)
-        self._update_neighbours()
-        flags = self._compute_forces()
-        g = self._g
-        flags |= integ.add_body_force_and_final_integrate(
-            p.v, p.w, p.f, p.t, p.mass, p.inv_m, p.inv_i, p.motion, g[0], g[1], g[2], dt, p.n_owned
-        )
-        self.time += dt
+        if self._hooks["before_step"]:
+            self._run_hooks("before_step")
+        self.integrator.step()
+        if self._hooks["after_step"]:
+            self._run_hooks("after_step")
+
+    def finish_step(self, flags: int) -> None:
+        """End of an integrator's step: advance time and the step counter, then turn the kernels'
+        flags into an error on every rank alike (collective)."""
+        self.time += self._dt
         self.step_count += 1
-        if any_rank(self.comm, flags != 0):
-            self._raise_for_flags(flags)
+        self.check_flags(flags)
 
-    def _advance_walls(self, dt: float) -> None:
+    def advance_walls(self, dt: float) -> None:
         """Move the walls with prescribed motion over [t, t + dt] (positions and velocities)."""
-        for k in self._moving_walls:
-            wall = self._wall_list[k]
-            wall.advance(self.time, dt)
-            self._w_params[k] = wall.params
-            self._w_vel[k] = wall.velocity
-            self._w_centre[k] = wall.reference_point
+        cs = self.contact_store
+        if cs.walls_changed:
+            cs.pack_walls()
+        for k in cs.moving:
+            self._wall_list[k].advance(self.time, dt)
+            cs.update_wall(k)
 
-    def _update_neighbours(self, before_rebuild: Callable[[], Any] | None = None) -> None:
+    def update_neighbours(self, before_rebuild: Callable[[], Any] | None = None) -> None:
         """Rebuild the neighbour list (and migrate, re-send ghosts) if anything may have moved more
         than the skin allows, else forward the ghosts' current state (collective)."""
         if self._needs_rebuild():
@@ -905,6 +986,29 @@ class Simulation:
             from .parallel.exchange import forward
 
             forward(self)
+
+    def forward_ghosts(self) -> None:
+        """Send the ghosts' current x, v, ω to the ranks (and periodic images) that hold them."""
+        if self._decomp is not None:
+            from .parallel.exchange import forward
+
+            forward(self)
+
+    def set_list_reach(self, envelope: float, force: bool = True) -> None:
+        """Make the neighbour list reach ``skin + envelope`` (DEM-C's collision envelope); a wider
+        reach needs a rebuild (``force``) and, under MPI, wider ghost layers and subdomains."""
+        self._list_envelope = envelope
+        self._list_skin = self.skin + envelope
+        self._ghost_width = self._ghost_width_base + self._list_skin
+        if self._decomp is not None:
+            self._decomp.widen(self._ghost_width)
+        if force:
+            self._force_rebuild = True
+
+    @property
+    def list_envelope(self) -> float:
+        """The envelope the neighbour list reaches beyond touching plus skin [m]."""
+        return self._list_envelope
 
     def run(
         self,
@@ -929,6 +1033,12 @@ class Simulation:
                 callback(self)
         return self
 
+    def check_flags(self, flags: int) -> None:
+        """Raise :class:`InstabilityError` on every rank if any rank's kernels flagged a problem
+        (collective: every rank must call it)."""
+        if any_rank(self.comm, flags != 0):
+            self._raise_for_flags(flags)
+
     def _raise_for_flags(self, flags: int) -> None:
         worst, who = self._global_worst_overlap()
         if self.comm.size > 1:
@@ -940,7 +1050,7 @@ class Simulation:
             causes.append("a velocity became non-finite")
         if flags & FLAG_COINCIDENT:
             causes.append("two particle centres coincide")
-        if self._stepper is not None:
+        if self.law.kind == "complementarity":
             raise InstabilityError(
                 f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
                 f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "
@@ -967,14 +1077,13 @@ class Simulation:
 
     def get_particles(self) -> dict[str, np.ndarray]:
         """Copies of the particle arrays of all ranks, ordered by id: id, x, v, w, r, mass, f, t,
-        material, motion. Under MPI this is a collective call."""
+        material, motion, group, dof, and every registered field marked ``output``. Under MPI this
+        is a collective call. (``sim.particles`` holds this rank's arrays in storage order, which
+        is not id order: use this method, or :meth:`own_particles`, to read results.)"""
         p = self.particles
         n = p.n_owned
         live = p.motion[:n] != REMOVED
-        local = {
-            name: getattr(p, name)[:n][live].copy()
-            for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
-        }
+        local = {name: getattr(p, name)[:n][live].copy() for name in p.names(output=True)}
         if self.box is not None:  # between rebuilds a particle may be up to skin/2 past a face
             self.box.wrap(local["x"])
         out = self._gather_by_id(local)
@@ -989,10 +1098,7 @@ class Simulation:
         p = self.particles
         n = p.n_owned
         live = p.motion[:n] != REMOVED
-        out = {
-            name: getattr(p, name)[:n][live]
-            for name in ("id", "x", "v", "w", "r", "mass", "f", "t", "mat", "motion")
-        }
+        out = {name: getattr(p, name)[:n][live] for name in p.names(output=True)}
         if contacts:
             if not self._prepared:
                 self._prepare()
@@ -1008,11 +1114,12 @@ class Simulation:
     def _touching(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Pair list rows, centre offsets, distances and the touching mask of this rank's pairs."""
         p = self.particles
-        pi, pj = self._pi, self._pj
+        cs = self.contact_store
+        pi, pj = cs.pi, cs.pj
         d = p.x[pj] - p.x[pi]
         dist = np.linalg.norm(d, axis=1)
         overlap = p.r[pi] + p.r[pj] - dist
-        touching = (overlap > 0) & np.any(self._fpair != 0, axis=1)
+        touching = (overlap > 0) & np.any(cs.force != 0, axis=1)
         touching &= (p.motion[pi] != REMOVED) & (p.motion[pj] != REMOVED)
         return pi, pj, d, dist, touching
 
@@ -1025,7 +1132,7 @@ class Simulation:
         pi, pj, d, dist, touching = self._touching()
         overlap = p.r[pi] + p.r[pj] - dist
         n = d[touching] / dist[touching, None]
-        force = self._fpair[touching]
+        force = self.contact_store.force[touching]
         local = {
             "id_i": p.id[pi[touching]].copy(),
             "id_j": p.id[pj[touching]].copy(),

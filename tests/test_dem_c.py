@@ -37,7 +37,7 @@ def floor(sim, normal=(0.0, 0.0, 1.0)):
 
 def lock_rotation(sim):
     """Infinite moment of inertia: a sphere that cannot turn behaves as a sliding block."""
-    sim._prepare()
+    sim.prepare()
     sim.particles.inv_i[:] = 0.0
 
 
@@ -119,7 +119,7 @@ def test_column_at_rest_on_floor(solver):
     pens = np.array(pens)
     assert pens.max() < 1e-6 * R
     assert pens[-100:].max() <= pens[:100].max() * 1.5 + 1e-15
-    assert sim._stepper.n_unconverged == 0
+    assert sim.integrator.n_unconverged == 0
 
 
 # ----------------------------------------------------------------------------------- friction
@@ -262,10 +262,10 @@ def test_solvers_reach_the_same_velocities_on_a_packing():
         sim = _packing(solver, add=False, tolerance=1e-9, max_iterations=200000, relaxation=relax)
         sim.load_state(state)
         sim.step()
-        assert sim._stepper.last_residual <= 1e-9, solver  # this step converged
+        assert sim.integrator.last_residual <= 1e-9, solver  # this step converged
         p = sim.get_particles()
         states[solver] = p["v"]
-        n_contacts = sim._stepper.log[-1][3]
+        n_contacts = sim.integrator.log[-1][3]
     assert n_contacts > 60
     for s in ("jacobi", "gauss_seidel"):
         assert np.max(np.abs(states[s] - states["apgd"])) < 1e-6, s
@@ -279,7 +279,7 @@ def test_gauss_seidel_and_apgd_refuse_mpi():
     sim = pdem.Simulation(law="complementarity", solver="apgd")
     sim.comm = FakeComm()
     with pytest.raises(InputError, match="solver = 'jacobi'"):
-        law.make_stepper(sim)
+        law.make_integrator(sim)
 
 
 # ----------------------------------------------------------------------------------- decks
@@ -399,13 +399,13 @@ def test_periodic_box_shift_invariance():
         v[:, 0] = 0.3  # drift across the face
         ids = sim.add_particles(x, R, material="glass", velocities=v)
         sim.add_wall(shapes.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), material="glass", name="floor")
-        sim._prepare()
+        sim.prepare()
         if shift:
             half = np.array([0.5 * sim.box.length[0], 0.0, 0.0])
             sim.particles.x[: sim.particles.n_owned] = sim.box.wrapped(
                 sim.particles.x[: sim.particles.n_owned] + half
             )
-            sim._force_rebuild = True
+            sim.request_rebuild()
         return sim, ids
 
     a, _ = build(False)
@@ -421,7 +421,7 @@ def test_periodic_box_shift_invariance():
         assert np.array_equal(a.box.wrapped(pa["x"] + half), pb["x"])
         crossed |= bool(np.any(pa["x"][:, 0] < x0 - 0.5 * L))
     assert crossed
-    assert a._stepper.log[-1][3] > 20  # a pile with many contacts
+    assert a.integrator.log[-1][3] > 20  # a pile with many contacts
 
 
 def test_penetration_recovery_speed_cap():
@@ -474,7 +474,7 @@ def test_resume_is_bitwise_identical():
     half = _packing("jacobi", v0=-1.0, tolerance=1e-6, max_iterations=60)
     half.run(steps=40)
     state = half.state_dict()
-    assert half._envelope > 0.1 * R  # grown by the falling grains
+    assert half.envelope > 0.1 * R  # grown by the falling grains
     resumed = scene()
     resumed.load_state(state)
     resumed.run(steps=40)
@@ -482,7 +482,7 @@ def test_resume_is_bitwise_identical():
     assert a.keys() == b.keys()
     for k in a:
         assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), k
-    assert ref._stepper.summary() == resumed._stepper.summary()
+    assert ref.integrator.summary() == resumed.integrator.summary()
 
 
 def test_a_key_given_at_top_level_and_in_the_law_table_is_an_error(tmp_path):

@@ -32,10 +32,9 @@ def make_pile(shuffle_seed: int | None = None) -> pdem.Simulation:
     sim.dt = 2e-6
     sim.skin = 5e-5
     if shuffle_seed is not None:
-        sim._prepare()
+        sim.prepare()
         perm = np.random.default_rng(shuffle_seed).permutation(sim.n_particles)
-        sim._permute_storage(perm)
-        sim._rebuild()
+        sim.permute_storage(perm)  # the next step rebuilds
     return sim
 
 

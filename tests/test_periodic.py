@@ -39,7 +39,7 @@ def _by_id(sim: pdem.Simulation, key: str) -> np.ndarray:
 def _history(sim: pdem.Simulation) -> dict[int, np.ndarray]:
     """Pair history by key (one row per key: copies of a contact must agree)."""
     out: dict[int, np.ndarray] = {}
-    for k, h in zip(sim._pair_keys, sim._pair_hist, strict=True):
+    for k, h in zip(sim.contact_store.keys, sim.contact_store.hist, strict=True):
         k = int(k)
         if k in out:
             assert np.array_equal(out[k], h), "two copies of a contact disagree"
@@ -128,7 +128,7 @@ def test_pair_list_is_the_minimum_image_brute_force(axes):
     sim.add_particles(x, r)
     sim.dt = 1e-6
     sim.skin = 0.4e-3  # many list pairs across the faces
-    sim._prepare()
+    sim.prepare()
     p = sim.particles
     n = p.n_owned
     ids, pos, rad = p.id, p.x, p.r
@@ -136,7 +136,7 @@ def test_pair_list_is_the_minimum_image_brute_force(axes):
     # listed pairs: (id_lo, id_hi) -> relative vector, counted per owned end
     listed: dict[tuple[int, int], np.ndarray] = {}
     owned_ends: dict[tuple[int, int], list[int]] = {}
-    for i, j in zip(sim._pi, sim._pj, strict=True):
+    for i, j in zip(sim.contact_store.pi, sim.contact_store.pj, strict=True):
         key = (int(ids[i]), int(ids[j]))
         assert key[0] < key[1]
         d = pos[j] - pos[i]
@@ -144,7 +144,7 @@ def test_pair_list_is_the_minimum_image_brute_force(axes):
             assert np.array_equal(listed[key], d), "copies of a pair must have the same relative vector"
         listed[key] = d
         owned_ends.setdefault(key, []).extend(int(ids[e]) for e in (i, j) if e < n)
-    keys = (sim._pair_keys[1:] >= sim._pair_keys[:-1]).all()
+    keys = (sim.contact_store.keys[1:] >= sim.contact_store.keys[:-1]).all()
     assert keys, "pair list sorted by (id_lo, id_hi)"
     # brute force over owned particles with the minimum image
     xo, ro, io = pos[:n], rad[:n], ids[:n]

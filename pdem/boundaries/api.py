@@ -13,17 +13,24 @@ measurement probe. The entry-point name is the deck's ``type``::
 A boundary class declares a pydantic ``Params`` model (derived from :class:`BoundaryParams`; unknown
 keys are errors) and overrides the hooks it needs:
 
-* ``build(sim)`` — add walls (``sim.add_wall``) or particles; called once before the first stage;
-* ``set_active(sim, active)`` — called at the start of every stage with whether the boundary is
-  active in it (``stages`` key); the default switches the boundary's own walls on or off;
-* ``before_step(sim)`` / ``after_step(sim)`` — servo control, particle removal, probes;
+* ``build(sim)`` — add walls (``sim.add_wall``) or particles; called once, by ``sim.add_boundary``;
+* ``on_stage(sim, stage)`` — called when a stage starts (``sim.set_stage``); the default switches
+  the boundary on or off by its ``stages`` key (``set_active``, which switches its own walls);
+* ``before_step(sim)`` — servo control (set wall velocities, targets) before the step;
+* ``apply_forces(sim)`` — add forces and torques to owned particles (``sim.particles.f[:n_owned]``,
+  ``.t``) after the contact forces: membranes, pistons, field forces. DEM-P integrates them with the
+  contact forces; DEM-C takes them into the free velocity. May be called more than once per step
+  (e.g. when the run is prepared): make it a function of the current state;
+* ``after_step(sim)`` — particle removal, probes;
 * ``measurements(sim) -> dict[str, float]`` — scalars recorded in the time series (as
   ``<name>.<key>``) and usable in stage end conditions;
 * ``summary(series) -> dict`` — derived results at the end of the run (e.g. a steady flow rate);
 * ``state()`` / ``restore(state)`` — JSON-serialisable memory kept in checkpoints.
 
-Boundaries never touch MPI or numba directly; the walls they create are evaluated by the generic
-wall loop with the simulation's contact law.
+The hooks run inside ``Simulation.step`` (under a deck's runner and under ``Simulation.run`` alike),
+in the order the boundaries were added, only while the boundary is active; a hook a class does not
+override costs nothing. Boundaries never touch MPI or numba directly; the walls they create are
+evaluated by the generic wall loop with the simulation's contact law.
 """
 
 from __future__ import annotations
@@ -100,13 +107,22 @@ class Boundary:
     def build(self, sim: Any) -> None:
         """Create walls/particles. Default: nothing."""
 
+    def on_stage(self, sim: Any, stage: str) -> None:
+        """A stage starts: default, active when the ``stages`` key lists it (or has no list)."""
+        stages = getattr(self.params, "stages", None)
+        self.set_active(sim, stages is None or stage in stages)
+
     def set_active(self, sim: Any, active: bool) -> None:
+        """Switch the boundary (its hooks and its own walls) on or off."""
         self.active = active
         for wall in self.walls:
             sim.set_wall_active(wall.name, active)
 
     def before_step(self, sim: Any) -> None:
         """Called before every step of a stage in which the boundary is active."""
+
+    def apply_forces(self, sim: Any) -> None:
+        """Add forces/torques to owned particles after the contact forces (see the module docstring)."""
 
     def after_step(self, sim: Any) -> None:
         """Called after every step of a stage in which the boundary is active."""

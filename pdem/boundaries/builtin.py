@@ -308,10 +308,13 @@ class HopperBoundary(Boundary):
             self.add_wall(sim, barrel, "barrel")
         self.plug = self.add_wall(sim, shapes.Disk(c, (0, 0, 1), r0 * 1.05), "plug")
 
+    def on_stage(self, sim: Any, stage: str) -> None:
+        if stage == self.params.open_at_stage:
+            self._opened = True
+        super().on_stage(sim, stage)
+
     def set_active(self, sim: Any, active: bool) -> None:
         super().set_active(sim, active)
-        if getattr(sim, "stage_name", None) == self.params.open_at_stage:
-            self._opened = True
         if self._opened and self.plug is not None:
             sim.set_wall_active(self.plug.name, False)
 

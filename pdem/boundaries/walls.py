@@ -109,8 +109,6 @@ class Wall:
         self.offset_build = np.zeros(3)
         self._load: np.ndarray | None = np.zeros(6)
         self.n_contacts = 0
-        self.candidates = np.zeros(0, dtype=np.int64)
-        self.hist: np.ndarray | None = None
         self._buf_val = np.zeros((0, 6))
         # every primitive keeps its anchor point in params[0:3]: a translation moves only those
         self._base_params = np.asarray(shape.params(np.zeros(3)), dtype=float)

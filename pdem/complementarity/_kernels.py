@@ -159,8 +159,8 @@ def assemble_walls(
             i = cand[q]
             gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
             if gap > envelope or inv_m[i] == 0.0:
-                for s in range(whist.shape[2]):
-                    whist[k, i, s] = 0.0
+                for s in range(whist.shape[1]):
+                    whist[q, s] = 0.0
                 continue
             if -gap > max_overlap * r[i]:
                 flags |= FLAG_OVERLAP
@@ -172,10 +172,11 @@ def assemble_walls(
             vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
             vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
             _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], vwx, vwy, vwz, gap, h, v_recovery,
-                  coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[k, i],
+                  coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[q],
                   cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
             csrc[c, 0] = k
             csrc[c, 1] = i
+            csrc[c, 2] = q
             cpt[c, 0] = qx
             cpt[c, 1] = qy
             cpt[c, 2] = qz
@@ -216,13 +217,26 @@ def accumulate(cb, cn, ca, gam, nc, P, L):
             L[i, 2] -= ca[c, 0] * cz
 
 
+@njit(inline="always")
+def _lock(v, w, dof, i):
+    """Zero the locked velocity components of body i (``dof`` bits: v_c at c, ω_c at 3 + c)."""
+    lock = dof[i]
+    if lock != 0:
+        for d in range(3):
+            if (lock >> d) & 1:
+                v[i, d] = 0.0
+            if (lock >> (d + 3)) & 1:
+                w[i, d] = 0.0
+
+
 @njit
-def velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, n):
-    """v = v_free + P/m, ω = ω_free + L/I for bodies [0, n)."""
+def velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, dof, n):
+    """v = v_free + P/m, ω = ω_free + L/I for bodies [0, n); locked components stay zero."""
     for i in range(n):
         for d in range(3):
             v[i, d] = v_free[i, d] + inv_m[i] * P[i, d]
             w[i, d] = w_free[i, d] + inv_i[i] * L[i, d]
+        _lock(v, w, dof, i)
 
 
 @njit(inline="always")
@@ -302,7 +316,7 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_rela
 
 
 @njit
-def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, nc, omega_relax):
+def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax):
     """One projected Gauss–Seidel sweep in row order, velocities updated after each contact.
     Returns the largest residual met during the sweep."""
     res = 0.0
@@ -332,6 +346,7 @@ def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, in
         w[j, 0] -= inv_i[j] * aj * cx
         w[j, 1] -= inv_i[j] * aj * cy
         w[j, 2] -= inv_i[j] * aj * cz
+        _lock(v, w, dof, j)
         if i >= 0:
             ai = ca[c, 0]
             v[i, 0] -= inv_m[i] * gx
@@ -340,6 +355,7 @@ def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, in
             w[i, 0] -= inv_i[i] * ai * cx
             w[i, 1] -= inv_i[i] * ai * cy
             w[i, 2] -= inv_i[i] * ai * cz
+            _lock(v, w, dof, i)
     return res
 
 
@@ -364,9 +380,9 @@ def store_history(gam, csrc, nc, n_pair, hist, whist):
             for q in range(4):
                 hist[k, q] = gam[c, q]
         else:
-            wk = csrc[c, 0]
+            row = csrc[c, 2]
             for q in range(4):
-                whist[wk, k, q] = gam[c, q]
+                whist[row, q] = gam[c, q]
 
 
 @njit
@@ -406,8 +422,9 @@ def contact_forces(gam, cn, cpt, csrc, nc, n_pair, inv_h, fpair, out_idx, out_va
 
 
 @njit
-def free_velocities(v, w, motion, gx, gy, gz, h, n, v_free, w_free):
-    """v_free = v + h g for free particles (others keep their velocity); ω_free = ω."""
+def free_velocities(v, w, motion, dof, gx, gy, gz, h, n, v_free, w_free):
+    """v_free = v + h g for free particles (others keep their velocity); ω_free = ω; locked
+    components zero."""
     for i in range(n):
         if motion[i] == 0:
             v_free[i, 0] = v[i, 0] + h * gx
@@ -420,6 +437,19 @@ def free_velocities(v, w, motion, gx, gy, gz, h, n, v_free, w_free):
         w_free[i, 0] = w[i, 0]
         w_free[i, 1] = w[i, 1]
         w_free[i, 2] = w[i, 2]
+        if motion[i] == 0:
+            _lock(v_free, w_free, dof, i)
+
+
+@njit
+def add_external_impulses(v_free, w_free, f, t, inv_m, inv_i, motion, dof, h, n):
+    """v_free += h f/m, ω_free += h τ/I for free particles (external forces of boundaries)."""
+    for i in range(n):
+        if motion[i] == 0:
+            for d in range(3):
+                v_free[i, d] += h * f[i, d] * inv_m[i]
+                w_free[i, d] += h * t[i, d] * inv_i[i]
+            _lock(v_free, w_free, dof, i)
 
 
 @njit

@@ -50,8 +50,9 @@ from pydantic import Field
 
 from ..contact.law import ContactLaw, LawParams
 from ..errors import InputError
+from ..integrate.base import Integrator
 from ..materials import MaterialTable
-from ..parallel.comm import all_max, any_rank
+from ..parallel.comm import all_max
 from . import _kernels as ck
 
 __all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
@@ -119,7 +120,7 @@ class Complementarity(ContactLaw):
             return float(self.params.envelope)
         return 0.1 * float(np.min(radii)) if len(radii) else 0.0
 
-    def make_stepper(self, sim) -> Stepper:
+    def make_integrator(self, sim) -> Stepper:
         if self.params.solver != "jacobi" and sim.comm.size > 1:
             raise InputError(
                 f"contact.solver = '{self.params.solver}' runs on one rank only (its results would depend "
@@ -128,11 +129,14 @@ class Complementarity(ContactLaw):
         return Stepper(sim, self)
 
 
-class Stepper:
-    """The DEM-C time step for one :class:`~pdem.Simulation` (holds the solver's work arrays)."""
+class Stepper(Integrator):
+    """The DEM-C time step for one :class:`~pdem.Simulation` (holds the solver's work arrays). It uses
+    the simulation's public integrator API only (:mod:`pdem.integrate.base`)."""
+
+    name = "complementarity"
 
     def __init__(self, sim, law: Complementarity) -> None:
-        self.sim = sim
+        super().__init__(sim)
         self.law = law
         self.p = law.params
         self.n_unconverged = 0
@@ -143,7 +147,17 @@ class Stepper:
         self.last_residual = 0.0
         self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
         self._cap = 0
-        self._base_envelope = sim._envelope_base  # 0.1 r_min or the deck's value
+        self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
+
+    def prepare(self) -> None:
+        """The reported forces before the first step: weights only (plus boundary forces)."""
+        sim = self.sim
+        p = sim.particles
+        sim.external_forces()
+        g = sim.g
+        from ..integrate._kernels import add_body_forces
+
+        add_body_forces(p.f, p.mass, p.motion, g[0], g[1], g[2], p.n)
 
     # ------------------------------------------------------------------ work arrays
     def _reserve(self, nc: int) -> None:
@@ -158,7 +172,7 @@ class Stepper:
         self.cmu = np.empty(cap)
         self.cscale = np.empty(cap)
         self.gam = np.empty((cap, 4))
-        self.csrc = np.empty((cap, 2), dtype=np.int64)
+        self.csrc = np.empty((cap, 3), dtype=np.int64)
         self.cpt = np.zeros((cap, 3))
         self._cap = cap
 
@@ -167,51 +181,58 @@ class Stepper:
         sim = self.sim
         p = sim.particles
         h = sim.dt
+        cs = sim.contact_store
         # this step's envelope is a function of the state alone (not of when the list was built), so
         # results do not depend on rebuild timing, checkpoints or the partition
         need = self._needed_envelope()
-        sim._envelope = need
-        if need > sim._list_envelope:
-            self._set_list_envelope(1.25 * need)
+        sim.envelope = need
+        if need > sim.list_envelope:
+            sim.set_list_reach(1.25 * need)
 
         def narrow() -> None:
             # at a rebuild the list's reach follows the grains' speed down again (fewer pairs)
-            self._set_list_envelope(max(1.25 * need, self._base_envelope), force=False)
+            sim.set_list_reach(max(1.25 * need, self._base_envelope), force=False)
 
-        sim._update_neighbours(before_rebuild=narrow)
+        sim.update_neighbours(before_rebuild=narrow)
         t0 = _time.perf_counter()
-        env = sim._envelope
+        env = sim.envelope
         v_rec = self.p.recovery_speed or 0.0
         n_tot = p.n
         n_own = p.n_owned
-        npairs = sim._pi.shape[0]
-        nw = int(sim._w_cstart[-1]) if sim._wall_list else 0
+        npairs = cs.pi.shape[0]
+        walls = bool(cs.walls)
+        nw = int(cs.cstart[-1]) if walls else 0
         self._reserve(npairs + nw)
-        if sim._wall_list and sim._walls_changed:
-            sim._pack_walls()
-            sim._walls_changed = False
+        if walls and cs.walls_changed:
+            cs.pack_walls()
         # geometry at the start of the step (walls where they are now) ...
-        w_params = sim._w_params.copy() if sim._wall_list else None
+        w_params = cs.params.copy() if walls else None
         # ... with the velocity the walls move at during the step
-        sim._advance_walls(h)
+        sim.advance_walls(h)
         n_pair, flags = ck.assemble_pairs(
-            sim._pi, sim._pj, sim._pair_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim._coef, h, env, v_rec,
+            cs.pi, cs.pj, cs.hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
             sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale,
             self.gam, self.csrc,
         )  # fmt: skip
         nc = n_pair
-        if sim._wall_list:
+        if walls:
             nc, wflags = ck.assemble_walls(
-                sim._w_kinds, w_params, sim._w_vel, sim._w_omega, sim._w_centre, sim._w_mat, sim._w_cstart,
-                sim._w_cand, sim._wall_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim._coef, h, env, v_rec,
-                sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.gam, self.csrc, self.cpt,
+                cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand, cs.wall_hist,
+                p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec, sim.max_overlap, n_pair,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.csrc,
+                self.cpt,
             )  # fmt: skip
             flags |= wflags
-        g = sim._g
+        g = sim.g
         v_free = np.empty((n_tot, 3))
         w_free = np.empty((n_tot, 3))
-        ck.free_velocities(p.v, p.w, p.motion, g[0], g[1], g[2], h, n_own, v_free, w_free)
+        ck.free_velocities(p.v, p.w, p.motion, p.dof, g[0], g[1], g[2], h, n_own, v_free, w_free)
+        # external (boundary) forces: impulses h f_ext enter the free velocity; the reported force
+        # below adds them back
+        external = sim.external_forces()
+        if external:
+            ck.add_external_impulses(v_free, w_free, p.f, p.t, p.inv_m, p.inv_i, p.motion, p.dof, h, n_own)
+            f_ext, t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
         P = np.empty((n_tot, 3))
         L = np.empty((n_tot, 3))
         solver = self.p.solver
@@ -223,20 +244,22 @@ class Stepper:
             it, res = self._apgd(nc, v_free, w_free, P, L)
         # every solver ends with the velocities (and P, L) of its final impulses, accumulated in
         # contact order (deterministic)
-        ck.store_history(self.gam, self.csrc, nc, n_pair, sim._pair_hist, sim._wall_hist)
-        if sim._fpair.shape[0] != npairs:
-            sim._fpair = np.zeros((npairs, 3))
+        ck.store_history(self.gam, self.csrc, nc, n_pair, cs.hist, cs.wall_hist)
+        if cs.force.shape[0] != npairs:
+            cs.force = np.zeros((npairs, 3))
         ck.contact_forces(
-            self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, sim._fpair, sim._w_out_idx,
-            sim._w_out_val, sim._w_counts, sim._w_cstart,
+            self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, cs.force, cs.out_idx,
+            cs.out_val, cs.counts, cs.cstart,
         )  # fmt: skip
-        for k, wall in enumerate(sim._wall_list):
-            wall.record_load(int(sim._w_counts[k]))
-            wall._comm = sim.comm
+        sim.record_wall_loads()
         flags |= ck.finish_step(
-            p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own, sim._snap
+            p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own,
+            sim.position_snap,
         )  # fmt: skip
-        sim._force_time = getattr(sim, "_force_time", 0.0) + (_time.perf_counter() - t0)
+        if external:
+            p.f[:n_own] += f_ext
+            p.t[:n_own] += t_ext
+        sim.add_work_time(_time.perf_counter() - t0)
         converged = res <= self.p.tolerance
         if not converged:
             self.n_unconverged += 1
@@ -246,10 +269,7 @@ class Stepper:
         self.total_iterations += it
         self.max_residual = max(self.max_residual, res)
         self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
-        sim.time += h
-        sim.step_count += 1
-        if any_rank(sim.comm, flags != 0):
-            sim._raise_for_flags(flags)
+        sim.finish_step(flags)
 
     def _needed_envelope(self) -> float:
         """Automatic envelope: every pair that can close its gap within the step must be in the
@@ -262,18 +282,6 @@ class Stepper:
         n = p.n_owned
         vmax = math.sqrt(float(np.max(np.einsum("ij,ij->i", p.v[:n], p.v[:n])))) if n else 0.0
         return max(2.5 * all_max(sim.comm, vmax) * sim.dt, self._base_envelope)
-
-    def _set_list_envelope(self, envelope: float, force: bool = True) -> None:
-        """Change the reach of the neighbour list (skin + envelope); a wider one needs a rebuild
-        (``force``), and under MPI wider ghost layers and subdomains."""
-        sim = self.sim
-        sim._list_envelope = envelope
-        sim._list_skin = sim.skin + envelope
-        sim._ghost_width = sim._ghost_width_base + sim._list_skin
-        if sim._decomp is not None:
-            sim._decomp.widen(sim._ghost_width)
-        if force:
-            sim._force_rebuild = True
 
     def state(self) -> dict[str, np.ndarray]:
         """Counters for checkpoints (the envelope is saved by the simulation)."""
@@ -298,7 +306,7 @@ class Stepper:
             "tolerance": p.tolerance,
             "max_iterations": p.max_iterations,
             "relaxation": p.relaxation,
-            "envelope": self.sim._envelope,
+            "envelope": self.sim.envelope,
             "steps": self.n_steps,
             "unconverged_steps": self.n_unconverged,
             "mean_iterations": self.total_iterations / max(self.n_steps, 1),
@@ -310,11 +318,8 @@ class Stepper:
         sim = self.sim
         p = sim.particles
         ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
-        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.n_owned)
-        if sim._decomp is not None:
-            from ..parallel.exchange import forward
-
-            forward(sim)
+        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
+        sim.forward_ghosts()
 
     def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         sim = self.sim
@@ -353,7 +358,7 @@ class Stepper:
         while it < pr.max_iterations:
             res = ck.gauss_seidel_sweep(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, p.v, p.w,
-                p.inv_m, p.inv_i, nc, pr.relaxation,
+                p.inv_m, p.inv_i, p.dof, nc, pr.relaxation,
             )  # fmt: skip
             it += 1
             if res <= pr.tolerance:

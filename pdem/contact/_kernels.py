@@ -154,7 +154,8 @@ def wall_forces(
     Wall k has geometry ``kinds[k]``/``params[k]`` (see :mod:`pdem.boundaries._geometry`), translational
     and angular velocity ``vel[k]``/``omega[k]``, reference point ``centre[k]`` (about which it turns
     and its torque is reported), material ``wmat[k]``, candidates ``cand[cstart[k]:cstart[k+1]]`` and
-    history ``hist[k]`` of shape (n, H) indexed by particle. Inactive walls have no candidates.
+    history ``hist[q]`` for candidate row q (sparse: one row per candidate, keyed by wall and particle
+    id in :class:`pdem.contact.store.ContactStore`). Inactive walls have no candidates.
 
     A wall is the partner j (infinite mass and radius: R* = r_i, m* = m_i, I* = I_i); the law's force
     F acts on the wall and −F on the particle. Each touching particle's contribution to wall k's
@@ -162,7 +163,7 @@ def wall_forces(
     in ``out_idx``; ``counts[k]`` receives the number of contacts. Returns the flag word.
     """
     flags = 0
-    hsize = hist.shape[2]
+    hsize = hist.shape[1]
     for k in range(kinds.shape[0]):
         kind = kinds[k]
         p = params[k]
@@ -173,7 +174,7 @@ def wall_forces(
             gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
             if gap >= 0.0 or inv_m[i] == 0.0:
                 for h in range(hsize):
-                    hist[k, i, h] = 0.0
+                    hist[q, h] = 0.0
                 continue
             delta = -gap
             if delta > max_overlap * r[i]:
@@ -206,8 +207,8 @@ def wall_forces(
                 coef,
                 mat[i],
                 wmat[k],
-                hist[k],
-                i,
+                hist,
+                q,
                 dt,
             )
             f[i, 0] -= fx

@@ -4,7 +4,8 @@ A **penalty law** (DEM-P) is a class deriving from :class:`ContactLaw`, register
 point group ``pdem.contact_laws`` (the entry-point name is the value written in a deck). It
 declares, as class data:
 
-* ``name`` and ``kind`` (``"penalty"``; complementarity methods bring their own stepper);
+* ``name`` and ``kind`` (``"penalty"``; a method with its own time step, like complementarity,
+  returns its :class:`~pdem.integrate.base.Integrator` from ``make_integrator``);
 * ``history_size`` — floats of history per contact (0 for memoryless laws);
 * ``Params`` — a pydantic model of its parameters (validated before anything runs);
 * ``pair_kernel`` / ``wall_kernel`` — the generic loops of :mod:`pdem.contact._kernels`
@@ -109,6 +110,13 @@ class ContactLaw:
     ) -> float:
         """Time step [s] used when the user gives none (a fraction of :meth:`critical_dt`)."""
         return 0.2 * self.critical_dt(materials, radii, mat_index, masses)
+
+    def make_integrator(self, sim: Any):
+        """The time integrator of this law's method: velocity Verlet for penalty laws. A method with
+        its own step (DEM-C) returns its own :class:`pdem.integrate.base.Integrator`."""
+        from ..integrate.verlet import VelocityVerlet
+
+        return VelocityVerlet(sim)
 
     def describe(self) -> str:
         return f"{self.name}({self.params.model_dump()})"

@@ -17,17 +17,25 @@ FLAG_NONFINITE = 2
 
 
 @njit
-def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dt, n, snap):
+def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dof, dt, n, snap):
     """``snap[c]`` > 0 rounds the displacement along axis c to the periodic position grid:
     (d + C) − C with C = 1.5·2⁵²·q is d rounded to a multiple of q (see :mod:`pdem.domain`);
-    0 leaves the axis alone."""
+    0 leaves the axis alone. ``dof`` bits lock velocity components (bit c: v_c, bit 3 + c: ω_c):
+    a locked component is not kicked (it stays zero)."""
     h = 0.5 * dt
     for i in range(n):
         mo = motion[i]
         if mo == 0:
+            lock = dof[i]
             for c in range(3):
-                v[i, c] += h * f[i, c] * inv_m[i]
-                w[i, c] += h * t[i, c] * inv_i[i]
+                if lock == 0:
+                    v[i, c] += h * f[i, c] * inv_m[i]
+                    w[i, c] += h * t[i, c] * inv_i[i]
+                else:
+                    if (lock >> c) & 1 == 0:
+                        v[i, c] += h * f[i, c] * inv_m[i]
+                    if (lock >> (c + 3)) & 1 == 0:
+                        w[i, c] += h * t[i, c] * inv_i[i]
                 d = dt * v[i, c]
                 if snap[c] != 0.0:
                     d = (d + snap[c]) - snap[c]
@@ -41,8 +49,9 @@ def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dt, n, snap):
 
 
 @njit
-def add_body_force_and_final_integrate(v, w, f, t, mass, inv_m, inv_i, motion, gx, gy, gz, dt, n):
-    """f += m g for free particles, then the second half kick; returns a flag word."""
+def add_body_force_and_final_integrate(v, w, f, t, mass, inv_m, inv_i, motion, dof, gx, gy, gz, dt, n):
+    """f += m g for free particles, then the second half kick (locked components skipped); returns a
+    flag word."""
     h = 0.5 * dt
     flags = 0
     for i in range(n):
@@ -51,13 +60,30 @@ def add_body_force_and_final_integrate(v, w, f, t, mass, inv_m, inv_i, motion, g
             f[i, 1] += mass[i] * gy
             f[i, 2] += mass[i] * gz
             s = 0.0
+            lock = dof[i]
             for c in range(3):
-                v[i, c] += h * f[i, c] * inv_m[i]
-                w[i, c] += h * t[i, c] * inv_i[i]
+                if lock == 0:
+                    v[i, c] += h * f[i, c] * inv_m[i]
+                    w[i, c] += h * t[i, c] * inv_i[i]
+                else:
+                    if (lock >> c) & 1 == 0:
+                        v[i, c] += h * f[i, c] * inv_m[i]
+                    if (lock >> (c + 3)) & 1 == 0:
+                        w[i, c] += h * t[i, c] * inv_i[i]
                 s += v[i, c] + w[i, c]
             if not math.isfinite(s):
                 flags |= FLAG_NONFINITE
     return flags
+
+
+@njit
+def add_body_forces(f, mass, motion, gx, gy, gz, n):
+    """f += m g for free particles."""
+    for i in range(n):
+        if motion[i] == 0:
+            f[i, 0] += mass[i] * gx
+            f[i, 1] += mass[i] * gy
+            f[i, 2] += mass[i] * gz
 
 
 @njit

@@ -67,6 +67,7 @@ class Decomposition:
     """
 
     def __init__(self, comm, x_all: np.ndarray, dims=None, min_width: float = 0.0, box=None) -> None:
+        self.swaps: list = []  # ghost swaps recorded by parallel.exchange.borders, replayed by forward
         x_all = np.atleast_2d(np.asarray(x_all, dtype=float))
         self.box = box
         self.periodic = tuple(bool(p) for p in box.periodic) if box is not None else (False, False, False)

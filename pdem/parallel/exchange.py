@@ -29,8 +29,8 @@ from ._kernels import pack_xvw, unpack_xvw
 
 __all__ = ["migrate", "borders", "forward"]
 
-_FIELDS = ("id", "x", "v", "w", "f", "t", "r", "mass", "inv_m", "inv_i", "mat", "motion", "x_build")
-_GHOST_FIELDS = ("id", "x", "v", "w", "r", "mass", "inv_m", "inv_i", "mat", "motion")
+# Which fields travel is the particle store's registry (pdem.state.particles.Field: migrate, ghost);
+# contact history travels with the particles through the contact store (rows keyed by ids).
 
 
 def _sendrecv(dec, obj, dest, source, tag):
@@ -55,7 +55,7 @@ def migrate(sim) -> None:
     home (after a rebalance cut planes can move by several subdomains)."""
     from .comm import any_rank
 
-    dec = sim._decomp
+    dec = sim.decomposition
     p = sim.particles
     p.n_ghost = 0
     while True:
@@ -66,7 +66,7 @@ def migrate(sim) -> None:
 
 
 def _migrate_pass(sim) -> None:
-    dec = sim._decomp
+    dec = sim.decomposition
     p = sim.particles
     for d in range(3):
         lower, upper = dec.neighbours[d]
@@ -95,17 +95,8 @@ def _migrate_pass(sim) -> None:
 
 def _pack(sim, idx: np.ndarray) -> dict:
     p = sim.particles
-    out = {k: getattr(p, k)[idx].copy() for k in _FIELDS}
-    out["wall_hist"] = sim._wall_hist[:, idx, :].copy() if len(sim._wall_list) else None
-    keys = sim._pair_keys
-    if len(idx) and keys.size:
-        ids = out["id"]
-        rows = np.isin(keys >> 32, ids) | np.isin(keys & 0xFFFFFFFF, ids)
-        out["pair_keys"] = keys[rows].copy()
-        out["pair_hist"] = sim._pair_hist[rows].copy()
-    else:
-        out["pair_keys"] = np.zeros(0, dtype=np.int64)
-        out["pair_hist"] = np.zeros((0, sim._pair_hist.shape[1]))
+    out = p.take(idx, p.names(migrate=True))
+    out.update(sim.contact_store.rows_of(out["id"]))
     return out
 
 
@@ -115,42 +106,14 @@ def _remove(sim, mask: np.ndarray) -> None:
     k = int(mask.sum())
     if k == 0:
         return
-    sim._permute_storage(np.concatenate([np.flatnonzero(~mask), np.flatnonzero(mask)]))
-    if len(sim._wall_list):
-        sim._wall_hist[:, n - k : n, :] = 0.0
+    sim.particles.permute(np.concatenate([np.flatnonzero(~mask), np.flatnonzero(mask)]))
     p.n_owned = n - k
 
 
 def _unpack(sim, parcel: dict) -> None:
     p = sim.particles
-    n0 = p.n_owned
-    k = len(parcel["id"])
-    p.append_owned(
-        parcel["id"],
-        parcel["x"],
-        parcel["v"],
-        parcel["w"],
-        parcel["r"],
-        parcel["mass"],
-        parcel["inv_m"],
-        parcel["inv_i"],
-        parcel["mat"],
-        parcel["motion"],
-    )
-    p.f[n0 : n0 + k] = parcel["f"]
-    p.t[n0 : n0 + k] = parcel["t"]
-    p.x_build[n0 : n0 + k] = parcel["x_build"]
-    if len(sim._wall_list):
-        sim._allocate_wall_history(p.n_owned, sim._pair_hist.shape[1])
-        sim._wall_hist[:, n0 : n0 + k, :] = parcel["wall_hist"]
-    if parcel["pair_keys"].size:
-        keys = np.concatenate([sim._pair_keys, parcel["pair_keys"]])
-        hist = np.concatenate([sim._pair_hist, parcel["pair_hist"]])
-        order = np.argsort(keys, kind="stable")
-        keys, hist = keys[order], hist[order]
-        first = np.ones(keys.shape[0], dtype=bool)
-        first[1:] = keys[1:] != keys[:-1]
-        sim._pair_keys, sim._pair_hist = keys[first], hist[first]
+    p.append_owned({k: v for k, v in parcel.items() if k in p.fields})
+    sim.contact_store.merge(parcel)
 
 
 def borders(sim, width: float) -> None:
@@ -159,8 +122,9 @@ def borders(sim, width: float) -> None:
     Each swap is recorded as ``[send_idx, dest, source, start, end, axis, shift]``: the ghosts it
     delivers occupy ``[start, end)``, and ``shift`` (±L or 0) is added to the sent coordinate along
     ``axis`` (a ghost crossing the periodic boundary)."""
-    dec = sim._decomp
+    dec = sim.decomposition
     p = sim.particles
+    ghost_fields = p.names(ghost=True)
     swaps = []
     for d in range(3):
         lower, upper = dec.neighbours[d]
@@ -176,7 +140,7 @@ def borders(sim, width: float) -> None:
         ):
             parcel = None
             if dest is not None:
-                parcel = {k: getattr(p, k)[send_idx].copy() for k in _GHOST_FIELDS}
+                parcel = p.take(send_idx, ghost_fields)
                 if shift != 0.0:
                     parcel["x"][:, d] += shift  # exact on the periodic position grid
             got = _sendrecv(dec, parcel, dest, source, tag)
@@ -185,20 +149,9 @@ def borders(sim, width: float) -> None:
         for got, swap in zip(recv, swaps[-2:], strict=True):
             start = p.n
             if got is not None and len(got["id"]):
-                _append_ghosts(p, got)
+                p.append_ghosts(got)
             swap[3], swap[4] = start, p.n
-    sim._swaps = swaps
-
-
-def _append_ghosts(p, got: dict) -> None:
-    n0 = p.n
-    k = len(got["id"])
-    p.reserve(n0 + k)
-    p.n_ghost = p.n_ghost + k
-    for name in _GHOST_FIELDS:
-        getattr(p, name)[n0 : n0 + k] = got[name]
-    p.f[n0 : n0 + k] = 0.0
-    p.t[n0 : n0 + k] = 0.0
+    dec.swaps = swaps
 
 
 def forward(sim) -> None:
@@ -210,11 +163,11 @@ def forward(sim) -> None:
     now). Buffers hold (k, 9) floats; swaps with no partner cost nothing; a swap with oneself (an
     unsplit periodic axis) is a local copy. Messages are tagged by swap direction, because along a
     periodic axis split in two both swaps have the same partner."""
-    dec = sim._decomp
+    dec = sim.decomposition
     comm = dec.comm
     p = sim.particles
     x, v, w = p.x, p.v, p.w
-    swaps = sim._swaps
+    swaps = dec.swaps
     for a in range(0, len(swaps), 2):
         requests = []
         received = []

@@ -1,17 +1,50 @@
 """Particle storage: a structure of arrays, owned particles in [0, n_owned), ghosts after.
 
-Fields (SI): ``id`` (int64, unique, < 2³¹), ``x`` position [m], ``v`` velocity [m/s], ``w`` angular
-velocity [rad/s], ``f`` force [N], ``t`` torque [N m] (all (n, 3) float64), ``r`` radius [m],
-``mass`` [kg], ``inv_m`` [1/kg] and ``inv_i`` [1/(kg m²)] (zero for fixed and prescribed particles,
-which act as infinitely massive in contacts), ``mat`` material index (int32), ``motion`` (int8:
-:data:`FREE`, :data:`FIXED`, :data:`PRESCRIBED`).
+Every per-particle array is a registered :class:`Field`: its name, dtype, width (scalar or 3-vector)
+and what the engine does with it: carry it when a particle migrates to another rank, copy it onto
+ghosts, keep it in checkpoints, write it in snapshots. The built-in fields (SI units):
+
+=========  ======  ==================================================================================
+``id``     int64   unique, < 2³¹, assigned in insertion order
+``x``      (n, 3)  position [m]
+``v``      (n, 3)  velocity [m/s]
+``w``      (n, 3)  angular velocity [rad/s]
+``f``      (n, 3)  force of the last evaluation [N] (DEM-C: contact impulse / h + weight)
+``t``      (n, 3)  torque [N m]
+``r``      float   radius [m]
+``mass``   float   [kg]
+``inv_m``  float   1/mass [1/kg]; 0 for fixed and prescribed particles (infinitely massive in contacts)
+``inv_i``  float   1/moment of inertia [1/(kg m²)]; 0 likewise
+``mat``    int32   material index
+``motion`` int8    :data:`FREE`, :data:`FIXED`, :data:`PRESCRIBED` (or :data:`REMOVED`)
+``group``  int32   a user tag (sensors, membrane grains, layers); 0 by default
+``dof``    uint8   locked degrees of freedom: bit c (c = 0, 1, 2) locks translation along x, y, z,
+                   bit 3 + c rotation about x, y, z (:func:`dof_mask`); 0 = all free
+``x_build`` (n, 3) position at the last neighbour-list rebuild (engine bookkeeping)
+=========  ======  ==================================================================================
+
+Plugins register their own fields with :meth:`ParticleStore.register` (through
+``Simulation.register_field``): they then migrate, are ghosted and checkpointed as declared,
+without any other edit.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["ParticleStore", "FREE", "FIXED", "PRESCRIBED", "REMOVED", "MOTION_NAMES"]
+__all__ = [
+    "ParticleStore",
+    "Field",
+    "BUILTIN_FIELDS",
+    "FREE",
+    "FIXED",
+    "PRESCRIBED",
+    "REMOVED",
+    "MOTION_NAMES",
+    "dof_mask",
+]
 
 FREE = 0
 FIXED = 1
@@ -19,29 +52,114 @@ PRESCRIBED = 2
 REMOVED = 3  # taken out by an outflow; compacted away at the next neighbour-list rebuild
 MOTION_NAMES = {"free": FREE, "fixed": FIXED, "prescribed": PRESCRIBED}
 
-_VEC = ("x", "v", "w", "f", "t", "x_build")
-_SCAL = {
-    "r": np.float64,
-    "mass": np.float64,
-    "inv_m": np.float64,
-    "inv_i": np.float64,
-    "mat": np.int32,
-    "motion": np.int8,
-    "id": np.int64,
-}
+
+def dof_mask(translation: str = "", rotation: str = "") -> int:
+    """The ``dof`` bits that lock ``translation`` along and ``rotation`` about the named axes
+    (``"xz"``, ``"y"``, ``""``). A 2-D mode in the xz plane: ``dof_mask("y", "xz")``."""
+    mask = 0
+    for shift, axes, what in ((0, translation, "translation"), (3, rotation, "rotation")):
+        for a in axes:
+            if a not in "xyz" or not a:
+                raise ValueError(f"{what} axes {axes!r}: use letters among x, y, z")
+            mask |= 1 << (shift + "xyz".index(a))
+    return mask
+
+
+@dataclass(frozen=True)
+class Field:
+    """A per-particle array.
+
+    ``width`` 0 is a scalar per particle, 3 a vector. ``migrate``: carried to the new owner when a
+    particle changes rank (owned particles keep every field; a field that does not migrate restarts
+    from ``default`` there). ``ghost``: copied onto ghost copies at neighbour-list rebuilds (only
+    positions, velocities and spins are refreshed every step). ``checkpoint``: saved and restored by
+    id. ``output``: offered to snapshot writers."""
+
+    name: str
+    dtype: str
+    width: int = 0
+    migrate: bool = True
+    ghost: bool = False
+    checkpoint: bool = True
+    output: bool = False
+    default: float = 0
+    doc: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.name.isidentifier() or self.name.startswith("_"):
+            raise ValueError(f"field name {self.name!r} must be an identifier not starting with '_'")
+        if self.width not in (0, 3):
+            raise ValueError(f"field {self.name!r}: width must be 0 (scalar) or 3 (vector)")
+        np.dtype(self.dtype)  # raises TypeError for an unknown dtype
+
+    def shape(self, n: int) -> tuple[int, ...]:
+        return (n, self.width) if self.width else (n,)
+
+
+BUILTIN_FIELDS = (
+    Field("id", "int64", ghost=True, output=True, default=-1),
+    Field("x", "float64", 3, ghost=True, output=True),
+    Field("v", "float64", 3, ghost=True, output=True),
+    Field("w", "float64", 3, ghost=True, output=True),
+    Field("f", "float64", 3, output=True),
+    Field("t", "float64", 3, output=True),
+    Field("r", "float64", ghost=True, output=True),
+    Field("mass", "float64", ghost=True, output=True),
+    Field("inv_m", "float64", ghost=True),
+    Field("inv_i", "float64", ghost=True),
+    Field("mat", "int32", ghost=True, output=True),
+    Field("motion", "int8", ghost=True, output=True),
+    Field("group", "int32", ghost=True, output=True),
+    Field("dof", "uint8", ghost=True, output=True),
+    Field("x_build", "float64", 3, checkpoint=False),
+)
 
 
 class ParticleStore:
-    """Structure of arrays with amortised growth. Field attributes are views of length ``n`` (owned +
-    ghosts), cached until the counts or the capacity change."""
+    """Structure of arrays with amortised growth. Field attributes (``p.x``, ``p.r``, …) are views
+    of length ``n`` (owned + ghosts), cached until the counts or the capacity change."""
 
     def __init__(self, capacity: int = 0) -> None:
         self.capacity = 0
         self._n_owned = 0
         self._n_ghost = 0
         self._views: dict[str, np.ndarray] = {}
+        self.fields: dict[str, Field] = {}
+        self._data: dict[str, np.ndarray] = {}
+        for spec in BUILTIN_FIELDS:
+            self.fields[spec.name] = spec
         self._alloc(max(capacity, 16))
 
+    # ------------------------------------------------------------------ registry
+    def register(self, spec: Field) -> None:
+        """Add a field (idempotent for an identical spec; a different spec under a used name is an
+        error). Existing particles get the field's default."""
+        old = self.fields.get(spec.name)
+        if old is not None:
+            if old != spec:
+                raise ValueError(f"particle field {spec.name!r} is registered already, as {old}")
+            return
+        self.fields[spec.name] = spec
+        self._data[spec.name] = np.full(spec.shape(self.capacity), spec.default, dtype=spec.dtype)
+        self._invalidate()
+
+    def names(self, *, migrate: bool | None = None, ghost: bool | None = None,
+              checkpoint: bool | None = None, output: bool | None = None) -> list[str]:
+        """Field names in registration order, filtered by their flags."""
+        out = []
+        for name, s in self.fields.items():
+            if migrate is not None and s.migrate != migrate:
+                continue
+            if ghost is not None and s.ghost != ghost:
+                continue
+            if checkpoint is not None and s.checkpoint != checkpoint:
+                continue
+            if output is not None and s.output != output:
+                continue
+            out.append(name)
+        return out
+
+    # ------------------------------------------------------------------ counts
     @property
     def n(self) -> int:
         return self._n_owned + self._n_ghost
@@ -73,16 +191,11 @@ class ParticleStore:
 
     def _alloc(self, capacity: int) -> None:
         old_cap = self.capacity
-        for name in _VEC:
-            new = np.zeros((capacity, 3), dtype=np.float64)
+        for name, spec in self.fields.items():
+            new = np.full(spec.shape(capacity), spec.default, dtype=spec.dtype)
             if old_cap:
-                new[:old_cap] = self.__dict__["_" + name]
-            self.__dict__["_" + name] = new
-        for name, dt in _SCAL.items():
-            new = np.zeros(capacity, dtype=dt)
-            if old_cap:
-                new[:old_cap] = self.__dict__["_" + name]
-            self.__dict__["_" + name] = new
+                new[:old_cap] = self._data[name]
+            self._data[name] = new
         self.capacity = capacity
         self._invalidate()
 
@@ -94,33 +207,55 @@ class ParticleStore:
         # only reached for names that are not attributes: a field view not cached yet. The view is
         # then stored as an instance attribute, so later reads are plain attribute lookups (a step
         # reads ~40 fields; through __getattr__ that cost ~35 µs per step)
-        views = self.__dict__.get("_views")
-        if views is not None and (name in _VEC or name in _SCAL):
-            view = self.__dict__["_" + name][: self.n]
-            views[name] = view
-            self.__dict__[name] = view
+        d = self.__dict__
+        data = d.get("_data")
+        if data is not None and name in data:
+            view = data[name][: self.n]
+            d["_views"][name] = view
+            d[name] = view
             return view
         raise AttributeError(name)
 
-    def append_owned(self, ids, x, v, w, r, mass, inv_m, inv_i, mat, motion) -> None:
-        """Append owned particles (no ghosts may be present)."""
+    # ------------------------------------------------------------------ adding, moving, removing
+    def append_owned(self, values: dict[str, np.ndarray]) -> None:
+        """Append owned particles (no ghosts may be present). ``values`` maps field names to arrays
+        of the new particles (``id`` is required); fields not given take their default, and
+        ``x_build`` is ``x``."""
         if self.n_ghost:
             raise RuntimeError("append_owned with ghosts present")
-        k = len(ids)
+        unknown = set(values) - set(self.fields)
+        if unknown:
+            raise KeyError(f"unknown particle field(s) {sorted(unknown)}")
+        k = len(values["id"])
         self.reserve(self.n_owned + k)
         s = slice(self.n_owned, self.n_owned + k)
-        d = self.__dict__
-        d["_id"][s] = ids
-        d["_x"][s] = x
-        d["_v"][s] = v
-        d["_w"][s] = w
-        d["_r"][s] = r
-        d["_mass"][s] = mass
-        d["_inv_m"][s] = inv_m
-        d["_inv_i"][s] = inv_i
-        d["_mat"][s] = mat
-        d["_motion"][s] = motion
-        d["_f"][s] = 0.0
-        d["_t"][s] = 0.0
-        d["_x_build"][s] = x
+        for name, spec in self.fields.items():
+            if name in values:
+                self._data[name][s] = values[name]
+            elif name == "x_build" and "x" in values:
+                self._data[name][s] = values["x"]
+            else:
+                self._data[name][s] = spec.default
         self.n_owned = self.n_owned + k
+
+    def append_ghosts(self, values: dict[str, np.ndarray]) -> None:
+        """Append ghost copies (fields not given take their default: forces, torques, …)."""
+        n0 = self.n
+        k = len(values["id"])
+        self.reserve(n0 + k)
+        s = slice(n0, n0 + k)
+        for name, spec in self.fields.items():
+            self._data[name][s] = values[name] if name in values else spec.default
+        self.n_ghost = self.n_ghost + k
+
+    def take(self, idx: np.ndarray, names) -> dict[str, np.ndarray]:
+        """Copies of the rows ``idx`` of the named fields."""
+        return {name: self._data[name][idx] for name in names}
+
+    def permute(self, perm: np.ndarray) -> None:
+        """Reorder the owned particles in memory (no ghosts may be present)."""
+        if self.n_ghost:
+            raise RuntimeError("storage can only be permuted without ghosts")
+        n = self.n_owned
+        for arr in self._data.values():
+            arr[:n] = arr[:n][perm]
