@@ -935,6 +935,12 @@ class Simulation:
             self.record_wall_loads()
         return flags
 
+    def add_body_forces(self) -> None:
+        """f += m g for the free particles (owned and ghosts)."""
+        p = self.particles
+        g = self._g
+        integ.add_body_forces(p.f, p.mass, p.motion, g[0], g[1], g[2], p.n)
+
     def record_wall_loads(self) -> None:
         """Tell every wall how many load rows this step wrote for it (summed lazily, exactly)."""
         counts = self.contact_store.counts

@@ -49,8 +49,8 @@ def column_iterations(n: int, solver: str, tol: float = 1e-8, cap: int = 200000)
     sim.gravity = (0, 0, -9.81)
     sim.dt = 1e-4
     sim.step()
-    it = sim._stepper.log[-1][1]
-    return it if sim._stepper.n_unconverged == 0 else -1
+    it = sim.integrator.log[-1][1]
+    return it if sim.integrator.n_unconverged == 0 else -1
 
 
 def chain_front_speed(n: int, method: str, dt: float, cap: int | None = None, t_end: float = 0.02) -> float:
@@ -96,7 +96,7 @@ def cost_per_contact(repeat: int = 5) -> dict[str, float]:
     sim.dt = 1e-4
     sim.max_overlap = 1.0
     sim.step()
-    st = sim._stepper
+    st = sim.integrator
     p = sim.particles
     nc = st.log[-1][3]
     times_it, times_acc = [], []

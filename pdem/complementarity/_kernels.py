@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import math
 
-from .._jit import njit
-from ..boundaries._geometry import wall_contact
-from ..contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
+from ..api import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, njit, wall_contact
 
 
 @njit(inline="always")

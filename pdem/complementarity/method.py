@@ -48,10 +48,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..contact.law import ContactLaw, LawParams
-from ..errors import InputError
-from ..integrate.base import Integrator
-from ..materials import MaterialTable
+from ..api import ContactLaw, InputError, Integrator, LawParams, MaterialTable
 from ..parallel.comm import all_max
 from . import _kernels as ck
 
@@ -152,12 +149,8 @@ class Stepper(Integrator):
     def prepare(self) -> None:
         """The reported forces before the first step: weights only (plus boundary forces)."""
         sim = self.sim
-        p = sim.particles
         sim.external_forces()
-        g = sim.g
-        from ..integrate._kernels import add_body_forces
-
-        add_body_forces(p.f, p.mass, p.motion, g[0], g[1], g[2], p.n)
+        sim.add_body_forces()
 
     # ------------------------------------------------------------------ work arrays
     def _reserve(self, nc: int) -> None:

@@ -29,8 +29,7 @@ class VelocityVerlet(Integrator):
         sim.compute_forces()
         cs.hist[:] = saved[0]
         cs.wall_hist[:] = saved[1]
-        p = sim.particles
-        integ.add_body_forces(p.f, p.mass, p.motion, sim.g[0], sim.g[1], sim.g[2], p.n)
+        sim.add_body_forces()
 
     def step(self) -> None:
         sim = self.sim

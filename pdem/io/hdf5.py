@@ -61,7 +61,7 @@ from typing import ClassVar
 import h5py
 import numpy as np
 
-from ..boundaries._geometry import KIND_NAMES
+from ..api import KIND_NAMES
 from ..errors import OutputError
 from .base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .frame import Frame, WallState

@@ -45,10 +45,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from .._jit import njit
-from ..contact._kernels import pair_forces, wall_forces
-from ..contact._tangential import tangential_spring
-from ..contact.law import ContactLaw, LawParams
+from ..api import ContactLaw, LawParams, njit, pair_forces, tangential_spring, wall_forces
 from ..materials import MaterialTable, effective_moduli, rayleigh_time
 
 __all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]

@@ -53,10 +53,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pdem._jit import njit
-from pdem.contact._kernels import pair_forces, wall_forces
-from pdem.contact._tangential import tangential_spring
-from pdem.contact.law import ContactLaw, LawParams
+from pdem.api import ContactLaw, LawParams, njit, pair_forces, tangential_spring, wall_forces
 from pdem.errors import InputError
 from pdem.laws.hertz_mindlin import damping_ratio
 from pdem.materials import MaterialTable

@@ -1,0 +1,88 @@
+"""The public plugin API: everything a contact law, boundary, writer, integrator or particle-field
+plugin needs, in one import. Plugins (pdem's own included) import from here or from pdem's public
+modules, never from a private module (a name starting with ``_``); a test enforces it.
+
+Contact laws (``pdem.contact_laws``)
+    :class:`ContactLaw`, :class:`LawParams`; the kernel toolkit :func:`njit` (pdem's numba
+    configuration: cache on, fastmath off), the generic loops :func:`pair_forces` and
+    :func:`wall_forces`, :func:`tangential_spring` (history, Coulomb cap) and the flag bits
+    ``FLAG_OVERLAP``, ``FLAG_NONFINITE``, ``FLAG_COINCIDENT``; contract checks in
+    :mod:`pdem.testing.law_contract`.
+Methods with their own time step
+    :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
+    wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind).
+Boundaries (``pdem.boundaries``)
+    :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
+    :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
+    :class:`Motion`, :class:`Fixed`, :class:`ConstantVelocity`, :class:`VelocityFunction`,
+    :class:`PositionFunction`, :class:`Controlled`.
+Writers (``pdem.writers``)
+    :class:`Writer`, :class:`Frame`, :class:`WallState`, :class:`Piece`, :func:`atomic_write_text`,
+    :func:`piece_name`, :func:`safe_key`, :data:`KIND_NAMES`, :func:`wall_triangles`.
+Particles
+    :class:`Field` (``Simulation.register_field``), :func:`dof_mask`, the motion codes ``FREE``,
+    ``FIXED``, ``PRESCRIBED``, ``REMOVED``; :class:`ContactStore`.
+Everything
+    :class:`Simulation`, :class:`Material`, :class:`MaterialTable`, the typed errors.
+"""
+
+from __future__ import annotations
+
+from ._jit import njit
+from .boundaries import shapes
+from .boundaries._geometry import KIND_NAMES, wall_contact
+from .boundaries.api import (
+    Boundary,
+    BoundaryParams,
+    MotionSpec,
+    Vec3,
+    WallBoundaryParams,
+    make_motion,
+)
+from .boundaries.walls import (
+    ConstantVelocity,
+    Controlled,
+    Fixed,
+    Motion,
+    PositionFunction,
+    VelocityFunction,
+    Wall,
+)
+from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, pair_forces, wall_forces
+from .contact._tangential import tangential_spring
+from .contact.law import ContactLaw, LawParams
+from .contact.store import ContactStore
+from .errors import (
+    CheckpointError,
+    DeckError,
+    GeometryError,
+    InputError,
+    InstabilityError,
+    NumericalError,
+    OutputError,
+    PdemError,
+    PluginError,
+)
+from .integrate.base import Integrator
+from .integrate.verlet import VelocityVerlet
+from .io.base import Piece, Writer, atomic_write_text, piece_name, safe_key
+from .io.frame import Frame, WallState
+from .io.wall_mesh import wall_triangles
+from .materials import Material, MaterialTable
+from .simulation import Simulation
+from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
+
+__all__ = [
+    "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "KIND_NAMES",
+    "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
+    "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
+    "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
+    "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
+    "Controlled",
+    "Writer", "Frame", "WallState", "Piece", "atomic_write_text", "piece_name", "safe_key",
+    "wall_triangles",
+    "Field", "dof_mask", "FREE", "FIXED", "PRESCRIBED", "REMOVED",
+    "Simulation", "Material", "MaterialTable",
+    "PdemError", "InputError", "DeckError", "PluginError", "GeometryError", "NumericalError",
+    "InstabilityError", "CheckpointError", "OutputError",
+]  # fmt: skip
