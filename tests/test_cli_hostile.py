@@ -1,0 +1,105 @@
+"""The pdem command against hostile input (issue 9): bad output targets, file permissions, --steps,
+run.decomposition on the wrong rank count, absurd step counts, huge titles, integer count columns in
+the series, and `pdem schema --output` over an existing file.
+
+Every refusal must exit 2 with one message naming the key or path and the remedy (no traceback:
+called in-process, an unexpected exception fails the test) and must leave nothing behind.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from pdem.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# 64 spheres on a simple cubic lattice above a floor, 20 steps: ~0.2 s once the kernels are cached
+TINY = """\
+title = "tiny lattice"
+[run]
+dt = 2e-6
+[materials.glass]
+density = 2500.0
+youngs_modulus = 5e7
+poisson_ratio = 0.3
+restitution = 0.5
+friction = 0.5
+[[particles]]
+source = "lattice"
+lattice = "sc"
+material = "glass"
+radius = 0.5e-3
+region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
+[boundaries.floor]
+type = "plane"
+material = "glass"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+[[stages]]
+name = "drop"
+[stages.end]
+steps = 20
+[output]
+every_steps = 10
+series_every_steps = 10
+"""
+
+# the same scene ending by time instead of steps (the step count follows from dt)
+TIMED = TINY.replace("steps = 20\n", "time = 4e-5\n")
+
+
+def write_deck(directory: Path, text: str = TINY, name: str = "deck.toml") -> Path:
+    path = directory / name
+    path.write_text(text)
+    return path
+
+
+def run_cli(args: list, capsys) -> tuple[int, str, str]:
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def tree(directory: Path) -> list[str]:
+    """Every path under ``directory`` (relative, sorted), to check that nothing was added."""
+    return sorted(str(p.relative_to(directory)) for p in directory.rglob("*"))
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    """The latest checkpoint of a tiny run stopped after 10 steps."""
+    tmp = tmp_path_factory.mktemp("hostile_ckpt")
+    deck = write_deck(tmp)
+    assert main([str(deck), "--output", str(tmp / "out"), "--steps", "10", "--quiet"]) == 0
+    return tmp / "out" / "checkpoints" / "latest.h5"
+
+
+# ------------------------------------------------------------------------------ 2. file modes
+def test_output_files_follow_the_umask(tmp_path, capsys):
+    """Index files written atomically (XDMF, PVD, PVTU-less VTU, metadata) get 0666 minus the umask
+    like every other output file, not mkstemp's 0600."""
+    deck = write_deck(tmp_path)
+    out = tmp_path / "out"
+    old = os.umask(0o027)
+    try:
+        code, _, err = run_cli(
+            [deck, "--output", out, "--quiet", "--set", 'output.formats=["hdf5", "vtk"]'], capsys
+        )
+    finally:
+        os.umask(old)
+    assert code == 0, err
+    files = [p for p in out.rglob("*") if p.is_file() and not p.is_symlink()]
+    names = {p.name for p in files}
+    for expected in ("particles.xdmf", "walls.xdmf", "particles.pvd", "walls.pvd", "metadata.json"):
+        assert expected in names
+    assert any(p.suffix == ".vtu" for p in files)
+    modes = {str(p.relative_to(out)): oct(stat.S_IMODE(p.stat().st_mode)) for p in files}
+    assert set(modes.values()) == {oct(0o640)}, modes
+    assert not [p for p in out.rglob(".*")], "temporary files left behind"
+
+
