@@ -8,13 +8,18 @@ called in-process, an unexpected exception fails the test) and must leave nothin
 
 from __future__ import annotations
 
+import csv
+import importlib.util
 import os
 import stat
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pdem.cli import main
+from pdem.io.series import read_series
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -101,5 +106,34 @@ def test_output_files_follow_the_umask(tmp_path, capsys):
     modes = {str(p.relative_to(out)): oct(stat.S_IMODE(p.stat().st_mode)) for p in files}
     assert set(modes.values()) == {oct(0o640)}, modes
     assert not [p for p in out.rglob(".*")], "temporary files left behind"
+
+
+# ------------------------------------------------------------------------------ 7. series columns
+def _plot_series_module():
+    pytest.importorskip("matplotlib")
+    spec = importlib.util.spec_from_file_location("pdem_tools_plot_series", ROOT / "tools" / "plot_series.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_series_count_columns_are_integers(tmp_path, capsys):
+    deck = write_deck(tmp_path)
+    out = tmp_path / "out"
+    code, _, err = run_cli([deck, "--output", out, "--quiet"], capsys)
+    assert code == 0, err
+    with open(out / "series_drop.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["step"] for r in rows] == ["0", "10", "20", "20"]
+    assert {r["particles"] for r in rows} == {"64"}
+    assert all(r["floor.contacts"].isdigit() for r in rows)
+    assert rows[0]["ke_trans"] == "0.0" and rows[0]["time"] == "0.0"  # other columns keep float text
+    data = read_series(out / "series_drop.csv")
+    assert data["step"].dtype == np.int64 and data["particles"].dtype == np.int64
+    assert data["time"].dtype == np.float64 and data["ke_trans"].dtype == np.float64
+    stages = _plot_series_module().read_stages(out)
+    assert [name for name, _ in stages] == ["drop"]
+    assert list(stages[0][1]["step"]) == [0.0, 10.0, 20.0, 20.0]
 
 
