@@ -4,7 +4,7 @@
     pdem check DECK [--set KEY=VALUE ...]
     pdem resume CHECKPOINT [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
-    pdem schema [--output FILE]
+    pdem schema [--output FILE] [--overwrite]
 
 Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory),
 3 numerical failure (instability, lost particles), 1 anything else. User errors print one message,
@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import CheckpointError, PdemError
+from .errors import CheckpointError, InputError, PdemError
 
 __all__ = ["main"]
 
@@ -191,13 +191,32 @@ def cmd_schema(argv: list[str]) -> int:
     from .deck import deck_json_schema
 
     p = argparse.ArgumentParser(prog="pdem schema", description="Print the JSON Schema of decks.")
-    p.add_argument("--output", type=Path, default=None)
+    p.add_argument(
+        "--output", type=Path, default=None, metavar="FILE", help="write it to FILE instead of stdout"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     args = p.parse_args(argv)
+    out = args.output
+    if out is not None:  # refuse before the (slow) schema is built
+        if out.is_dir():
+            raise InputError(
+                f"--output {out} is a directory; give a file name, e.g. --output {out / 'deck.schema.json'}"
+            )
+        if (out.exists() or out.is_symlink()) and not args.overwrite:
+            raise InputError(
+                f"--output {out} already exists; pass --overwrite to replace it, or choose another file"
+            )
     text = json.dumps(deck_json_schema(), indent=2) + "\n"
-    if args.output:
-        args.output.write_text(text)
-    else:
+    if out is None:
         sys.stdout.write(text)
+        return 0
+    try:
+        out.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise InputError(
+            f"cannot write the schema to --output {out}: {exc.strerror or exc}; check that its directory "
+            "exists and is writable, or choose another file"
+        ) from exc
     return 0
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import json
 import os
 import stat
 import sys
@@ -137,3 +138,17 @@ def test_series_count_columns_are_integers(tmp_path, capsys):
     assert list(stages[0][1]["step"]) == [0.0, 10.0, 20.0, 20.0]
 
 
+# ------------------------------------------------------------------------------ 8. pdem schema
+def test_schema_refuses_to_overwrite(tmp_path, capsys):
+    target = tmp_path / "deck.schema.json"
+    target.write_text("precious")
+    code, _, err = run_cli(["schema", "--output", target], capsys)
+    assert code == 2 and str(target) in err and "--overwrite" in err, err
+    assert target.read_text() == "precious"
+    code, _, err = run_cli(["schema", "--output", target, "--overwrite"], capsys)
+    assert code == 0, err
+    assert "properties" in json.loads(target.read_text())
+    code, _, err = run_cli(["schema", "--output", tmp_path], capsys)
+    assert code == 2 and "is a directory" in err, err
+    code, _, err = run_cli(["schema", "--output", tmp_path / "missing" / "s.json"], capsys)
+    assert code == 2 and "cannot write" in err and not (tmp_path / "missing").exists(), err
