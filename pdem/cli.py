@@ -51,10 +51,12 @@ def _common(p: argparse.ArgumentParser, sets: bool) -> None:
         )
     p.add_argument(
         "--steps",
-        type=int,
+        type=_step_count,
         default=None,
         metavar="N",
-        help="stop after N steps in total, writing final output and a checkpoint",
+        help="stop after N steps in total (N >= 0), writing final output and a checkpoint; "
+        "--steps 0 builds the scene, writes its initial state and a checkpoint to resume from, "
+        "and stops",
     )
     p.add_argument(
         "--output",
@@ -65,6 +67,25 @@ def _common(p: argparse.ArgumentParser, sets: bool) -> None:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _step_count(text: str) -> int:
+    """``--steps``: a whole number >= 0 (argparse turns the error into usage + exit code 2).
+
+    0 is meaningful: the scene is built (sources inserted), its initial state written with a
+    checkpoint, and the run stops there, to be inspected or resumed."""
+    try:
+        value = int(text.strip(), 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of steps (0 or more), got {text!r}; e.g. --steps 5000"
+        ) from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(
+            f"the number of steps cannot be negative, got {value}; give 0 or more (--steps 0 only "
+            "builds the scene and writes its initial state), or leave --steps out to run every stage"
+        )
+    return value
 
 
 def _comm():

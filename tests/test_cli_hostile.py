@@ -109,6 +109,43 @@ def test_output_files_follow_the_umask(tmp_path, capsys):
     assert not [p for p in out.rglob(".*")], "temporary files left behind"
 
 
+# ------------------------------------------------------------------------------ 3. --steps
+@pytest.mark.parametrize("command", ["run", "resume"])
+def test_negative_steps_refused(tmp_path, capsys, checkpoint, command):
+    deck = write_deck(tmp_path)
+    head = [deck] if command == "run" else ["resume", checkpoint]
+    before = tree(tmp_path)
+    with pytest.raises(SystemExit) as exc:  # argparse: usage + one error line, exit code 2
+        main([str(a) for a in [*head, "--steps", "-5", "--output", tmp_path / "out", "--quiet"]])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert "--steps" in err and "negative" in err and "-5" in err and "0 or more" in err, err
+    assert tree(tmp_path) == before
+
+
+def test_zero_steps_writes_the_initial_state_and_resumes(tmp_path, capsys):
+    """--steps 0 is meaningful (kept): the scene is built, its initial state written with a
+    checkpoint, and resuming from it gives the uninterrupted run bit for bit."""
+    deck = write_deck(tmp_path)
+    code, out, err = run_cli([deck, "--output", tmp_path / "zero", "--steps", "0", "--quiet"], capsys)
+    assert code == 0, err
+    assert "stopped early" in out and "0 steps" in out
+    summary = json.loads((tmp_path / "zero" / "summary.json").read_text())
+    assert summary["steps"] == 0 and summary["particles"] == 64 and not summary["completed"]
+    ckpt = tmp_path / "zero" / "checkpoints" / "latest.h5"
+    code, _, err = run_cli(["resume", ckpt, "--output", tmp_path / "resumed", "--quiet"], capsys)
+    assert code == 0, err
+    code, _, err = run_cli([deck, "--output", tmp_path / "whole", "--quiet"], capsys)
+    assert code == 0, err
+    from pdem.io.checkpoint import read_checkpoint
+
+    a, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
+    b, _ = read_checkpoint(tmp_path / "whole" / "checkpoints" / "latest.h5")
+    assert a.keys() == b.keys()
+    for key in a:
+        assert np.array_equal(a[key], b[key]), key
+
+
 # ------------------------------------------------------------------------------ 7. series columns
 def _plot_series_module():
     pytest.importorskip("matplotlib")
