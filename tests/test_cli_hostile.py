@@ -12,7 +12,9 @@ import csv
 import importlib.util
 import json
 import os
+import shutil
 import stat
+import subprocess
 import sys
 from pathlib import Path
 
@@ -85,6 +87,79 @@ def checkpoint(tmp_path_factory) -> Path:
     return tmp / "out" / "checkpoints" / "latest.h5"
 
 
+# ------------------------------------------------------------------------------ 1. output targets
+def _bad_target(kind: str, tmp_path: Path) -> Path:
+    if kind == "regular_file":
+        target = tmp_path / "results.txt"
+        target.write_text("not a directory")
+        return target
+    if kind == "dev_null":
+        return Path("/dev/null")
+    if kind == "under_regular_file":  # cannot be created (root may write anywhere, but not under a file)
+        (tmp_path / "blocker").write_text("a file where a directory would have to be")
+        return tmp_path / "blocker" / "sub" / "out"
+    raise AssertionError(kind)
+
+
+BAD_TARGETS = ["regular_file", "dev_null", "under_regular_file"]
+
+
+def _assert_refused_output(code: int, err: str, target: Path) -> None:
+    assert code == 2, err
+    assert str(target) in err and "--output DIR" in err, err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("kind", BAD_TARGETS)
+def test_run_refuses_bad_output_target(tmp_path, capsys, kind):
+    deck = write_deck(tmp_path)
+    target = _bad_target(kind, tmp_path)
+    before = tree(tmp_path)
+    for extra in ([], ["--overwrite"]):  # --overwrite never replaces a file either
+        code, _, err = run_cli([deck, "--output", target, "--quiet", *extra], capsys)
+        _assert_refused_output(code, err, target)
+        assert tree(tmp_path) == before
+    if kind == "regular_file":
+        assert target.read_text() == "not a directory"
+        assert "regular file" in err
+    if kind == "dev_null":
+        assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and "character device" in err
+    if kind == "under_regular_file":
+        assert "cannot be created" in err and str(tmp_path / "blocker") in err
+
+
+@pytest.mark.parametrize("kind", BAD_TARGETS)
+def test_resume_refuses_bad_output_target(tmp_path, capsys, checkpoint, kind):
+    target = _bad_target(kind, tmp_path)
+    before = tree(tmp_path)
+    ckpt_dir_before = tree(checkpoint.parent.parent)
+    code, _, err = run_cli(["resume", checkpoint, "--output", target, "--quiet"], capsys)
+    _assert_refused_output(code, err, target)
+    assert tree(tmp_path) == before and tree(checkpoint.parent.parent) == ckpt_dir_before
+
+
+def test_deck_output_directory_that_is_a_file(tmp_path, capsys):
+    """The same rule for output.directory from the deck (no --output): the message names the key."""
+    deck = write_deck(tmp_path)
+    (tmp_path / "taken").write_text("x")
+    code, _, err = run_cli([deck, "--set", f'output.directory="{tmp_path / "taken"}"', "--quiet"], capsys)
+    assert code == 2 and "output.directory" in err and "regular file" in err, err
+    assert (tmp_path / "taken").read_text() == "x"
+
+
+def test_bad_output_target_real_process(tmp_path):
+    """Exit code 2 and one line on stderr from the installed command, not a traceback."""
+    deck = write_deck(tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pdem.cli", str(deck), "--output", "/dev/null", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.startswith("pdem: error: output path /dev/null") and "Traceback" not in proc.stderr
+
+
 # ------------------------------------------------------------------------------ 2. file modes
 def test_output_files_follow_the_umask(tmp_path, capsys):
     """Index files written atomically (XDMF, PVD, PVTU-less VTU, metadata) get 0666 minus the umask
@@ -144,6 +219,55 @@ def test_zero_steps_writes_the_initial_state_and_resumes(tmp_path, capsys):
     assert a.keys() == b.keys()
     for key in a:
         assert np.array_equal(a[key], b[key]), key
+
+
+# ------------------------------------------------------------------------------ 4. decomposition
+def test_decomposition_must_match_the_rank_count(tmp_path, capsys):
+    deck = write_deck(tmp_path)
+    out = tmp_path / "out"
+    code, _, err = run_cli([deck, "--output", out, "--quiet", "--set", "run.decomposition=[2, 1, 1]"], capsys)
+    assert code == 2, err
+    for fragment in ("run.decomposition", "[2, 1, 1]", "1 rank", "mpiexec -n 2", "remove run.decomposition"):
+        assert fragment in err, (fragment, err)
+    assert not out.exists()
+    # pdem check cannot know the rank count: nothing wrong there
+    code, stdout, err = run_cli(["check", deck, "--set", "run.decomposition=[2, 1, 1]"], capsys)
+    assert code == 0 and "valid" in stdout, err
+    # a matching grid runs
+    code, _, err = run_cli([deck, "--output", out, "--quiet", "--set", "run.decomposition=[1, 1, 1]"], capsys)
+    assert code == 0, err
+
+
+def test_decomposition_mismatch_under_mpi(tmp_path):
+    """On 2 ranks, a 1-subdomain grid is refused on every rank together (exit 2), nothing written."""
+    mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+    if mpiexec is None:
+        pytest.skip("mpiexec not found (pip install mpich)")
+    deck = write_deck(tmp_path)
+    out = tmp_path / "out"
+    cmd = [mpiexec, "-n", "2", sys.executable, "-m", "pdem.cli", str(deck), "--output", str(out), "--quiet"]
+    proc = subprocess.run(
+        [*cmd, "--set", "run.decomposition=[1, 1, 1]"], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "run.decomposition = [1, 1, 1]" in proc.stderr and "2 ranks" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and not out.exists()
+
+
+def test_decomposition_entries_must_be_positive(tmp_path, capsys):
+    """[0, 1, 1] or [-1, -1, 1] (product 1!) is a deck error, found by pdem check too."""
+    deck = write_deck(tmp_path)
+    for dims, index in (("[0, 1, 1]", 0), ("[-1, -1, 1]", 0)):
+        code, _, err = run_cli(["check", deck, "--set", f"run.decomposition={dims}"], capsys)
+        assert code == 2 and f"run.decomposition.{index}: must be >= 1" in err, err
+
+
+def test_decomposition_in_the_deck_file(tmp_path, capsys):
+    """Given in the deck rather than by --set: the same check, the same message."""
+    deck = write_deck(tmp_path, TINY.replace("dt = 2e-6", "dt = 2e-6\ndecomposition = [1, 1, 2]"))
+    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    assert code == 2 and "run.decomposition = [1, 1, 2]" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------------------ 7. series columns

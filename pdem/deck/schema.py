@@ -98,6 +98,7 @@ Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Str = Annotated[str, Strict()]
+Count = Annotated[int, Strict(), Field(ge=1)]
 Vec3 = Annotated[tuple[Float, Float, Float], Field(description="three numbers (x, y, z)")]
 
 
@@ -224,9 +225,10 @@ class RunSection(_DeckModel):
         "stops with an instability error)",
     )
     seed: Int = Field(0, ge=0, description="seed of the random number generator used by random sources")
-    decomposition: tuple[Int, Int, Int] | None = Field(
+    decomposition: tuple[Count, Count, Count] | None = Field(
         None,
-        description="MPI grid of subdomains (nx, ny, nz) whose product is the number of ranks; default: "
+        description="MPI grid of subdomains (nx, ny, nz), each >= 1, whose product is the number of ranks "
+        "(checked when the run starts; `pdem check` cannot know the rank count); default: "
         "chosen from the rank count to minimise the cut area over the particles",
     )
     balance_threshold: Float | None = Field(
