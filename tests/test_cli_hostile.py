@@ -270,6 +270,35 @@ def test_decomposition_in_the_deck_file(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+# ------------------------------------------------------------------------------ 5. absurd step counts
+def test_absurd_step_count_refused(tmp_path, capsys):
+    deck = write_deck(tmp_path, TIMED)
+    code, _, err = run_cli(["check", deck, "--set", "run.dt=1e-300"], capsys)
+    assert code == 2, err
+    for fragment in ("stages.0.end.time", "time = 4e-05", "dt = 1e-300", "run.dt", "4e+295 steps", "1e+10"):
+        assert fragment in err, (fragment, err)
+    # a stage's own dt, and max_time: both named
+    code, _, err = run_cli(
+        ["check", deck, "--set", "stages.0.dt=1e-20", "--set", "stages.0.end.max_time=1.0"], capsys
+    )
+    assert code == 2 and "stages.0.dt" in err and "stages.0.end.max_time" in err, err
+    # the run is refused the same way before anything is written
+    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--set", "run.dt=1e-300", "--quiet"], capsys)
+    assert code == 2 and "stages.0.end.time" in err and not (tmp_path / "out").exists()
+
+
+def test_long_stage_bounded_by_steps_or_time_is_fine(tmp_path, capsys):
+    """Only the stage's bound counts: a huge max_time is harmless when steps or time end it first."""
+    deck = write_deck(tmp_path, TINY)  # ends after 20 steps
+    code, _, err = run_cli(
+        ["check", deck, "--set", "run.dt=1e-300", "--set", "stages.0.end.max_time=1.0"], capsys
+    )
+    assert code == 0, err
+    deck = write_deck(tmp_path, TIMED, "timed.toml")  # ends at 4e-5 s = 20 steps
+    code, _, err = run_cli(["check", deck, "--set", "stages.0.end.max_time=1e300"], capsys)
+    assert code == 0, err
+
+
 # ------------------------------------------------------------------------------ 7. series columns
 def _plot_series_module():
     pytest.importorskip("matplotlib")
