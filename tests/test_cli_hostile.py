@@ -299,6 +299,18 @@ def test_long_stage_bounded_by_steps_or_time_is_fine(tmp_path, capsys):
     assert code == 0, err
 
 
+# ------------------------------------------------------------------------------ 6. title
+def test_title_length_capped(tmp_path, capsys):
+    long_title = "x" * 1001
+    deck = write_deck(tmp_path, TINY.replace('title = "tiny lattice"', f'title = "{long_title}"'))
+    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    assert code == 2 and "title" in err and "1,001 characters" in err and "1,000" in err, err
+    assert len(err) < 1000 and not (tmp_path / "out").exists()  # the title itself is not echoed
+    ok = write_deck(tmp_path, TINY.replace('title = "tiny lattice"', f'title = "{"y" * 1000}"'), "ok.toml")
+    code, _, err = run_cli(["check", ok], capsys)
+    assert code == 0, err
+
+
 # ------------------------------------------------------------------------------ 7. series columns
 def _plot_series_module():
     pytest.importorskip("matplotlib")

@@ -75,6 +75,7 @@ __all__ = [
     "OUTPUT_FIELDS",
     "NAME_PATTERN",
     "RULE_ERROR",
+    "MAX_TITLE_LENGTH",
     "MAX_STAGE_STEPS",
 ]
 
@@ -87,6 +88,8 @@ NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_-]*$"
 _NAME_RE = re.compile(NAME_PATTERN)
 #: pydantic error type of rule violations (the message is final, used verbatim)
 RULE_ERROR = "deck_rule"
+#: longest ``title`` accepted [characters]; it is copied into every output file's metadata
+MAX_TITLE_LENGTH = 1000
 #: most steps a stage may take by its end time or max_time at a dt given in the deck: beyond this a
 #: run cannot finish (1e10 steps of even a tiny scene take days), so the dt or the time is a mistake
 MAX_STAGE_STEPS = 10**10
@@ -1020,7 +1023,11 @@ def _stage_keys(table: dict) -> list[str]:
 class Deck(_DeckModel):
     """A pdem deck: the root of the TOML file."""
 
-    title: Str | None = Field(None, description="free-text title of the run")
+    title: Str | None = Field(
+        None,
+        max_length=MAX_TITLE_LENGTH,
+        description=f"free-text title of the run, at most {MAX_TITLE_LENGTH:,} characters",
+    )
     run: RunSection = Field(default_factory=RunSection, description="time step, gravity, skin, seed")
     domain: DomainSection = Field(
         default_factory=DomainSection, description="periodic boundaries: periodic axes and the box lo, hi"
