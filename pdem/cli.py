@@ -4,22 +4,29 @@
     pdem check DECK [--set KEY=VALUE ...]
     pdem resume CHECKPOINT [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
-    pdem schema [--output FILE]
+    pdem schema [--output FILE] [--overwrite]
 
-Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory),
-3 numerical failure (instability, lost particles), 1 anything else. User errors print one message,
-no traceback. With ``mpirun -n N``, every rank fails together.
+Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory, an
+output path that is not or cannot become a directory, a ``run.decomposition`` that does not match
+the rank count), 3 numerical failure (instability, lost particles), 1 anything else. User errors
+print one message, no traceback. With ``mpirun -n N``, every rank fails together.
+
+Everything the command line alone can refuse (``--steps``, the output path, the decomposition) is
+refused before the run is built, so a refused run leaves nothing behind.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
+import stat
 import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import CheckpointError, PdemError
+from .errors import CheckpointError, InputError, PdemError
 
 __all__ = ["main"]
 
@@ -51,10 +58,12 @@ def _common(p: argparse.ArgumentParser, sets: bool) -> None:
         )
     p.add_argument(
         "--steps",
-        type=int,
+        type=_step_count,
         default=None,
         metavar="N",
-        help="stop after N steps in total, writing final output and a checkpoint",
+        help="stop after N steps in total (N >= 0), writing final output and a checkpoint; "
+        "--steps 0 builds the scene, writes its initial state and a checkpoint to resume from, "
+        "and stops",
     )
     p.add_argument(
         "--output",
@@ -67,10 +76,115 @@ def _common(p: argparse.ArgumentParser, sets: bool) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
+def _step_count(text: str) -> int:
+    """``--steps``: a whole number >= 0 (argparse turns the error into usage + exit code 2).
+
+    0 is meaningful: the scene is built (sources inserted), its initial state written with a
+    checkpoint, and the run stops there, to be inspected or resumed."""
+    try:
+        value = int(text.strip(), 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of steps (0 or more), got {text!r}; e.g. --steps 5000"
+        ) from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(
+            f"the number of steps cannot be negative, got {value}; give 0 or more (--steps 0 only "
+            "builds the scene and writes its initial state), or leave --steps out to run every stage"
+        )
+    return value
+
+
 def _comm():
     from .parallel.comm import default_comm
 
     return default_comm()
+
+
+def _describe(mode: int) -> str:
+    if stat.S_ISREG(mode):
+        return "a regular file"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a directory"
+
+
+def _output_dir_problem(out: Path, what: str) -> str | None:
+    """Why ``out`` cannot be (or become) a run's output directory, or None.
+
+    ``what`` says where the path came from (``--output``, ``output.directory = …``), for the message.
+    Only looks, creates nothing: an existing directory (empty or not) is fine here, the Runner applies
+    the --overwrite rule to it.
+    """
+    remedy = "choose a directory path with --output DIR"
+    try:
+        st = os.stat(out)
+    except (FileNotFoundError, NotADirectoryError):  # missing, or under a file: see the ancestors
+        st = None
+    except OSError as exc:  # a loop of links, a name too long, …
+        return f"output path {out} ({what}) cannot be used: {exc.strerror}; {remedy}"
+    if st is not None:
+        if stat.S_ISDIR(st.st_mode):
+            if not os.access(out, os.W_OK | os.X_OK):
+                return f"output directory {out} ({what}) is not writable; fix its permissions or {remedy}"
+            return None
+        return (
+            f"output path {out} ({what}) exists and is {_describe(st.st_mode)}, not a directory; "
+            f"pdem writes a directory of files and never replaces a file (not even with --overwrite): "
+            f"{remedy}"
+        )
+    if out.is_symlink():
+        return f"output path {out} ({what}) is a symbolic link to a missing target; {remedy}"
+    # a new directory: its nearest existing ancestor must be a writable directory
+    parent = Path(os.path.abspath(out)).parent
+    while True:
+        try:
+            pst = os.stat(parent)
+        except (FileNotFoundError, NotADirectoryError):
+            pst = None
+        except OSError as exc:
+            return f"output directory {out} ({what}) cannot be created: {parent}: {exc.strerror}; {remedy}"
+        if pst is not None or parent.parent == parent:
+            break
+        parent = parent.parent
+    if pst is None or not stat.S_ISDIR(pst.st_mode):
+        kind = _describe(pst.st_mode) if pst is not None else "missing"
+        return (
+            f"output directory {out} ({what}) cannot be created: {parent} is {kind}, not a "
+            f"directory; {remedy}"
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return (
+            f"output directory {out} ({what}) cannot be created: no permission to write in {parent}; {remedy}"
+        )
+    return None
+
+
+def _check_before_run(resolved, out: Path, what: str, comm) -> None:
+    """Refuse, on every rank together, what the run would only discover after creating its output:
+    an output path that cannot be a directory, and a ``run.decomposition`` whose product is not the
+    number of ranks (a serial run would ignore it silently, an MPI run fail after starting)."""
+    dims = resolved.deck.run.decomposition
+    ranks = comm.size
+    if dims is not None and math.prod(dims) != ranks:
+        shown = "[" + ", ".join(str(d) for d in dims) + "]"
+        n = math.prod(dims)
+        raise InputError(
+            f"run.decomposition = {shown} asks for {' × '.join(str(d) for d in dims)} = "
+            f"{n} subdomain{'s' if n != 1 else ''}, one per MPI rank, but this run has {ranks} "
+            f"rank{'s' if ranks != 1 else ''}; start it with mpiexec -n {n}, give three "
+            f"numbers whose product is {ranks}, or remove run.decomposition to let pdem choose the grid"
+        )
+    problem = _output_dir_problem(out, what) if comm.rank == 0 else None
+    problem = comm.bcast(problem, root=0)
+    if problem:
+        raise InputError(problem)
 
 
 def _print_summary(summary: dict, out: Path) -> None:
@@ -105,12 +219,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .runner import Runner
 
     resolved = load_deck(args.deck, args.sets)
+    comm = _comm()
+    if args.output is not None:
+        out, what = args.output, "--output"
+    else:
+        directory = resolved.deck.output.directory
+        out, what = Path(directory), f"output.directory = '{directory}'"
+    _check_before_run(resolved, out, what, comm)
     runner = Runner(
         resolved,
-        output=args.output,
+        output=out,
         overwrite=args.overwrite,
         max_steps=args.steps,
-        comm=_comm(),
+        comm=comm,
         progress=None if args.quiet else sys.stderr,
         overrides=tuple(args.sets),
     )
@@ -160,13 +281,19 @@ def cmd_resume(argv: list[str]) -> int:
             f"the deck {deck_path} changed since the checkpoint was written; resume needs "
             "the same deck (compare with deck.resolved.toml in the run's output)"
         )
-    out = args.output or Path(str(meta["output"]) + f"-resumed-{int(state['scalars/step'])}")
+    if args.output is not None:
+        out, what = args.output, "--output"
+    else:
+        out = Path(str(meta["output"]) + f"-resumed-{int(state['scalars/step'])}")
+        what = "the default for resume: the checkpoint's output directory + '-resumed-STEP'"
+    comm = _comm()
+    _check_before_run(resolved, out, what, comm)
     runner = Runner(
         resolved,
         output=out,
         overwrite=args.overwrite,
         max_steps=args.steps,
-        comm=_comm(),
+        comm=comm,
         progress=None if args.quiet else sys.stderr,
         resume=(state, meta),
         overrides=tuple(overrides),
@@ -191,13 +318,32 @@ def cmd_schema(argv: list[str]) -> int:
     from .deck import deck_json_schema
 
     p = argparse.ArgumentParser(prog="pdem schema", description="Print the JSON Schema of decks.")
-    p.add_argument("--output", type=Path, default=None)
+    p.add_argument(
+        "--output", type=Path, default=None, metavar="FILE", help="write it to FILE instead of stdout"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     args = p.parse_args(argv)
+    out = args.output
+    if out is not None:  # refuse before the (slow) schema is built
+        if out.is_dir():
+            raise InputError(
+                f"--output {out} is a directory; give a file name, e.g. --output {out / 'deck.schema.json'}"
+            )
+        if (out.exists() or out.is_symlink()) and not args.overwrite:
+            raise InputError(
+                f"--output {out} already exists; pass --overwrite to replace it, or choose another file"
+            )
     text = json.dumps(deck_json_schema(), indent=2) + "\n"
-    if args.output:
-        args.output.write_text(text)
-    else:
+    if out is None:
         sys.stdout.write(text)
+        return 0
+    try:
+        out.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise InputError(
+            f"cannot write the schema to --output {out}: {exc.strerror or exc}; check that its directory "
+            "exists and is writable, or choose another file"
+        ) from exc
     return 0
 
 

@@ -291,6 +291,13 @@ def _one(err: dict, root: Any, prefix: Loc, extra_keys: tuple[str, ...]) -> tupl
             msg = f"needs at least {least} entr{'y' if least == 1 else 'ies'}; got {actual}"
         else:
             msg = f"accepts at most {ctx.get('max_length')} entries; got {actual}"
+    elif kind in ("string_too_long", "string_too_short"):
+        actual = f"{len(value):,}" if isinstance(value, str) else "?"
+        if kind == "string_too_long":
+            limit = ctx.get("max_length")
+            msg = f"is {actual} characters long, more than the {limit:,} allowed; shorten it"
+        else:
+            msg = f"must be at least {ctx.get('min_length')} characters long; got {actual}"
     elif kind in ("union_tag_invalid", "union_tag_not_found"):
         disc = str(ctx.get("discriminator", "type")).strip("'")
         tags = []

@@ -75,6 +75,8 @@ __all__ = [
     "OUTPUT_FIELDS",
     "NAME_PATTERN",
     "RULE_ERROR",
+    "MAX_TITLE_LENGTH",
+    "MAX_STAGE_STEPS",
 ]
 
 #: writers accepted in ``output.formats`` when the caller passes no list of installed writers
@@ -86,6 +88,11 @@ NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_-]*$"
 _NAME_RE = re.compile(NAME_PATTERN)
 #: pydantic error type of rule violations (the message is final, used verbatim)
 RULE_ERROR = "deck_rule"
+#: longest ``title`` accepted [characters]; it is copied into every output file's metadata
+MAX_TITLE_LENGTH = 1000
+#: most steps a stage may take by its end time or max_time at a dt given in the deck: beyond this a
+#: run cannot finish (1e10 steps of even a tiny scene take days), so the dt or the time is a mistake
+MAX_STAGE_STEPS = 10**10
 
 _KNOWN_ERROR_TYPES = frozenset(ErrorType.__args__)  # type: ignore[attr-defined]
 
@@ -98,6 +105,7 @@ Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Str = Annotated[str, Strict()]
+Count = Annotated[int, Strict(), Field(ge=1)]
 Vec3 = Annotated[tuple[Float, Float, Float], Field(description="three numbers (x, y, z)")]
 
 
@@ -224,9 +232,10 @@ class RunSection(_DeckModel):
         "stops with an instability error)",
     )
     seed: Int = Field(0, ge=0, description="seed of the random number generator used by random sources")
-    decomposition: tuple[Int, Int, Int] | None = Field(
+    decomposition: tuple[Count, Count, Count] | None = Field(
         None,
-        description="MPI grid of subdomains (nx, ny, nz) whose product is the number of ranks; default: "
+        description="MPI grid of subdomains (nx, ny, nz), each >= 1, whose product is the number of ranks "
+        "(checked when the run starts; `pdem check` cannot know the rank count); default: "
         "chosen from the rank count to minimise the cut area over the particles",
     )
     balance_threshold: Float | None = Field(
@@ -1014,7 +1023,11 @@ def _stage_keys(table: dict) -> list[str]:
 class Deck(_DeckModel):
     """A pdem deck: the root of the TOML file."""
 
-    title: Str | None = Field(None, description="free-text title of the run")
+    title: Str | None = Field(
+        None,
+        max_length=MAX_TITLE_LENGTH,
+        description=f"free-text title of the run, at most {MAX_TITLE_LENGTH:,} characters",
+    )
     run: RunSection = Field(default_factory=RunSection, description="time step, gravity, skin, seed")
     domain: DomainSection = Field(
         default_factory=DomainSection, description="periodic boundaries: periodic axes and the box lo, hi"
@@ -1039,7 +1052,7 @@ class Deck(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        return _cross_checks(data) + _domain_checks(data)
+        return _cross_checks(data) + _domain_checks(data) + _stage_length_checks(data)
 
     def stage_names(self) -> list[str]:
         return [s.name for s in self.stages]
@@ -1107,6 +1120,58 @@ def _domain_checks(data: dict) -> Problems:
                     )
                 )
     return out
+
+
+def _stage_length_checks(data: dict) -> Problems:
+    """A stage that may take more than :data:`MAX_STAGE_STEPS` steps by its end time (or max_time)
+    at a dt given in the deck: the run would never finish (``dt = 1e-300``). The stage's bound is
+    the least of ``steps``, ``time / dt`` and ``max_time / dt``, so a stage that ends by ``steps``
+    (or by ``time``) first is fine whatever its max_time; with dt from the law's estimate (not in
+    the deck) nothing is known before the run."""
+    run = data.get("run")
+    run_dt = run.get("dt") if isinstance(run, dict) else None
+    stages = data.get("stages")
+    out: Problems = []
+    for k, stage in enumerate(stages if isinstance(stages, list) else []):
+        if not isinstance(stage, dict) or not isinstance(stage.get("end"), dict):
+            continue
+        end = stage["end"]
+        if _is_num(stage.get("dt")):
+            dt, dt_key = stage["dt"], f"stages.{k}.dt"
+        elif stage.get("dt") is None and _is_num(run_dt):
+            dt, dt_key = run_dt, "run.dt"
+        else:
+            continue
+        if dt <= 0:
+            continue  # reported by the schema
+        by_time = {
+            key: end[key] / dt  # may overflow to inf: still above the limit
+            for key in ("time", "max_time")
+            if _is_num(end.get(key)) and end[key] > 0
+        }
+        steps = end.get("steps")
+        bounds = list(by_time.values())
+        if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0:
+            bounds.append(steps)
+        if not by_time or min(bounds) <= MAX_STAGE_STEPS:
+            continue
+        name = stage.get("name") if isinstance(stage.get("name"), str) else str(k)
+        for key, n in by_time.items():
+            out.append(
+                (
+                    ("stages", k, "end", key),
+                    f"stage '{name}': {key} = {_show_num(end[key])} s at dt = {_show_num(dt)} s "
+                    f"({dt_key}) is {n:.3g} steps, above the limit of {MAX_STAGE_STEPS:.0e} steps per "
+                    f"stage; raise {dt_key} (or leave dt out: the default is 0.2 of the contact "
+                    f"law's stability estimate) or shorten stages.{k}.end.{key}",
+                )
+            )
+    return out
+
+
+def _show_num(value: float) -> str:
+    """A number as TOML would write it (``repr`` of a float)."""
+    return repr(float(value)) if isinstance(value, float) else str(value)
 
 
 def _cross_checks(data: dict) -> Problems:

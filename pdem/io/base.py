@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
+import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +39,15 @@ import numpy as np
 from ..errors import OutputError
 from .frame import PARTICLE_FIELDS, REQUIRED_FIELDS, Frame, WallState
 
-__all__ = ["Piece", "Writer", "atomic_write_text", "piece_name", "safe_key", "write_metadata_json"]
+__all__ = [
+    "Piece",
+    "Writer",
+    "atomic_write_text",
+    "make_temp_file",
+    "piece_name",
+    "safe_key",
+    "write_metadata_json",
+]
 
 _T = TypeVar("_T")
 
@@ -47,13 +55,33 @@ _T = TypeVar("_T")
 _ALWAYS = (*REQUIRED_FIELDS, "r")
 
 
+def make_temp_file(path: Path, suffix: str = ".tmp") -> tuple[int, str]:
+    """Create a new, empty, uniquely named file beside ``path`` to be renamed over it later:
+    ``(open file descriptor, its path)``; the caller closes the descriptor.
+
+    Unlike :func:`tempfile.mkstemp` (mode 0600), the file gets the permissions of any new file,
+    ``0666`` minus the umask (the kernel applies it, so no process-wide umask call): an output file
+    written atomically must be as readable as one written directly.
+    """
+    path = Path(path)
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}{suffix}"
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except FileExistsError:
+            continue
+        return fd, str(tmp)
+    raise FileExistsError(f"no free temporary name for {path} after 100 tries")  # pragma: no cover
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically (temp file in the same directory + ``os.replace``).
 
-    A reader sees either the previous content or the new one, never a partial file.
+    A reader sees either the previous content or the new one, never a partial file. The file gets
+    the usual permissions of a new file (see :func:`make_temp_file`).
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = make_temp_file(path)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)

@@ -4,9 +4,11 @@
 flushed at once, so the file is usable (``tail -f``, a plotting script) while the run goes on and
 complete up to the last row if the run is killed. Floats are written with ``repr`` (shortest
 string that round-trips exactly), integers as integers, strings quoted as CSV needs; a column
-missing from a row is left empty. :func:`read_series` reads the file back into one array per
-column: int64 when every value is an integer, float64 when every value is a number (empty cells
-→ NaN), str otherwise.
+missing from a row is left empty. In a *count* column (:func:`is_count_column`: ``step``,
+``particles``, ``…contacts``, ``…_count``, ``…iterations`` …) a float holding a whole number is
+written as an integer (``100``, not ``100.0``): callers often carry every value as a float.
+:func:`read_series` reads the file back into one array per column: int64 when every value is an
+integer, float64 when every value is a number (empty cells → NaN), str otherwise.
 """
 
 from __future__ import annotations
@@ -23,7 +25,30 @@ import numpy as np
 
 from ..errors import OutputError
 
-__all__ = ["SeriesWriter", "read_series"]
+__all__ = ["SeriesWriter", "is_count_column", "read_series"]
+
+#: last name components (after the last ".") of columns that hold counts
+COUNT_NAMES = frozenset(
+    {
+        "step",
+        "steps",
+        "particles",
+        "contacts",
+        "iterations",
+        "rebalances",
+        "count",
+        "solver_iterations",
+        "solver_unconverged",
+        "contacts_rank0",
+    }
+)
+
+
+def is_count_column(column: str) -> bool:
+    """True for a column that holds a count: its last ``.``-separated part is one of
+    :data:`COUNT_NAMES` or ends with ``_count`` (e.g. ``hopper.discharged_count``)."""
+    leaf = column.rsplit(".", 1)[-1]
+    return leaf in COUNT_NAMES or leaf.endswith("_count")
 
 
 def _cell(column: str, value: object, path: Path) -> str:
@@ -32,7 +57,10 @@ def _cell(column: str, value: object, path: Path) -> str:
     if isinstance(value, numbers.Integral):
         return str(int(value))
     if isinstance(value, numbers.Real):
-        return repr(float(value))
+        x = float(value)
+        if x.is_integer() and abs(x) <= 2.0**53 and is_count_column(column):  # exact as an integer
+            return str(int(x))
+        return repr(x)
     if isinstance(value, str):
         return value
     if isinstance(value, np.ndarray) and value.ndim == 0:

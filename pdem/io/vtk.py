@@ -42,7 +42,6 @@ leaves only complete files, all listed in the ``.pvd`` files. In per-rank output
 from __future__ import annotations
 
 import os
-import tempfile
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
@@ -52,7 +51,7 @@ import meshio
 import numpy as np
 
 from ..errors import OutputError
-from .base import Piece, Writer, atomic_write_text, piece_name, write_metadata_json
+from .base import Piece, Writer, atomic_write_text, make_temp_file, piece_name, write_metadata_json
 from .frame import Frame, WallState
 from .wall_mesh import wall_triangles
 
@@ -62,7 +61,7 @@ __all__ = ["VTKWriter", "write_vtu"]
 def write_vtu(path: Path, mesh: meshio.Mesh) -> None:
     """Write ``mesh`` as binary VTU to ``path`` atomically (temp file in the same dir + os.replace)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".vtu")
+    fd, tmp = make_temp_file(path, suffix=".vtu")  # meshio picks the format by the suffix
     os.close(fd)
     try:
         meshio.write(tmp, mesh, file_format="vtu", binary=True, compression="zlib")
