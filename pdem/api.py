@@ -10,7 +10,8 @@ Contact laws (``pdem.contact_laws``)
     :mod:`pdem.testing.law_contract`.
 Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
-    wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind).
+    wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
+    :func:`surface_velocity` (a wall's velocity at a point: translation, rotation, radius rate).
 Boundaries (``pdem.boundaries``)
     :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
     :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 from ._jit import njit
 from .boundaries import shapes
-from .boundaries._geometry import KIND_NAMES, wall_contact
+from .boundaries._geometry import KIND_NAMES, surface_velocity, wall_contact
 from .boundaries.api import (
     Boundary,
     BoundaryParams,
@@ -73,7 +74,8 @@ from .simulation import Simulation
 from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
 __all__ = [
-    "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "KIND_NAMES",
+    "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "surface_velocity",
+    "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",

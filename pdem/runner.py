@@ -361,7 +361,9 @@ class Runner:
             "contacts": contacts,
         }
         walls = [
-            WallState(w.name, w.shape.kind, w.params.copy(), w.force, w.torque)
+            WallState(
+                w.name, int(w.kinds[0]), (w.rows if w.n_rows > 1 else w.params).copy(), w.force, w.torque
+            )
             for w in sim.walls.values()
             if w.active
         ]
@@ -379,7 +381,7 @@ class Runner:
         else:
             lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for w in sim.walls.values():
-            wlo, whi = w.shape.bounding_box(w.offset)
+            wlo, whi = w.bounding_box()
             lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
             hi = np.maximum(hi, np.where(np.isfinite(whi), whi, hi))
         if self._bounds is not None:  # grow only, so infinite walls keep their drawn size

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .boundaries.walls import Motion, Wall
+from .boundaries.walls import Controlled, Motion, Wall
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
 from .contact.law import ContactLaw
 from .contact.store import ContactStore
@@ -535,7 +535,7 @@ class Simulation:
                             "the periodic axes"
                         )
                     continue
-                lo, hi = wall.shape.bounding_box(wall.offset)
+                lo, hi = wall.bounding_box()
                 if not (lo[d] >= box.lo[d] + w and hi[d] <= box.hi[d] - w):
                     raise InputError(
                         f"wall '{wall.name}' spans [{lo[d]:.4g}, {hi[d]:.4g}] m along the periodic axis "
@@ -578,6 +578,8 @@ class Simulation:
         store = self.contact_store
         live = np.any(store.hist != 0.0, axis=1)
         keys, hist = store.keys[live], store.hist[live]
+        if store.walls_changed:
+            store.pack_walls()
         walls = [store.wall_history_of(k) for k in range(len(self._wall_list))]
         if self.comm.size > 1:
             parts = self.comm.allgather((keys, hist, walls))
@@ -585,7 +587,8 @@ class Simulation:
             hist = np.concatenate([q[1] for q in parts]).reshape(-1, store.history_size)
             walls = [
                 (np.concatenate([q[2][k][0] for q in parts]),
-                 np.concatenate([q[2][k][1] for q in parts]).reshape(-1, store.history_size))
+                 np.concatenate([q[2][k][1] for q in parts]),
+                 np.concatenate([q[2][k][2] for q in parts]).reshape(-1, store.history_size))
                 for k in range(len(self._wall_list))
             ]  # fmt: skip
         # a pair across ranks is held by both, and a pair across the periodic boundary twice (by each
@@ -596,14 +599,21 @@ class Simulation:
         out["pairs/hist"] = hist.copy()
         for k, wall in enumerate(self._wall_list):
             key = f"walls/{wall.name}/"
-            ids, whist = walls[k]
-            order = np.argsort(ids, kind="stable")
+            rows, ids, whist = walls[k]
+            order = np.lexsort((ids, rows))
+            out[key + "rows"] = rows[order].copy()
             out[key + "ids"] = ids[order].copy()
             out[key + "hist"] = whist[order].copy()
             out[key + "offset"] = wall.offset.copy()
             out[key + "velocity"] = wall.velocity.copy()
+            out[key + "omega"] = wall.omega.copy()
+            out[key + "size_rate"] = np.array(wall.size_rate)
+            out[key + "rotation"] = wall.rotation.copy()
+            names = sorted(wall.sizes)
+            out[key + "sizes"] = np.array([wall.sizes[nm] for nm in names], float)
             out[key + "active"] = np.array(wall.active)
-            out[key + "motion_velocity"] = np.asarray(getattr(wall.motion, "velocity", np.zeros(3)), float)
+            for name, value in wall.motion.state().items():
+                out[key + "motion/" + name] = np.asarray(value)
         out["scalars/time"] = np.array(self.time)
         out["scalars/step"] = np.array(self.step_count)
         out["scalars/dt"] = np.array(self.dt)
@@ -661,11 +671,21 @@ class Simulation:
             key = f"walls/{wall.name}/"
             whist = np.asarray(state[key + "hist"], dtype=np.float64).reshape(-1, hsize)
             ids = np.asarray(state[key + "ids"]) if key + "ids" in state else g["id"]  # dense before 0.2
-            store.set_wall_history(k, ids, whist)
+            rows = np.asarray(state[key + "rows"]) if key + "rows" in state else np.zeros(len(ids), np.int64)
+            store.set_wall_history(k, rows, ids, whist)
+            if key + "rotation" in state:
+                wall.rotation = np.array(state[key + "rotation"], dtype=float).reshape(3, 3)
+                names = sorted(wall.sizes)
+                sizes = (float(v) for v in np.atleast_1d(state[key + "sizes"]))
+                wall.sizes.update(zip(names, sizes, strict=True))
+                wall.omega = np.array(state[key + "omega"], dtype=float)
+                wall.size_rate = float(state[key + "size_rate"])
             wall.set_offset(np.array(state[key + "offset"], dtype=float))
             wall.velocity = np.array(state[key + "velocity"], dtype=float)
             wall.active = bool(state[key + "active"])
-            if hasattr(wall.motion, "velocity") and not isinstance(wall.motion.velocity, tuple):
+            prefix = key + "motion/"
+            wall.motion.restore({k2[len(prefix):]: v for k2, v in state.items() if k2.startswith(prefix)})
+            if key + "motion_velocity" in state and isinstance(wall.motion, Controlled):  # before 0.2
                 wall.motion.velocity = np.array(state[key + "motion_velocity"], dtype=float)
         self.time = float(state["scalars/time"])
         self.step_count = int(state["scalars/step"])
@@ -681,7 +701,7 @@ class Simulation:
 
     def _worst_overlap(self) -> tuple[float, str]:
         """Largest overlap / radius over pairs and walls, and who has it (for messages)."""
-        from .boundaries._geometry import wall_contact_numpy
+        from .boundaries._geometry import wall_gaps
 
         p = self.particles
         worst, who = -math.inf, "nobody"
@@ -698,7 +718,8 @@ class Simulation:
                 break
             if not wall.active:  # a switched-off wall (an opened plug) may cut through the grains
                 continue
-            gap = wall_contact_numpy(wall.shape.kind, wall.params, p.x[:n], p.r[:n])[0]
+            rows = zip(wall.kinds, wall.rows, strict=True)
+            gap = np.min([wall_gaps(int(kd), row, p.x[:n], p.r[:n]) for kd, row in rows], axis=0)
             ratio = np.where(np.isfinite(gap), -gap / p.r[:n], np.inf)
             k = int(np.argmax(ratio))
             if ratio[k] > worst:
@@ -798,17 +819,27 @@ class Simulation:
             pi, pj, keys = pi[order], pj[order], keys[order]
         store.set_pairs(pi, pj, keys)
         p.x_build[:] = x
-        # wall candidates: particles within the skin of each (active) wall, concatenated
-        from .boundaries._geometry import wall_contact_numpy
+        # wall candidates: particles within the skin of each row of each (active) wall, concatenated
+        from .boundaries._geometry import wall_gaps
+        from .boundaries._mesh import triangle_candidates
 
         cands = []
+        no = p.n_owned
+        if no:
+            box_lo, box_hi = x[:no].min(axis=0), x[:no].max(axis=0)
+        else:
+            box_lo = box_hi = np.full(3, np.nan)
         for wall in self._wall_list:
-            if p.n_owned and wall.active:
-                gap = wall_contact_numpy(wall.shape.kind, wall.params, x[: p.n_owned], r[: p.n_owned])[0]
+            if no and wall.active and wall.n_rows > 1:
+                cands += triangle_candidates(wall.rows, x[:no], r[:no], self._list_skin)
+            elif no and wall.active:
+                gap = wall_gaps(int(wall.kinds[0]), wall.params, x[:no], r[:no])
                 cands.append(np.flatnonzero(gap < self._list_skin).astype(np.int64))
             else:
-                cands.append(np.zeros(0, dtype=np.int64))
-            wall.offset_build = wall.offset.copy()
+                cands += [np.zeros(0, dtype=np.int64)] * wall.n_rows
+            wall.mark_built(box_lo, box_hi)
+        if store.walls_changed:
+            store.pack_walls()
         store.set_wall_candidates(cands, p.id)
         self.n_rebuilds += 1
 
@@ -927,10 +958,11 @@ class Simulation:
         if self._wall_list:
             if cs.walls_changed:
                 cs.pack_walls()
+            cs.filter_meshes(p.x, p.r, p.inv_m, 0.0)
             flags |= self.law.wall_kernel(
-                cs.kinds, cs.params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand, cs.wall_hist,
-                p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, self.coefficients, p.f, p.t, self.dt,
-                self.max_overlap, cs.out_idx, cs.out_val, cs.counts,
+                cs.kinds, cs.params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
+                cs.wall_hist, p.x, p.v, p.w, p.r, p.inv_m, p.inv_i, p.mat, self.coefficients, p.f, p.t,
+                self.dt, self.max_overlap, cs.out_idx, cs.out_val, cs.counts,
             )  # fmt: skip
             self.record_wall_loads()
         return flags
@@ -943,9 +975,8 @@ class Simulation:
 
     def record_wall_loads(self) -> None:
         """Tell every wall how many load rows this step wrote for it (summed lazily, exactly)."""
-        counts = self.contact_store.counts
-        for k, wall in enumerate(self._wall_list):
-            wall.record_load(int(counts[k]))
+        self.contact_store.record_wall_loads()
+        for wall in self._wall_list:
             wall._comm = self.comm
 
     def add_work_time(self, seconds: float) -> None:

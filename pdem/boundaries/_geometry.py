@@ -60,6 +60,22 @@ two-sided thin shell, open (no caps)
     d = σ (R − ρ),  φ = d − r,  n = σ ŵ,  c = A + s E + R ŵ  (s, ρ, ŵ as for the revolved kind;
     ρ = 0 uses ŵ = unit_perp(E)).
 
+``KIND_SPHERE = 4`` — sphere, one-sided
+    p[0:3] centre C, p[3] radius R, p[4] side σ: +1 particles live outside, −1 inside.
+    With ξ = x − C, ρ = |ξ|, ξ̂ = ξ/ρ: d = σ (ρ − R),  φ = d − r,  n = −σ ξ̂,  c = C + R ξ̂.
+    ρ = 0 uses ξ̂ = (0, 0, 1).
+
+``KIND_TRIANGLE = 5`` — triangle, two-sided thin shell (a facet of a mesh wall)
+    p[0:3] vertex A, p[3:6] edge vector E1 = B − A, p[6:9] edge vector E2 = C − A.
+    c = the closest point of the triangle (Voronoi regions of vertices, edges and face),
+    Δ = c − x,  φ = |Δ| − r,  n = Δ/|Δ|; a centre exactly on the triangle uses n = −N, N the unit
+    face normal E1 × E2/|E1 × E2|. :func:`triangle_contact` also reports whether c lies inside the
+    face (not on an edge or a vertex), which mesh walls use to count each touching grain once.
+
+Every kind keeps its anchor point in p[0:3]; :data:`PARAM_LAYOUT` says which other entries are
+points (moved by translations and rotations), direction vectors (turned by rotations) or lengths,
+so walls move and turn generically (:class:`pdem.boundaries.walls.Wall`).
+
 The kernels assume normalised direction vectors (the shape classes of
 :mod:`pdem.boundaries.shapes` normalise and validate them).
 """
@@ -77,7 +93,13 @@ __all__ = [
     "KIND_RECTANGLE",
     "KIND_REVOLVED",
     "KIND_CYLINDER",
+    "KIND_SPHERE",
+    "KIND_TRIANGLE",
     "KIND_NAMES",
+    "PARAM_LAYOUT",
+    "triangle_contact",
+    "surface_velocity",
+    "wall_gaps",
     "N_PARAMS",
     "unit_perp",
     "wall_contact",
@@ -88,15 +110,30 @@ KIND_PLANE = 0
 KIND_RECTANGLE = 1
 KIND_REVOLVED = 2
 KIND_CYLINDER = 3
+KIND_SPHERE = 4
+KIND_TRIANGLE = 5
 
 KIND_NAMES = {
     KIND_PLANE: "plane",
     KIND_RECTANGLE: "rectangle",
     KIND_REVOLVED: "revolved",
     KIND_CYLINDER: "cylinder",
+    KIND_SPHERE: "sphere",
+    KIND_TRIANGLE: "triangle",
 }
 
 N_PARAMS = 16
+
+#: per kind: (slots of 3-vectors that are directions or edge vectors, turned by rotations; the
+#: anchor point p[0:3] is moved by translations and rotations)
+PARAM_LAYOUT = {
+    KIND_PLANE: (3,),
+    KIND_RECTANGLE: (3, 6),
+    KIND_REVOLVED: (3,),
+    KIND_CYLINDER: (3,),
+    KIND_SPHERE: (),
+    KIND_TRIANGLE: (3, 6),
+}
 
 
 @njit
@@ -280,8 +317,167 @@ def wall_contact(
             p[1] + s * p[4] + big_r * wy,
             p[2] + s * p[5] + big_r * wz,
         )
+    elif kind == KIND_SPHERE:
+        rx = x0 - p[0]
+        ry = x1 - p[1]
+        rz = x2 - p[2]
+        rho = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if rho > 0.0:
+            ux = rx / rho
+            uy = ry / rho
+            uz = rz / rho
+        else:
+            ux = 0.0
+            uy = 0.0
+            uz = 1.0
+        side = p[4]
+        d = side * (rho - p[3])
+        return (
+            d - r,
+            -side * ux,
+            -side * uy,
+            -side * uz,
+            p[0] + p[3] * ux,
+            p[1] + p[3] * uy,
+            p[2] + p[3] * uz,
+        )
+    elif kind == KIND_TRIANGLE:
+        gap, nx, ny, nz, cx, cy, cz, _inside = triangle_contact(p, x0, x1, x2, r)
+        return gap, nx, ny, nz, cx, cy, cz
     else:
         raise ValueError("wall_contact: unknown wall kind")
+
+
+@njit
+def triangle_contact(p, x0, x1, x2, r):
+    """Sphere against the triangle p (layout of ``KIND_TRIANGLE``): (gap, n, c, inside face).
+
+    The closest point is found by the Voronoi regions of the vertices, edges and face (barycentric
+    tests on dot products with the edge vectors)."""
+    ax = p[0]
+    ay = p[1]
+    az = p[2]
+    e1x = p[3]
+    e1y = p[4]
+    e1z = p[5]
+    e2x = p[6]
+    e2y = p[7]
+    e2z = p[8]
+    apx = x0 - ax
+    apy = x1 - ay
+    apz = x2 - az
+    d1 = e1x * apx + e1y * apy + e1z * apz
+    d2 = e2x * apx + e2y * apy + e2z * apz
+    # with P − B = AP − E1 and P − C = AP − E2:
+    e11 = e1x * e1x + e1y * e1y + e1z * e1z
+    e12 = e1x * e2x + e1y * e2y + e1z * e2z
+    e22 = e2x * e2x + e2y * e2y + e2z * e2z
+    d3 = d1 - e11
+    d4 = d2 - e12
+    d5 = d1 - e12
+    d6 = d2 - e22
+    inside = False
+    if d1 <= 0.0 and d2 <= 0.0:  # vertex A
+        u = 0.0
+        v = 0.0
+    elif d3 >= 0.0 and d4 <= d3:  # vertex B
+        u = 1.0
+        v = 0.0
+    elif d6 >= 0.0 and d5 <= d6:  # vertex C
+        u = 0.0
+        v = 1.0
+    else:
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:  # edge AB
+            u = d1 / (d1 - d3)
+            v = 0.0
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:  # edge AC
+            u = 0.0
+            v = d2 / (d2 - d6)
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:  # edge BC
+            v = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            u = 1.0 - v
+        else:  # the face
+            den = 1.0 / (va + vb + vc)
+            u = vb * den
+            v = vc * den
+            inside = True
+    cx = ax + u * e1x + v * e2x
+    cy = ay + u * e1y + v * e2y
+    cz = az + u * e1z + v * e2z
+    dx = cx - x0
+    dy = cy - x1
+    dz = cz - x2
+    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if dist > 0.0:
+        nx = dx / dist
+        ny = dy / dist
+        nz = dz / dist
+    else:
+        fx = e1y * e2z - e1z * e2y
+        fy = e1z * e2x - e1x * e2z
+        fz = e1x * e2y - e1y * e2x
+        fn = math.sqrt(fx * fx + fy * fy + fz * fz)
+        nx = -fx / fn
+        ny = -fy / fn
+        nz = -fz / fn
+    return dist - r, nx, ny, nz, cx, cy, cz, inside
+
+
+@njit(inline="always")
+def surface_velocity(kind, p, vel, omega, centre, k, px, py, pz):
+    """Velocity of wall k's surface at the point (px, py, pz): V + Ω × (p − centre), plus, when the
+    wall's size changes (``vel[k, 3]`` = rate of its radius [m/s], revolved, cylinder and sphere
+    kinds), that rate along the radial direction of the point."""
+    qx = px - centre[k, 0]
+    qy = py - centre[k, 1]
+    qz = pz - centre[k, 2]
+    vwx = vel[k, 0] + omega[k, 1] * qz - omega[k, 2] * qy
+    vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
+    vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
+    rate = vel[k, 3]  # (vel[k, 4] is the mass of a free rigid-body wall, not a velocity)
+    if rate != 0.0:
+        if kind == KIND_SPHERE:
+            wx = px - p[0]
+            wy = py - p[1]
+            wz = pz - p[2]
+        elif kind == KIND_REVOLVED or kind == KIND_CYLINDER:
+            rx = px - p[0]
+            ry = py - p[1]
+            rz = pz - p[2]
+            s = rx * p[3] + ry * p[4] + rz * p[5]
+            wx = rx - s * p[3]
+            wy = ry - s * p[4]
+            wz = rz - s * p[5]
+        else:
+            wx = 0.0
+            wy = 0.0
+            wz = 0.0
+        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if wn > 0.0:
+            vwx += rate * wx / wn
+            vwy += rate * wy / wn
+            vwz += rate * wz / wn
+    return vwx, vwy, vwz, qx, qy, qz
+
+
+@njit
+def _gaps(kind, p, x, r, n, out):
+    for i in range(n):
+        out[i] = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])[0]
+
+
+def wall_gaps(kind: int, p: np.ndarray, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Gaps φ of the spheres (x, r) against one wall: the NumPy twin for the analytic kinds, the
+    kernel itself for spheres and triangles."""
+    if kind in (KIND_SPHERE, KIND_TRIANGLE):
+        n = x.shape[0]
+        out = np.empty(n)
+        _gaps(kind, np.asarray(p, dtype=np.float64), x, r, n, out)
+        return out
+    return wall_contact_numpy(kind, p, x, r)[0]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,6 +30,8 @@ from pdem.boundaries._geometry import (
     KIND_PLANE,
     KIND_RECTANGLE,
     KIND_REVOLVED,
+    KIND_SPHERE,
+    KIND_TRIANGLE,
     N_PARAMS,
 )
 from pdem.errors import GeometryError
@@ -44,6 +46,8 @@ __all__ = [
     "CylinderTube",
     "Frustum",
     "Cylinder",
+    "Sphere",
+    "TriangleMesh",
     "box_planes",
 ]
 
@@ -161,6 +165,18 @@ class WallShape:
     def _bbox(self) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    #: named sizes a motion may change: name → parameter slots that hold it
+    size_slots: dict[str, tuple[int, ...]] = {}
+
+    def sizes(self) -> dict[str, float]:
+        """The shape's named sizes [m] (``Wall.resize`` changes them)."""
+        return {name: float(self._base_params[slots[0]]) for name, slots in self.size_slots.items()}
+
+    def apply_size(self, rows: np.ndarray, name: str, value: float) -> None:
+        """Write size ``name`` = ``value`` into the packed rows."""
+        for slot in self.size_slots[name]:
+            rows[:, slot] = value
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(kind={self.kind}, params={self._base_params[:11].tolist()})"
 
@@ -208,6 +224,7 @@ class Rectangle(WallShape):
     """
 
     kind = KIND_RECTANGLE
+    size_slots = {"half_u": (9,), "half_v": (10,)}
 
     def __init__(
         self,
@@ -270,6 +287,7 @@ class Revolved(WallShape):
     """
 
     kind = KIND_REVOLVED
+    size_slots = {"s0": (6,), "rho0": (7,), "s1": (8,), "rho1": (9,)}
 
     def __init__(
         self,
@@ -334,6 +352,8 @@ class Disk(Revolved):
         self.normal = self.axis
         self.radius = radius
 
+    size_slots = {"radius": (9,)}
+
 
 class Annulus(Revolved):
     """Flat ring r_inner ≤ ρ ≤ r_outer centred at ``center`` with unit ``normal`` (two-sided).
@@ -362,6 +382,8 @@ class Annulus(Revolved):
         self.normal = self.axis
         self.r_inner = ri
         self.r_outer = ro
+
+    size_slots = {"r_inner": (7,), "r_outer": (9,)}
 
 
 class CylinderTube(Revolved):
@@ -392,6 +414,8 @@ class CylinderTube(Revolved):
         self.base_center = self.point
         self.radius = radius
         self.length = length
+
+    size_slots = {"radius": (7, 9), "length": (8,)}
 
 
 class Frustum(Revolved):
@@ -430,6 +454,8 @@ class Frustum(Revolved):
         self.r1 = r1
         self.length = length
 
+    size_slots = {"r0": (7,), "r1": (9,), "length": (8,)}
+
 
 # ---------------------------------------------------------------------------------------------
 # infinite cylinder
@@ -445,6 +471,7 @@ class Cylinder(WallShape):
     """
 
     kind = KIND_CYLINDER
+    size_slots = {"radius": (6,)}
 
     def __init__(
         self,
@@ -476,6 +503,116 @@ class Cylinder(WallShape):
         lo[bounded] = self.point[bounded] - self.radius
         hi[bounded] = self.point[bounded] + self.radius
         return lo, hi
+
+
+# ---------------------------------------------------------------------------------------------
+# sphere and triangle meshes
+# ---------------------------------------------------------------------------------------------
+
+
+class Sphere(WallShape):
+    """Sphere of ``radius`` centred at ``center``, one-sided: particles live outside (``inside=False``,
+    a ball: a penetrometer tip, an impactor) or inside (``inside=True``, a spherical container).
+    Params: [C(3), R, side = +1 outside / −1 inside]. Reference point: the centre."""
+
+    kind = KIND_SPHERE
+    size_slots = {"radius": (3,)}
+
+    def __init__(
+        self, center: ArrayLike3, radius: float, inside: bool = False, *, name_hint: str = "sphere"
+    ) -> None:
+        cls = "Sphere"
+        self.center = _vec3(cls, "center", center)
+        self.radius = _positive(cls, "radius", radius)
+        self.inside = bool(inside)
+        self.name_hint = name_hint
+        p = np.zeros(N_PARAMS)
+        p[0:3] = self.center
+        p[3] = self.radius
+        p[4] = -1.0 if self.inside else 1.0
+        self._base_params = p
+        self._ref = self.center.copy()
+
+    def _bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.center - self.radius, self.center + self.radius
+
+
+class TriangleMesh(WallShape):
+    """A surface of triangles (two-sided facets): ``vertices`` (m, 3) [m] and ``triangles`` (k, 3)
+    vertex indices, or a file read with meshio (:meth:`from_file`: STL, OBJ, VTK/VTU, PLY, … —
+    triangles only; quads are split in two). Each facet is one row of the wall: its load is
+    reported per facet (``Wall.facet_loads``), and a grain touching several facets of the mesh
+    counts once (face contacts first; an edge or vertex contact only when the grain touches no face,
+    and then only the closest). ``reference_point`` (default: the vertices' centroid) is where
+    torques are reported and rotations turn about."""
+
+    kind = KIND_TRIANGLE
+
+    def __init__(self, vertices, triangles, *, reference_point: ArrayLike3 | None = None,
+                 name_hint: str = "mesh") -> None:  # fmt: skip
+        cls = "TriangleMesh"
+        v = np.asarray(vertices, dtype=np.float64)
+        t = np.asarray(triangles)
+        if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 3 or not np.all(np.isfinite(v)):
+            raise GeometryError(f"{cls}: vertices must be finite, of shape (m >= 3, 3); got {v.shape}")
+        if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] < 1 or not np.issubdtype(t.dtype, np.integer):
+            raise GeometryError(
+                f"{cls}: triangles must be integer vertex indices of shape (k, 3); got {t.shape}"
+            )
+        if t.min() < 0 or t.max() >= v.shape[0]:
+            raise GeometryError(f"{cls}: triangle vertex indices must lie in [0, {v.shape[0] - 1}]")
+        a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+        area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        scale = float(np.max(np.ptp(v, axis=0))) or 1.0
+        bad = np.flatnonzero(area2 <= 1e-12 * scale * scale)
+        if bad.size:
+            raise GeometryError(
+                f"{cls}: {bad.size} degenerate (zero-area) triangle(s), first #{int(bad[0])}; remove them "
+                "from the mesh"
+            )
+        self.vertices = v
+        self.triangles = t.astype(np.int64)
+        self.name_hint = name_hint
+        self._rows = np.zeros((t.shape[0], N_PARAMS))
+        self._rows[:, 0:3] = a
+        self._rows[:, 3:6] = b - a
+        self._rows[:, 6:9] = c - a
+        self._base_params = self._rows[0]
+        self._ref = (
+            v.mean(axis=0) if reference_point is None else _vec3(cls, "reference_point", reference_point)
+        )
+
+    @classmethod
+    def from_file(cls, path, *, scale: float = 1.0, translate: ArrayLike3 = (0.0, 0.0, 0.0),
+                  reference_point: ArrayLike3 | None = None,
+                  name_hint: str = "mesh") -> TriangleMesh:  # fmt: skip
+        """Read a triangle mesh with meshio; coordinates × ``scale`` + ``translate`` [m]."""
+        import meshio
+
+        try:
+            mesh = meshio.read(path)
+        except Exception as exc:  # noqa: BLE001 - any reader failure is a bad input file
+            raise GeometryError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from None
+        tris = [c.data for c in mesh.cells if c.type == "triangle"]
+        tris += [c.data[:, [0, 1, 2]] for c in mesh.cells if c.type == "quad"]
+        tris += [c.data[:, [0, 2, 3]] for c in mesh.cells if c.type == "quad"]
+        if not tris:
+            kinds = sorted({c.type for c in mesh.cells})
+            raise GeometryError(f"mesh file {path} has no triangles (cell types: {kinds or 'none'})")
+        pts = np.asarray(mesh.points, dtype=float)[:, :3] * float(scale) + np.asarray(translate, float)
+        return cls(pts, np.concatenate(tris), reference_point=reference_point, name_hint=name_hint)
+
+    def rows(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(self._rows.shape[0], KIND_TRIANGLE, dtype=np.int64), self._rows.copy()
+
+    def params(self, offset: ArrayLike3 = (0.0, 0.0, 0.0)) -> np.ndarray:
+        raise GeometryError("a TriangleMesh has one row per facet: use rows()")
+
+    def _bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+
+    def __repr__(self) -> str:
+        return f"TriangleMesh({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles)"
 
 
 # ---------------------------------------------------------------------------------------------

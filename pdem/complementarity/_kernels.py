@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 
-from ..api import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, njit, wall_contact
+from ..api import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, njit, surface_velocity, wall_contact
 
 
 @njit(inline="always")
@@ -142,12 +142,16 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, vwx, vwy, vwz, phi, h, v_recovery, mu, im
 def assemble_walls(
     kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, r, inv_m, inv_i, mat, coef, h,
     envelope, v_recovery, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, gam, csrc, cpt,
+    wbody, wbinv,
 ):  # fmt: skip
     """Append wall contacts from row ``start``; zero the history of candidates out of reach.
 
     The wall geometry kernel returns n from the sphere into the wall; the contact normal here points
     from the wall (body i) to the particle (body j), i.e. −n. ``cpt`` receives the contact point
-    relative to the wall's reference point (for the reported torque). Returns (end row, flags)."""
+    relative to the wall's reference point (for the reported torque). A row of a wall that is a free
+    rigid body (``wbody[k]`` ≥ 0, the body's index in the velocity arrays, ``wbinv[k]`` its inverse
+    mass) makes that body the contact's partner i (translation only: no lever), so its velocity is
+    solved with the grains'. Returns (end row, flags)."""
     flags = 0
     c = start
     for k in range(kinds.shape[0]):
@@ -155,23 +159,28 @@ def assemble_walls(
         p = params[k]
         for q in range(cstart[k], cstart[k + 1]):
             i = cand[q]
+            if i < 0:  # set aside this step (mesh walls: one contact per grain)
+                for s in range(whist.shape[1]):
+                    whist[q, s] = 0.0
+                continue
             gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
-            if gap > envelope or inv_m[i] == 0.0:
+            body = wbody[k]
+            if gap > envelope or (inv_m[i] == 0.0 and body < 0):
                 for s in range(whist.shape[1]):
                     whist[q, s] = 0.0
                 continue
             if -gap > max_overlap * r[i]:
                 flags |= FLAG_OVERLAP
             # lever of the wall's load: its closest point relative to the reference point
-            qx = px - centre[k, 0]
-            qy = py - centre[k, 1]
-            qz = pz - centre[k, 2]
-            vwx = vel[k, 0] + omega[k, 1] * qz - omega[k, 2] * qy
-            vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
-            vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
-            _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], vwx, vwy, vwz, gap, h, v_recovery,
-                  coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[q],
-                  cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+            vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
+            if body >= 0:  # the body's velocity is an unknown of the problem
+                _fill(c, body, i, -nx, -ny, -nz, 0.0, r[i], 0.0, 0.0, 0.0, gap, h, v_recovery,
+                      coef[mat[i], wmat[k], 0], wbinv[k], inv_m[i], 0.0, inv_i[i], whist[q],
+                      cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+            else:
+                _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], vwx, vwy, vwz, gap, h, v_recovery,
+                      coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[q],
+                      cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
             csrc[c, 0] = k
             csrc[c, 1] = i
             csrc[c, 2] = q

@@ -145,6 +145,7 @@ class Stepper(Integrator):
         self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
         self._cap = 0
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
+        self._bodies: list = []
 
     def prepare(self) -> None:
         """The reported forces before the first step: weights only (plus boundary forces)."""
@@ -188,6 +189,21 @@ class Stepper(Integrator):
 
         sim.update_neighbours(before_rebuild=narrow)
         t0 = _time.perf_counter()
+        bodies = self._bodies = self._free_bodies()
+        nb = len(bodies)
+        if nb:  # rigid-body walls are solved with the grains, in rows after them
+            p.reserve(p.n + nb)
+            n = p.n
+            self.V, self.W = p.padded("v", nb), p.padded("w", nb)
+            self.IM, self.II, self.DOF = p.padded("inv_m", nb), p.padded("inv_i", nb), p.padded("dof", nb)
+            for j, (_k, wall) in enumerate(bodies):
+                self.V[n + j] = wall.motion.velocity_now
+                self.W[n + j] = 0.0
+                self.IM[n + j] = 1.0 / wall.motion.mass
+                self.II[n + j] = 0.0
+                self.DOF[n + j] = wall.motion.dof_bits
+        else:
+            self.V, self.W, self.IM, self.II, self.DOF = p.v, p.w, p.inv_m, p.inv_i, p.dof
         env = sim.envelope
         v_rec = self.p.recovery_speed or 0.0
         n_tot = p.n
@@ -209,16 +225,19 @@ class Stepper(Integrator):
         )  # fmt: skip
         nc = n_pair
         if walls:
+            cs.filter_meshes(p.x, p.r, p.inv_m, env)
             nc, wflags = ck.assemble_walls(
-                cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand, cs.wall_hist,
-                p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec, sim.max_overlap, n_pair,
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.csrc,
-                self.cpt,
+                cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
+                cs.wall_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
+                sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                self.cscale, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot),
             )  # fmt: skip
             flags |= wflags
         g = sim.g
-        v_free = np.empty((n_tot, 3))
-        w_free = np.empty((n_tot, 3))
+        v_free = np.empty((n_tot + nb, 3))
+        w_free = np.zeros((n_tot + nb, 3))
+        for j, (_k, wall) in enumerate(bodies):
+            v_free[n_tot + j] = wall.motion.free_velocity(h)
         ck.free_velocities(p.v, p.w, p.motion, p.dof, g[0], g[1], g[2], h, n_own, v_free, w_free)
         # external (boundary) forces: impulses h f_ext enter the free velocity; the reported force
         # below adds them back
@@ -226,8 +245,8 @@ class Stepper(Integrator):
         if external:
             ck.add_external_impulses(v_free, w_free, p.f, p.t, p.inv_m, p.inv_i, p.motion, p.dof, h, n_own)
             f_ext, t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
-        P = np.empty((n_tot, 3))
-        L = np.empty((n_tot, 3))
+        P = np.empty((n_tot + nb, 3))
+        L = np.empty((n_tot + nb, 3))
         solver = self.p.solver
         if solver == "jacobi":
             it, res = self._jacobi(nc, v_free, w_free, P, L)
@@ -252,6 +271,9 @@ class Stepper(Integrator):
         if external:
             p.f[:n_own] += f_ext
             p.t[:n_own] += t_ext
+        for j, (k, wall) in enumerate(bodies):  # semi-implicit Euler, as the grains
+            wall.motion.finish(wall, self.V[n_tot + j].copy(), h)
+            cs.update_wall(k)  # the next step's contacts start from where the body is now
         sim.add_work_time(_time.perf_counter() - t0)
         converged = res <= self.p.tolerance
         if not converged:
@@ -263,6 +285,47 @@ class Stepper(Integrator):
         self.max_residual = max(self.max_residual, res)
         self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
         sim.finish_step(flags)
+
+    # ------------------------------------------------------------------ rigid-body walls
+    def _free_bodies(self) -> list:
+        """Active walls that are free rigid bodies (``RigidBody``): solved with the grains."""
+        out = []
+        for k, wall in enumerate(self.sim.contact_store.walls):
+            if wall.active and getattr(wall.motion, "moved_by_load", False):
+                wall.motion.implicit = True  # moved after the solve, not by advance_walls
+                out.append((k, wall))
+        return out
+
+    def _body_rows(self, n_tot: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per wall row: the index of its body in the velocity arrays (−1: an immovable wall) and
+        the body's inverse mass."""
+        cs = self.sim.contact_store
+        nr = cs.kinds.shape[0]
+        wbody = np.full(nr, -1, dtype=np.int64)
+        wbinv = np.zeros(nr)
+        for j, (k, wall) in enumerate(self._bodies):
+            wbody[cs.wall_rows[k] : cs.wall_rows[k + 1]] = n_tot + j
+            wbinv[cs.wall_rows[k] : cs.wall_rows[k + 1]] = 1.0 / wall.motion.mass
+        return wbody, wbinv
+
+    def _body_velocities(self, nc: int, v_free: np.ndarray) -> None:
+        """v = v_free + P/M for every body, P the exact sum of its contacts' impulses over all
+        ranks (each contact of a body is held by the rank that owns the grain), so the body moves
+        alike on every rank and partition."""
+        from ..parallel.exact import exact_sums
+
+        sim = self.sim
+        n_tot = sim.particles.n
+        cb, cn, gam = self.cb[:nc], self.cn[:nc], self.gam[:nc]
+        for j, (_k, wall) in enumerate(self._bodies):
+            rows = np.flatnonzero(cb[:, 0] == n_tot + j)
+            g = gam[rows, 0:1] * cn[rows] + gam[rows, 1:4]  # impulse on the grain; −g on the body
+            if sim.comm.size > 1:
+                P = -exact_sums(sim.comm, g)
+            else:
+                P = -np.array([math.fsum(g[:, c]) for c in range(3)])
+            v = v_free[n_tot + j] + P / wall.motion.mass
+            self.V[n_tot + j] = v * wall.motion.free_axes
 
     def _needed_envelope(self) -> float:
         """Automatic envelope: every pair that can close its gap within the step must be in the
@@ -312,19 +375,20 @@ class Stepper(Integrator):
         p = sim.particles
         ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
         ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
+        if self._bodies:
+            self._body_velocities(nc, v_free)
         sim.forward_ghosts()
 
     def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         sim = self.sim
-        p = sim.particles
         pr = self.p
         self._sync_velocities(nc, v_free, w_free, P, L)
         res = 0.0
         it = 0
         while it < pr.max_iterations:
             local = ck.jacobi_update(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, p.v, p.w,
-                nc, pr.relaxation,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
+                self.W, nc, pr.relaxation,
             )  # fmt: skip
             it += 1
             self._sync_velocities(nc, v_free, w_free, P, L)
@@ -337,21 +401,19 @@ class Stepper(Integrator):
         return it, res
 
     def _residual(self, nc) -> float:
-        p = self.sim.particles
         u = np.empty((nc, 4))
-        ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, p.v, p.w, nc, u)
+        ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
         return ck.residual_max(self.gam, u, self.cmu, self.cscale, nc)
 
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
-        p = self.sim.particles
         pr = self.p
         self._sync_velocities(nc, v_free, w_free, P, L)
         res = 0.0
         it = 0
         while it < pr.max_iterations:
             res = ck.gauss_seidel_sweep(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, p.v, p.w,
-                p.inv_m, p.inv_i, p.dof, nc, pr.relaxation,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
+                self.W, self.IM, self.II, self.DOF, nc, pr.relaxation,
             )  # fmt: skip
             it += 1
             if res <= pr.tolerance:
@@ -374,8 +436,7 @@ class Stepper(Integrator):
             self.gam[:nc] = gv
             self._sync_velocities(nc, v_free, w_free, P, L)
             u = np.empty((nc, 4))
-            p = self.sim.particles
-            ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, p.v, p.w, nc, u)
+            ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
             return u
 
         r_vec = grad(np.zeros((nc, 4)))  # u(0) = r

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 from .._jit import njit_nocache
-from ..boundaries._geometry import wall_contact
+from ..boundaries._geometry import surface_velocity, wall_contact
 
 FLAG_OVERLAP = 1
 FLAG_NONFINITE = 2
@@ -171,11 +171,21 @@ def wall_forces(
         count = 0
         for q in range(cstart[k], cstart[k + 1]):
             i = cand[q]
-            gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
-            if gap >= 0.0 or inv_m[i] == 0.0:
+            if i < 0:  # set aside this step (a mesh counts a grain touching several facets once)
                 for h in range(hsize):
                     hist[q, h] = 0.0
                 continue
+            gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
+            if gap >= 0.0 or (inv_m[i] == 0.0 and vel[k, 4] == 0.0):
+                for h in range(hsize):
+                    hist[q, h] = 0.0
+                continue
+            if inv_m[i] == 0.0:  # a fixed grain against a free rigid body (vel[k, 4]: its mass)
+                m_eff = vel[k, 4]
+                i_eff = 0.4 * m_eff * r[i] * r[i]
+            else:
+                m_eff = 1.0 / inv_m[i]
+                i_eff = 1.0 / inv_i[i]
             delta = -gap
             if delta > max_overlap * r[i]:
                 flags |= FLAG_OVERLAP
@@ -183,13 +193,8 @@ def wall_forces(
             vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
             viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
             viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
-            # wall velocity at the contact point: V + Ω × (p − centre)
-            qx = px - centre[k, 0]
-            qy = py - centre[k, 1]
-            qz = pz - centre[k, 2]
-            vwx = vel[k, 0] + omega[k, 1] * qz - omega[k, 2] * qy
-            vwy = vel[k, 1] + omega[k, 2] * qx - omega[k, 0] * qz
-            vwz = vel[k, 2] + omega[k, 0] * qy - omega[k, 1] * qx
+            # wall velocity at the contact point: V + Ω × (p − centre) (+ the rate of its radius)
+            vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
             fx, fy, fz, mx, my, mz = law(
                 delta,
                 nx,
@@ -202,8 +207,8 @@ def wall_forces(
                 omega[k, 1] - w[i, 1],
                 omega[k, 2] - w[i, 2],
                 r[i],
-                1.0 / inv_m[i],
-                1.0 / inv_i[i],
+                m_eff,
+                i_eff,
                 coef,
                 mat[i],
                 wmat[k],

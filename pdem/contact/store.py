@@ -4,12 +4,17 @@
 are ``id_lo·2³² + id_hi``; ``hist`` holds the law's history per pair (``history_size`` floats);
 ``force`` the force on the higher-id particle from the last evaluation.
 
-**Walls.** ``walls`` in the order they were added; the stacked geometry the wall kernels read
-(``kinds``, ``params``, ``vel``, ``omega``, ``centre``, ``wmat``: :meth:`pack_walls`); candidate
-particles ``cand[cstart[k]:cstart[k+1]]`` of wall k, sorted by particle id; their history
-``wall_hist`` row by row, keyed by ``wall_keys`` = k·2³² + id. History is therefore sparse: it
-costs one row per particle near a wall, not walls × particles. Each contact's load on its wall goes
-to ``out_idx``/``out_val`` rows (``counts[k]`` per wall), summed exactly by :class:`Wall`.
+**Walls.** ``walls`` in the order they were added. Each wall owns one or more geometry **rows**
+(one for a primitive shape, one per facet of a mesh), rows of wall w being
+``wall_rows[w]:wall_rows[w + 1]``. The kernels read the stacked rows (:meth:`pack_walls`):
+``kinds``, ``params``, ``vel`` (translation; column 3 the rate of the radius; column 4 the mass of
+a wall that is a free rigid body, 0 for an immovable one), ``omega``,
+``centre`` (the wall's reference point), ``wmat``; candidate particles ``cand[cstart[k]:cstart[k+1]]``
+of row k, sorted by particle id; their history ``wall_hist``, keyed by ``wall_keys`` = k·2³² + id.
+History is therefore sparse: one row per particle near a wall, not rows × particles. ``cand_step``
+is ``cand`` with the candidates a mesh sets aside this step (a grain touching several facets
+counts once) marked as negative. Each contact's load goes to ``out_idx``/``out_val`` rows
+(``counts[k]`` per row), summed exactly by :class:`Wall` (per wall and per facet).
 
 At a rebuild the new lists take the history of the keys they share with the old ones (a linear
 merge of two sorted key lists, :func:`pdem.neighbor._kernels.carry_history`); a particle that
@@ -44,40 +49,65 @@ class ContactStore:
         self.moving: list[int] = []
         self.cstart = np.zeros(1, dtype=np.int64)
         self.cand = z.copy()
+        self.cand_step = self.cand
+        self.wall_rows = np.zeros(1, dtype=np.int64)
+        self.mesh_rows: list[tuple[int, int]] = []
         self.wall_keys = z.copy()
         self.wall_hist = np.zeros((0, h))
         self.out_idx = np.zeros(1, dtype=np.int64)
         self.out_val = np.zeros((1, 6))
         self.counts = z.copy()
-        self.pack_walls()
+        self.kinds = z.copy()
+        self.params = np.zeros((0, 16))
+        self.vel = np.zeros((0, 5))
+        self.omega = np.zeros((0, 3))
+        self.centre = np.zeros((0, 3))
+        self.wmat = z.copy()
 
     # ------------------------------------------------------------------ walls
     def pack_walls(self) -> None:
-        """Stack the walls' geometry and state into the arrays of the wall kernels."""
+        """Stack the walls' rows, velocities and materials into the arrays of the wall kernels."""
         walls = self.walls
-        nw = len(walls)
-        self.kinds = np.array([w.shape.kind for w in walls], dtype=np.int64)
-        self.params = (
-            np.array([w.params for w in walls], dtype=np.float64).reshape(nw, -1) if nw else np.zeros((0, 1))
-        )
-        self.vel = np.array([w.velocity for w in walls], dtype=np.float64).reshape(nw, 3)
-        self.omega = np.array([w.omega for w in walls], dtype=np.float64).reshape(nw, 3)
-        self.centre = np.array([w.reference_point for w in walls], dtype=np.float64).reshape(nw, 3)
-        self.wmat = np.array([w.material for w in walls], dtype=np.int64)
+        sizes = [w.n_rows for w in walls]
+        self.wall_rows = np.zeros(len(walls) + 1, dtype=np.int64)
+        self.wall_rows[1:] = np.cumsum(sizes)
+        nr = int(self.wall_rows[-1])
+        self.kinds = np.concatenate([w.kinds for w in walls]) if walls else np.zeros(0, np.int64)
+        self.params = np.concatenate([w.rows for w in walls]) if walls else np.zeros((0, 16))
+        self.vel = np.zeros((nr, 5))
+        self.omega = np.zeros((nr, 3))
+        self.centre = np.zeros((nr, 3))
+        self.wmat = np.zeros(nr, dtype=np.int64)
+        for k, w in enumerate(walls):
+            self._fill_wall(k)
+            self.wmat[self.wall_rows[k] : self.wall_rows[k + 1]] = w.material
         self.moving = [k for k, w in enumerate(walls) if w.moving]
+        self.mesh_rows = [
+            (int(self.wall_rows[k]), int(self.wall_rows[k + 1])) for k, w in enumerate(walls) if w.n_rows > 1
+        ]
         self.walls_changed = False
 
-    def update_wall(self, k: int) -> None:
-        """Copy wall k's current geometry and velocity into the packed arrays."""
+    def _fill_wall(self, k: int) -> None:
         wall = self.walls[k]
-        self.params[k] = wall.params
-        self.vel[k] = wall.velocity
-        self.centre[k] = wall.reference_point
-        self.omega[k] = wall.omega
+        a, b = self.wall_rows[k], self.wall_rows[k + 1]
+        self.vel[a:b, 0:3] = wall.velocity
+        self.vel[a:b, 3] = wall.size_rate
+        self.vel[a:b, 4] = getattr(wall.motion, "mass", 0.0) if wall.motion.moved_by_load else 0.0
+        self.omega[a:b] = wall.omega
+        self.centre[a:b] = wall.reference_point
+
+    def update_wall(self, k: int) -> None:
+        """Copy wall k's current geometry and velocities into the packed arrays."""
+        self.params[self.wall_rows[k] : self.wall_rows[k + 1]] = self.walls[k].rows
+        self._fill_wall(k)
 
     def reset_wall(self, k: int) -> None:
         """Forget wall k's contact history (switched off; its candidates go at the next rebuild)."""
-        self.wall_hist[self.cstart[k] : self.cstart[k + 1]] = 0.0
+        if self.walls_changed:
+            return  # nothing packed for it yet
+        a, b = self.wall_rows[k], self.wall_rows[k + 1]
+        if b < self.cstart.shape[0]:
+            self.wall_hist[self.cstart[a] : self.cstart[b]] = 0.0
 
     # ------------------------------------------------------------------ rebuilds
     def set_pairs(self, pi: np.ndarray, pj: np.ndarray, keys: np.ndarray) -> None:
@@ -88,8 +118,8 @@ class ContactStore:
         self.force = np.zeros((keys.shape[0], 3))
 
     def set_wall_candidates(self, cands: list[np.ndarray], ids: np.ndarray) -> None:
-        """New candidate lists (one array of storage rows per wall; ``ids`` the particle ids by
-        row); each list is sorted by id, history carried over by (wall, id)."""
+        """New candidate lists (one array of particle storage rows per wall row; ``ids`` the particle
+        ids by storage row); each list is sorted by id, history carried over by (row, id)."""
         rows, keys = [], []
         for k, c in enumerate(cands):
             c = c[np.argsort(ids[c], kind="stable")]
@@ -107,8 +137,33 @@ class ContactStore:
         self.out_idx = np.empty(total, dtype=np.int64)
         self.out_val = np.empty((total, 6))
         self.counts = np.zeros(len(rows), dtype=np.int64)
+        self.cand_step = self.cand
         for k, wall in enumerate(self.walls):
-            wall.record_load(0, self.out_val[self.cstart[k] : self.cstart[k + 1]])
+            a, b = self.wall_rows[k], self.wall_rows[k + 1]
+            bufs = [self.out_val[self.cstart[r] : self.cstart[r + 1]] for r in range(a, b)]
+            wall.record_rows([0] * (b - a), bufs)
+
+    def filter_meshes(self, x: np.ndarray, r: np.ndarray, inv_m: np.ndarray, reach: float) -> None:
+        """This step's candidates: a grain touching (gap < ``reach``) several facets of one mesh
+        keeps its face contacts, or, touching no face, its closest edge or vertex contact (the first
+        facet among equals); the others are set aside (negative in ``cand_step``)."""
+        if not self.mesh_rows:
+            self.cand_step = self.cand
+            return
+        from ..boundaries._mesh import filter_mesh_candidates
+
+        step = self.cand.copy()
+        for a, b in self.mesh_rows:
+            filter_mesh_candidates(
+                self.params, self.cstart, self.cand, step, a, b, x, r, inv_m, reach, self.wall_hist
+            )
+        self.cand_step = step
+
+    def record_wall_loads(self) -> None:
+        """Tell every wall how many load rows each of its rows wrote this step."""
+        counts = self.counts
+        for k, wall in enumerate(self.walls):
+            wall.record_rows(counts[self.wall_rows[k] : self.wall_rows[k + 1]])
 
     # ------------------------------------------------------------------ migration
     def rows_of(self, ids: np.ndarray) -> dict[str, np.ndarray]:
@@ -144,15 +199,23 @@ class ContactStore:
             setattr(self, hattr, hist[first])
 
     # ------------------------------------------------------------------ checkpoints
-    def wall_history_of(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(particle ids, history rows) of wall k's non-zero history on this rank."""
-        sel = ((self.wall_keys >> 32) == k) & np.any(self.wall_hist != 0.0, axis=1)
-        return self.wall_keys[sel] & _LOW, self.wall_hist[sel]
+    def wall_history_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row within the wall, particle ids, history) of wall k's non-zero history on this rank."""
+        a, b = self.wall_rows[k], self.wall_rows[k + 1]
+        row = self.wall_keys >> 32
+        sel = (row >= a) & (row < b) & np.any(self.wall_hist != 0.0, axis=1)
+        return row[sel] - a, self.wall_keys[sel] & _LOW, self.wall_hist[sel]
 
-    def set_wall_history(self, k: int, ids: np.ndarray, hist: np.ndarray) -> None:
-        """Add wall k's history rows (by particle id) to the keys carried at the next rebuild."""
+    def set_wall_history(self, k: int, rows: np.ndarray, ids: np.ndarray, hist: np.ndarray) -> None:
+        """Add wall k's history (row within the wall, particle id) to the keys carried at the next
+        rebuild. Call after the walls are packed."""
+        if self.walls_changed:
+            self.pack_walls()
+        rows = np.asarray(rows, dtype=np.int64) + self.wall_rows[k]
+        keys = (rows << 32) | np.asarray(ids, dtype=np.int64)
+        order = np.argsort(keys, kind="stable")
         self.merge({
             "pair_keys": np.zeros(0, np.int64), "pair_hist": np.zeros((0, self.history_size)),
-            "wall_keys": (np.int64(k) << 32) | np.asarray(ids, dtype=np.int64),
-            "wall_hist": np.asarray(hist, dtype=np.float64).reshape(-1, self.history_size),
+            "wall_keys": keys[order],
+            "wall_hist": np.asarray(hist, dtype=np.float64).reshape(-1, self.history_size)[order],
         })  # fmt: skip

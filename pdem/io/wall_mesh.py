@@ -31,6 +31,8 @@ from ..boundaries._geometry import (
     KIND_PLANE,
     KIND_RECTANGLE,
     KIND_REVOLVED,
+    KIND_SPHERE,
+    KIND_TRIANGLE,
     N_PARAMS,
 )
 from ..errors import OutputError
@@ -176,6 +178,12 @@ def wall_triangles(
         unknown kind, malformed params, bad resolution, or bounds unusable for an infinite wall.
     """
     p = np.asarray(params, dtype=np.float64)
+    if p.ndim == 2 and p.shape[1] == N_PARAMS:  # a wall of several rows (a mesh): all facets
+        parts = [wall_triangles(kind, row, bounds, resolution) for row in p]
+        pts = np.concatenate([q[0] for q in parts]) if parts else np.zeros((0, 3))
+        offsets = np.cumsum([0] + [q[0].shape[0] for q in parts[:-1]])
+        tris = [q[1] + o for q, o in zip(parts, offsets, strict=True)]
+        return pts, (np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64))
     if p.shape != (N_PARAMS,) or not np.all(np.isfinite(p)):
         raise OutputError(
             f"wall_triangles: params must be {N_PARAMS} finite floats, got shape {p.shape}; pass the "
@@ -196,8 +204,37 @@ def wall_triangles(
         s = (_box_corners(lo, hi) - p[0:3]) @ p[3:6]
         radius = float(p[6])
         return _revolved(p[0:3], p[3:6], float(s.min()), radius, float(s.max()), radius, resolution)
+    if kind == KIND_TRIANGLE:
+        pts = np.array([p[0:3], p[0:3] + p[3:6], p[0:3] + p[6:9]])
+        return pts, np.array([[0, 1, 2]], dtype=np.int64)
+    if kind == KIND_SPHERE:
+        return _sphere(p[0:3], float(p[3]), resolution)
     known = ", ".join(f"{k} ({v})" for k, v in KIND_NAMES.items())
     raise OutputError(f"wall_triangles: unknown wall kind {kind!r}; known kinds: {known}")
+
+
+def _sphere(c: np.ndarray, radius: float, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """A UV sphere: ``resolution`` segments around, ``resolution // 2`` from pole to pole."""
+    nu, nv = resolution, max(resolution // 2, 2)
+    th = np.linspace(0.0, math.pi, nv + 1)[1:-1]
+    ph = np.linspace(0.0, 2 * math.pi, nu, endpoint=False)
+    t, f = np.meshgrid(th, ph, indexing="ij")
+    ring = np.stack([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)], -1).reshape(-1, 3)
+    pts = c + radius * np.concatenate([[[0.0, 0.0, 1.0]], ring, [[0.0, 0.0, -1.0]]])
+    tris = []
+    last = pts.shape[0] - 1
+    for j in range(nu):
+        k = (j + 1) % nu
+        tris.append([0, 1 + j, 1 + k])
+        base = 1 + (nv - 2) * nu
+        tris.append([last, base + k, base + j])
+    for i in range(nv - 2):
+        for j in range(nu):
+            k = (j + 1) % nu
+            a, b = 1 + i * nu + j, 1 + i * nu + k
+            c2, d = a + nu, b + nu
+            tris += [[a, c2, b], [b, c2, d]]
+    return pts, np.array(tris, dtype=np.int64)
 
 
 def mesh_area(points: np.ndarray, triangles: np.ndarray) -> float:

@@ -248,6 +248,14 @@ class ParticleStore:
             self._data[name][s] = values[name] if name in values else spec.default
         self.n_ghost = self.n_ghost + k
 
+    def padded(self, name: str, extra: int) -> np.ndarray:
+        """The field's array over the particles (owned and ghosts) and ``extra`` rows after them
+        (scratch rows, e.g. for rigid bodies solved with the particles; call :meth:`reserve` with
+        ``n + extra`` first). The first ``n`` rows are the particles' own storage."""
+        if self.n + extra > self.capacity:
+            raise RuntimeError("padded: reserve(n + extra) first")
+        return self._data[name][: self.n + extra]
+
     def take(self, idx: np.ndarray, names) -> dict[str, np.ndarray]:
         """Copies of the rows ``idx`` of the named fields."""
         return {name: self._data[name][idx] for name in names}
