@@ -30,6 +30,11 @@ class Material:
     Parameters (SI): ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa], ``poisson_ratio`` ν [-],
     ``restitution`` e ∈ [0, 1], ``friction`` μ ≥ 0 (sliding), ``rolling_friction`` μ_r ≥ 0
     (dimensionless, multiplies R* F_n; 0 disables rolling resistance).
+
+    ``rigid``: a wall material of infinite stiffness (:meth:`rigid_wall`): E* of a contact is the
+    grain's alone, E/(1 − ν²); its ``restitution``, ``friction`` and ``rolling_friction``, when
+    given, are used as they are for its contacts (not mixed as minima), and when None the grain's
+    apply. Rigid materials are for walls only.
     """
 
     name: str
@@ -39,8 +44,32 @@ class Material:
     restitution: float = 0.5
     friction: float = 0.5
     rolling_friction: float = 0.0
+    rigid: bool = False
+
+    @classmethod
+    def rigid_wall(
+        cls, name: str, *, friction: float | None = None, restitution: float | None = None,
+        rolling_friction: float | None = None,
+    ) -> Material:  # fmt: skip
+        """A rigid wall material: infinite stiffness; its own friction/restitution/rolling
+        friction where given, else the grain's."""
+        return cls(name, density=math.inf, youngs_modulus=math.inf, poisson_ratio=0.0,
+                   restitution=restitution, friction=friction, rolling_friction=rolling_friction,
+                   rigid=True)  # fmt: skip
 
     def __post_init__(self) -> None:
+        if self.rigid:
+            for key, lo, hi in (("restitution", 0.0, 1.0), ("friction", 0.0, math.inf),
+                                ("rolling_friction", 0.0, math.inf)):  # fmt: skip
+                value = getattr(self, key)
+                if value is not None and not (lo <= value <= hi and math.isfinite(value)):
+                    raise InputError(
+                        f"material '{self.name}': {key} = {value!r} is invalid; give a value in "
+                        f"[{lo}, {hi}] or leave it unset (the grain's applies)"
+                    )
+            if not (self.youngs_modulus == math.inf and self.poisson_ratio == 0.0):
+                raise InputError(f"material '{self.name}': a rigid material has E = inf and ν = 0")
+            return
         checks = [
             ("density", self.density > 0, "a positive density in kg/m³"),
             ("youngs_modulus", self.youngs_modulus > 0, "a positive Young's modulus in Pa"),
@@ -67,6 +96,8 @@ def effective_moduli(a: Material, b: Material) -> tuple[float, float]:
         2 * (2 - a.poisson_ratio) * (1 + a.poisson_ratio) / a.youngs_modulus
         + 2 * (2 - b.poisson_ratio) * (1 + b.poisson_ratio) / b.youngs_modulus
     )
+    if inv_e == 0.0:  # two rigid materials (walls never touch each other)
+        return math.inf, math.inf
     return 1.0 / inv_e, 1.0 / inv_g
 
 
@@ -124,4 +155,10 @@ class MaterialTable:
         override = self.pair_values.get((min(i, j), max(i, j)), {})
         if key in override:
             return override[key]
-        return min(getattr(self.materials[i], key), getattr(self.materials[j], key))
+        a, b = self.materials[i], self.materials[j]
+        va, vb = getattr(a, key), getattr(b, key)
+        if a.rigid != b.rigid:  # a rigid wall: its own value where given, else the grain's
+            own, other = (va, vb) if a.rigid else (vb, va)
+            return own if own is not None else other
+        values = [v for v in (va, vb) if v is not None]
+        return min(values) if values else 0.0

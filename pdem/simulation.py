@@ -302,6 +302,11 @@ class Simulation:
             mat_idx = 0
         else:
             mat_idx = self.materials.index(material)
+        if self.materials[mat_idx].rigid:
+            raise InputError(
+                f"material '{self.materials[mat_idx].name}' is rigid (Material.rigid_wall): for walls only; "
+                "give the particles an elastic material"
+            )
         if motion not in MOTION_NAMES:
             raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
         mo = MOTION_NAMES[motion]
@@ -1187,6 +1192,47 @@ class Simulation:
         key = (allc["id_i"] << 32) | allc["id_j"]
         _, first = np.unique(key, return_index=True)
         return {k: v[first] for k, v in allc.items()}
+
+    def wall_contacts(self) -> dict[str, np.ndarray]:
+        """Wall contacts of the last step, all ranks (collective), ordered by (wall, row, id):
+        ``wall`` (index into ``list(sim.walls)``), ``row`` (facet of a mesh wall, else 0), ``id`` of
+        the particle, ``overlap`` [m] (DEM-C: may be slightly negative, a contact in the envelope),
+        ``force`` on the wall [N] (on the particle: its negative) and ``torque`` on the wall about its
+        reference point [N m]."""
+        from .boundaries._geometry import wall_gaps
+
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        cs = self.contact_store
+        parts = {k: [] for k in ("wall", "row", "id", "overlap", "force", "torque")}
+        for k in range(len(self._wall_list)):
+            for row in range(int(cs.wall_rows[k]), int(cs.wall_rows[k + 1])):
+                a = int(cs.cstart[row]) if row < cs.cstart.shape[0] - 1 else 0
+                c = int(cs.counts[row]) if row < cs.counts.shape[0] else 0
+                idx = cs.out_idx[a : a + c]
+                gap = wall_gaps(int(cs.kinds[row]), cs.params[row], p.x[idx], p.r[idx]) if c else np.zeros(0)
+                parts["wall"].append(np.full(c, k, np.int64))
+                parts["row"].append(np.full(c, row - int(cs.wall_rows[k]), np.int64))
+                parts["id"].append(p.id[idx].copy())
+                parts["overlap"].append(-gap)
+                parts["force"].append(cs.out_val[a : a + c, 0:3].copy())
+                parts["torque"].append(cs.out_val[a : a + c, 3:6].copy())
+        local = {
+            k: (np.concatenate(v) if v else (np.zeros((0, 3)) if k in ("force", "torque") else np.zeros(0)))
+            for k, v in parts.items()
+        }
+        if self.comm.size > 1:
+            gathered = self.comm.allgather(local)
+            local = {k: np.concatenate([q[k] for q in gathered]) for k in local}
+        order = np.lexsort((local["id"], local["row"], local["wall"]))
+        return {k: v[order] for k, v in local.items()}
+
+    def solver_stats(self) -> dict[str, float]:
+        """The time integrator's statistics: for DEM-C the last step's ``iterations`` and
+        ``residual`` [m/s], and over the run ``steps``, ``unconverged_steps``, ``mean_iterations``,
+        ``max_residual`` (every step's values: ``sim.integrator.log``); empty for DEM-P."""
+        return self.integrator.stats() if self.integrator is not None else {}
 
     def kinetic_energy(self) -> tuple[float, float]:
         """(translational, rotational) kinetic energy of the free particles [J]."""

@@ -170,3 +170,48 @@ def test_dt_is_validated_when_set():
     assert sim.dt == 1e-6
     sim.dt = 2e-6  # a smaller change is fine mid-run
     sim.run(steps=1)
+
+
+def test_rigid_wall_takes_the_grains_stiffness_and_its_own_friction():
+    """A rigid wall: E* = E/(1 − ν²) of the grain alone, the wall's friction where given."""
+    from pdem.materials import Material, MaterialTable, effective_moduli
+
+    glass = Material("glass", density=2500, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.5)
+    table = MaterialTable()
+    for m in (glass, Material.rigid_wall("steel", friction=0.9), Material.rigid_wall("plain")):
+        table.add(m)
+    e_star, _ = effective_moduli(table[0], table[1])
+    assert e_star == pytest.approx(1e7 / (1 - 0.3**2), rel=1e-15)
+    assert table.mixed(0, 1, "friction") == 0.9  # the wall's own, not min(0.5, 0.9)
+    assert table.mixed(0, 2, "friction") == 0.5  # not given: the grain's
+    assert table.mixed(0, 2, "restitution") == 0.5
+    sim = _sim("hertz_mindlin")
+    sim.add_material(Material.rigid_wall("steel", friction=0.0))
+    with pytest.raises(InputError, match="rigid"):
+        sim.add_particles([[0, 0, R]], R, material="steel")
+    # a grain dropped on a rigid floor rebounds with the grain's restitution
+    sim.add_particles([[0, 0, 2 * R]], R, material="glass", velocities=[(0, 0, -0.5)])
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)), material="steel", name="floor")
+    sim.gravity = (0, 0, 0)
+    sim.dt = 2e-7
+    sim.run(steps=20000)
+    assert sim.get_particles()["v"][0, 2] == pytest.approx(0.5 * 0.5, rel=0.03)
+
+
+@pytest.mark.parametrize("law", ["hertz_mindlin", "complementarity"])
+def test_wall_contacts_and_solver_stats_are_public(law):
+    sim = _sim(law)
+    sim.add_particles([[0, 0, R], [3 * R, 0, R]], R)
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)), name="floor")
+    sim.dt = 1e-6 if law == "hertz_mindlin" else 1e-4
+    sim.run(steps=5)
+    c = sim.wall_contacts()
+    assert list(c["id"]) == [0, 1] and np.all(c["wall"] == 0)
+    assert np.allclose(c["force"].sum(axis=0), sim.walls["floor"].force, rtol=1e-12)
+    if law == "hertz_mindlin":
+        assert np.all(c["overlap"] > 0)
+        assert sim.solver_stats() == {}
+    else:
+        st = sim.solver_stats()
+        assert st["steps"] == 5 and st["iterations"] >= 1 and st["residual"] >= 0.0

@@ -353,6 +353,17 @@ class Stepper(Integrator):
             )
             self.max_residual = float(state["solver/max_residual"])
 
+    def stats(self) -> dict[str, float]:
+        """The last step's iterations and residual, and the run's counters (public statistics)."""
+        return {
+            "iterations": float(self.last_iterations),
+            "residual": float(self.last_residual),
+            "steps": float(self.n_steps),
+            "unconverged_steps": float(self.n_unconverged),
+            "mean_iterations": self.total_iterations / max(self.n_steps, 1),
+            "max_residual": float(self.max_residual),
+        }
+
     def summary(self) -> dict[str, object]:
         """Solver statistics of this run (summary.json)."""
         p = self.p

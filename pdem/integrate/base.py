@@ -47,6 +47,10 @@ class Integrator:
     def restore(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state` returned."""
 
+    def stats(self) -> dict[str, float]:
+        """Per-step solver statistics (``Simulation.solver_stats``); none for explicit methods."""
+        return {}
+
     def summary(self) -> dict[str, Any] | None:
         """Statistics of the run for summary.json (None: nothing to report)."""
         return None
