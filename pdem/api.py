@@ -16,7 +16,9 @@ Boundaries (``pdem.boundaries``)
     :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
     :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
     :class:`Motion`, :class:`Fixed`, :class:`ConstantVelocity`, :class:`VelocityFunction`,
-    :class:`PositionFunction`, :class:`Controlled`.
+    :class:`PositionFunction`, :class:`Controlled` (velocities set by a controller),
+    :class:`Rotation`, :class:`Resize` (named sizes: radius, length, …), :class:`RigidBody` (a wall
+    moved by its load), :func:`rotation_matrix`.
 Writers (``pdem.writers``)
     :class:`Writer`, :class:`Frame`, :class:`WallState`, :class:`Piece`, :func:`atomic_write_text`,
     :func:`piece_name`, :func:`safe_key`, :data:`KIND_NAMES`, :func:`wall_triangles`.
@@ -46,8 +48,12 @@ from .boundaries.walls import (
     Fixed,
     Motion,
     PositionFunction,
+    Resize,
+    RigidBody,
+    Rotation,
     VelocityFunction,
     Wall,
+    rotation_matrix,
 )
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, pair_forces, wall_forces
 from .contact._tangential import tangential_spring
@@ -80,7 +86,7 @@ __all__ = [
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
-    "Controlled",
+    "Controlled", "Rotation", "Resize", "RigidBody", "rotation_matrix",
     "Writer", "Frame", "WallState", "Piece", "atomic_write_text", "piece_name", "safe_key",
     "wall_triangles",
     "Field", "dof_mask", "FREE", "FIXED", "PRESCRIBED", "REMOVED",
