@@ -414,7 +414,7 @@ def _validate_sources(
             continue
         model, bad = _params_model(cls, loc + ("source",), f"particle source '{name}'")
         if model is not None and not issubclass(model, SourceParams):
-            model, bad = None, [
+            bad = [
                 (
                     loc + ("source",),
                     f"particle source '{name}' {cls!r}: its Params does not derive from "
@@ -422,6 +422,7 @@ def _validate_sources(
                     "to its author)",
                 )
             ]
+            model = None
         problems += bad
         if model is None:
             continue
@@ -436,11 +437,12 @@ def _validate_sources(
             continue
         classes[k] = cls
         params[k] = p
-    extents: dict[int, tuple[float | None, Any]] = {}
+    extents: dict[int, tuple[float | None, Any, str | None]] = {}
     for k, p in params.items():
         try:
             source = classes[k](p)
-            extents[k] = (source.r_max(), source.bounds())
+            key = "region" if "region" in type(p).model_fields else None
+            extents[k] = (source.r_max(), source.bounds(), key)
         except Exception as exc:  # noqa: BLE001 - a plugin's hook failing is reported like a bad key
             problems.append(
                 (

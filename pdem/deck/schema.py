@@ -566,17 +566,13 @@ def _fit_problem(region_raw: Any, largest: float, what: str, key: str) -> Proble
 
 
 class ParticleEntry(_DeckModel):
-    """``[[particles]]``: ``source`` names the plugin; the other keys are its ``Params``.
-
-    Each table is validated in the second pass by the ``Params`` of the source plugin it names
-    (:mod:`pdem.sources.api`), which replaces this model in the validated deck.
-    """
+    """``[[particles]]``: one particle source; ``source`` names the plugin, the other keys are its
+    parameters (validated by the plugin's ``Params`` model)."""
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     source: Str = Field(
-        description="particle source: an entry point of group pdem.sources (see `pdem plugins`); "
-        "pdem's own are 'random_fill', 'lattice', 'file' and 'pluviate'. The other keys of the table "
-        "are that source's parameters"
+        description="particle source: 'random_fill', 'lattice', 'file', 'pluviate' or another installed "
+        "entry point of group pdem.sources (see `pdem plugins`); the other keys are its parameters"
     )
 
 
@@ -833,13 +829,15 @@ class Deck(_DeckModel):
         return [s.name for s in self.stages]
 
 
-def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, Any]]) -> Problems:
+def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, Any, str | None]]) -> Problems:
     """With periodic axes: the box is long enough for the particles (the run checks it again with
     the actual skin), and no source region is wider than the box (it would overlap itself).
 
     ``data`` is the raw deck; ``extents`` maps the index of each validated ``[[particles]]`` table to
-    ``(r_max, bounds)`` as its source plugin reports them (:meth:`pdem.sources.api.Source.r_max`,
-    :meth:`~pdem.sources.api.Source.bounds`; None where unknown before the run).
+    ``(r_max, bounds, key)``: the largest radius and the ``(lo, hi)`` box of its particles as its
+    source plugin reports them (:meth:`pdem.sources.api.Source.r_max`,
+    :meth:`~pdem.sources.api.Source.bounds`; None where unknown before the run) and the key a
+    too-wide box is reported under (``"region"``, or None for the table itself).
     """
     domain = data.get("domain")
     if not isinstance(domain, dict):
@@ -850,7 +848,7 @@ def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, An
         return []
     periodic = [d for d, a in enumerate("xyz") if a in axes and hi[d] > lo[d]]
     out: Problems = []
-    radii = [r for k, (r, _) in sorted(extents.items()) if r is not None]
+    radii = [r for k, (r, _, _) in sorted(extents.items()) if r is not None]
     run = data.get("run")
     skin = run.get("skin") if isinstance(run, dict) else None
     skin = float(skin) if _is_num(skin) and skin >= 0 else 0.0
@@ -869,19 +867,20 @@ def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, An
                         "long (domain.lo, domain.hi) or use smaller particles",
                     )
                 )
-    for k, (_, bounds) in sorted(extents.items()):
+    for k, (_, bounds, key) in sorted(extents.items()):
         if bounds is None:
             continue
         rlo, rhi = bounds
+        what = "region" if key else "source's extent"
         for d in periodic:
             length = hi[d] - lo[d]
             if rhi[d] - rlo[d] > length * (1 + 1e-12):
                 out.append(
                     (
-                        ("particles", k, "region"),
-                        f"the region is {rhi[d] - rlo[d]:.4g} m wide along the periodic axis "
+                        ("particles", k, key) if key else ("particles", k),
+                        f"the {what} is {rhi[d] - rlo[d]:.4g} m wide along the periodic axis "
                         f"{'xyz'[d]}, wider than the periodic box ({length:.4g} m): wrapped into the box, "
-                        "its particles would overlap; make the region at most as wide as the box (it may "
+                        f"its particles would overlap; make the {what} at most as wide as the box (it may "
                         "straddle a periodic face: positions are wrapped)",
                     )
                 )
