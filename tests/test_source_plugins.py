@@ -194,6 +194,15 @@ def test_external_source_plugin_end_to_end(line_plugin, tmp_path, capsys):
     assert type(again.deck.particles[0]).__name__ == "LineParams"
     assert type(again.make_sources()[0]).__name__ == "LineSource"
 
+    # a checkpoint of a deck that uses the plugin resumes (its deck is validated again)
+    part = tmp_path / "part"
+    assert main([str(deck), "--output", str(part), "--quiet", "--steps", "10"]) == 0
+    resumed = tmp_path / "resumed"
+    code = main(["resume", str(part / "checkpoints" / "latest.h5"), "--output", str(resumed), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    b, _ = read_checkpoint(resumed / "checkpoints" / "latest.h5")
+    assert int(b["scalars/step"]) == 20 and np.array_equal(b["particles/x"], state["particles/x"])
+
 
 def test_external_source_plugin_validation(line_plugin, tmp_path):
     data = tomllib.loads(LINE_DECK)
