@@ -51,73 +51,25 @@ class StageLimitError(PdemError):
 
 
 # ---------------------------------------------------------------------------------------- sources
-def _region(spec: dict):
-    from .sources import BoxRegion, CylinderRegion
-
-    if spec["type"] == "box":
-        return BoxRegion(spec["lo"], spec["hi"])
-    return CylinderRegion(spec["base_center"], spec["radius"], spec["height"])
-
-
-def _sizes(spec: dict):
-    from .sources import Normal, Single, Table, Uniform
-
-    kind = spec["type"]
-    if kind == "single":
-        return Single(spec["radius"])
-    if kind == "uniform":
-        return Uniform(spec["r_min"], spec["r_max"])
-    if kind == "normal":
-        return Normal(spec["mean"], spec["std"], spec.get("r_min"), spec.get("r_max"))
-    return Table(spec["radii"], spec["mass_fractions"])
-
-
 def build_particles(
-    spec: dict, base_dir: Path, seed: int, material
+    spec: Any, base_dir: Path, seed: int, material
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Positions, radii and optional velocities of one ``[[particles]]`` source."""
-    from . import sources
+    """Positions, radii and optional velocities of one ``[[particles]]`` source.
 
-    kind = spec["source"]
-    if kind == "random_fill":
-        x, r = sources.random_fill(
-            _region(spec["region"]),
-            _sizes(spec["sizes"]),
-            n=spec.get("n"),
-            volume_fraction=spec.get("volume_fraction"),
-            seed=seed,
-            gap=spec.get("gap", 0.0),
-        )
-        return x, r, None
-    if kind == "pluviate":
-        x, r = sources.pluviate(
-            _region(spec["region"]),
-            _sizes(spec["sizes"]),
-            spec["n"],
-            material,
-            seed=seed,
-            fill_fraction=spec.get("fill_fraction", 0.3),
-            max_time=spec.get("max_time", 2.0),
-            rest_speed=spec.get("rest_speed"),
-        )
-        return x, r, None
-    if kind == "file":
-        d = sources.read_spheres(Path(base_dir) / spec["path"])
-        return d["positions"], d["radii"], d.get("velocities")
-    lattice = spec["lattice"]
-    if lattice == "hex2d":
-        x, r = sources.hex2d(
-            spec["n_cols"],
-            spec["n_rows"],
-            spec["radius"],
-            origin=spec.get("origin", (0, 0, 0)),
-            plane=spec.get("plane", "xz"),
-            spacing=spec.get("spacing"),
-        )
-        return x, r, None
-    fn = {"sc": sources.simple_cubic, "fcc": sources.fcc, "hcp": sources.hcp}[lattice]
-    x, r = fn(_region(spec["region"]), spec["radius"], spacing=spec.get("spacing"))
-    return x, r, None
+    ``spec``: the source plugin's validated ``Params`` or a table (``{"source": …, …}``, validated
+    here with that plugin's ``Params``). Kept for callers of the former built-in-only function; the
+    runner calls the plugins (:mod:`pdem.sources.api`) directly.
+    """
+    from .sources.api import SourceParams, produce
+
+    if isinstance(spec, SourceParams):
+        params = spec
+        cls = load("sources", params.source)
+    else:
+        cls = load("sources", spec["source"])
+        params = cls.Params.model_validate(dict(spec), context={"base_dir": str(base_dir)})
+    out = produce(cls(params), base_dir=Path(base_dir), seed=seed, material=material)
+    return out.positions, out.radii, out.velocities
 
 
 # ---------------------------------------------------------------------------------------- progress
@@ -224,7 +176,7 @@ class Runner:
         law = law_cls(**self.resolved.law_params.model_dump())
         sim = Simulation(comm=self.comm, law=law)
         for name, mat in deck.materials.items():
-            sim.add_material(name, **mat.model_dump())
+            sim.add_material(mat.to_material(name))
         for pair in deck.material_pairs or []:
             values = {k: v for k, v in pair.model_dump().items() if k != "materials" and v is not None}
             sim.materials.set_pair(pair.materials[0], pair.materials[1], **values)
@@ -245,21 +197,31 @@ class Runner:
         return sim
 
     def _insert_particles(self, stage: str | None, first_stage: str) -> None:
+        """Add the particles of every source inserted at the start of ``stage``: each source plugin
+        (entry points of ``pdem.sources``) generates them with seed ``run.seed`` + its index."""
+        from .sources.api import produce
+
         sim = self.sim
-        for k, src in enumerate(self.deck.particles or []):
-            spec = src.model_dump()
-            target = spec.get("stage") or first_stage
+        for k, params in enumerate(self.deck.particles or []):
+            target = params.stage or first_stage
             if target != stage:
                 continue
-            mat = sim.materials[sim.materials.index(spec["material"])]
-            x, r, v = build_particles(spec, self.resolved.base_dir, self.deck.run.seed + k, mat)
+            source = load("sources", params.source)(params)
+            mat = sim.materials[sim.materials.index(params.material)]
+            out = produce(
+                source,
+                base_dir=self.resolved.base_dir,
+                seed=self.deck.run.seed + k,
+                material=mat,
+                where=f"particles.{k}",
+            )
             vel = (
-                v
-                if v is not None
-                else np.broadcast_to(np.asarray(spec.get("velocity") or (0, 0, 0), float), x.shape)
+                out.velocities
+                if out.velocities is not None
+                else np.broadcast_to(np.asarray(params.velocity or (0, 0, 0), float), out.positions.shape)
             )
             sim.add_particles(
-                x, r, material=spec["material"], velocities=vel, motion=spec.get("motion", "free")
+                out.positions, out.radii, material=params.material, velocities=vel, motion=params.motion
             )
 
     # ---------------------------------------------------------------------------- measuring

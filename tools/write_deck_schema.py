@@ -3,11 +3,11 @@
 
     python tools/write_deck_schema.py [--output docs/deck.schema.json] [--all-plugins] [--check]
 
-By default the schema documents pdem's own contact laws and boundary plugins only, so that the
-committed file does not depend on what else is installed; ``--all-plugins`` includes every installed
-plugin (``pdem schema`` prints that version). ``--check`` writes nothing and exits 1 if the file is
-out of date. Point an editor at the file, e.g. with Even Better TOML (Taplo), on the first line of a
-deck::
+By default the schema documents pdem's own contact laws, particle sources and boundary plugins
+only, so that the committed file does not depend on what else is installed; ``--all-plugins``
+includes every installed plugin (``pdem schema`` prints that version). ``--check`` writes nothing
+and exits 1 if the file is out of date. Point an editor at the file, e.g. with Even Better TOML
+(Taplo), on the first line of a deck::
 
     #:schema ../docs/deck.schema.json
 """

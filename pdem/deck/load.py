@@ -7,9 +7,11 @@ Validation runs in full before anything else and reports every problem at once i
 2. ``--set`` overrides that cannot be parsed or applied;
 3. the schema (:mod:`pdem.deck.schema`, pydantic strict JSON mode) with its rules and cross-checks
    (materials, stages and boundaries referred to by name exist, stage names unique, …);
-4. the plugin sections: the contact law named by ``contact.law`` and the boundary plugin named by each
-   ``boundaries.NAME.type`` must be installed (entry points), and their keys are validated by the
-   plugin's own ``Params`` model, errors prefixed with the section's path.
+4. the plugin sections: the contact law named by ``contact.law``, the particle source named by each
+   ``particles.N.source`` and the boundary plugin named by each ``boundaries.NAME.type`` must be
+   installed (entry points), and their keys are validated by the plugin's own ``Params`` model,
+   errors prefixed with the section's path; then the periodic box is checked against the sources'
+   largest radius and extent.
 
 A problem under a path that a ``--set`` override wrote is marked ``(from --set …)``.
 """
@@ -33,21 +35,37 @@ from ..errors import PdemError, PluginError
 from . import toml_writer
 from .overrides import Override, apply_overrides
 from .problems import Loc, make_deck_error, show, sort_problems, translate
-from .schema import KNOWN_WRITERS, BoundaryEntry, ContactSection, Deck, OutputSection, Stage, did_you_mean
+from .schema import (
+    KNOWN_WRITERS,
+    BoundaryEntry,
+    ContactSection,
+    Deck,
+    OutputSection,
+    Stage,
+    did_you_mean,
+    periodic_source_checks,
+)
 
 __all__ = ["ResolvedDeck", "load_deck", "validate_deck", "deck_json_schema", "installed_writers"]
 
 DEFAULT_LAW = "hertz_mindlin"
-_PLUGIN_LABEL = {"contact_laws": "contact law", "boundaries": "boundary type", "writers": "writer"}
+_PLUGIN_LABEL = {
+    "contact_laws": "contact law",
+    "boundaries": "boundary type",
+    "writers": "writer",
+    "sources": "particle source",
+}
 
 
 @dataclass
 class ResolvedDeck:
     """A validated deck.
 
-    ``deck``: the validated :class:`~pdem.deck.schema.Deck` (``output.directory`` filled in);
+    ``deck``: the validated :class:`~pdem.deck.schema.Deck` (``output.directory`` filled in; each entry
+    of ``deck.particles`` is its source plugin's validated ``Params``);
     ``law_params``: the contact law's validated ``Params``; ``boundaries``: name → the boundary plugin's
-    validated ``Params`` (deck order); ``law_class`` / ``boundary_classes``: the plugin classes;
+    validated ``Params`` (deck order); ``law_class`` / ``boundary_classes`` / ``source_classes`` (one
+    per ``[[particles]]`` table): the plugin classes;
     ``path``: the deck file (None for a deck given as a dict); ``base_dir``: the directory relative
     paths in the deck are resolved against; ``overrides``: the ``--set`` texts applied.
     """
@@ -60,6 +78,7 @@ class ResolvedDeck:
     law_class: type | None = None
     boundary_classes: dict[str, type] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
+    source_classes: list[type] = field(default_factory=list)
 
     def make_law(self) -> Any:
         """A new instance of the contact law with the deck's parameters."""
@@ -68,6 +87,10 @@ class ResolvedDeck:
     def make_boundaries(self) -> dict[str, Any]:
         """New instances of every boundary plugin, by name, in deck order."""
         return {name: self.boundary_classes[name](name, params) for name, params in self.boundaries.items()}
+
+    def make_sources(self) -> list[Any]:
+        """New instances of the source plugin of every ``[[particles]]`` table, in deck order."""
+        return [cls(params) for cls, params in zip(self.source_classes, self.deck.particles, strict=True)]
 
     def output_for(self, stage: str | int) -> OutputSection:
         """The ``[output]`` settings in force during ``stage`` (name or index), overrides applied."""
@@ -180,6 +203,8 @@ def validate_deck(
 
     law_class, law_params, law_problems = _validate_law(data)
     problems += law_problems
+    source_classes, sources, src_problems = _validate_sources(data, context)
+    problems += src_problems
     boundary_classes, boundaries, bnd_problems = _validate_boundaries(data)
     problems += bnd_problems
     problems += _validate_per_rank_writers(data)
@@ -189,13 +214,14 @@ def validate_deck(
         source = str(p) if p is not None else None
         raise make_deck_error(sort_problems(problems, data), source)
 
-    assert deck is not None and law_params is not None
+    assert deck is not None and law_params is not None and len(sources) == len(deck.particles)
     # the plugin sections of the deck hold the validated parameters, defaults filled in
     deck.contact = ContactSection(law=deck.contact.law, **_plain(law_params))
     for name, params in boundaries.items():
         table = _plain(params)
         table.pop("type", None)
         deck.boundaries[name] = BoundaryEntry(type=deck.boundaries[name].type, **table)
+    deck.particles = [sources[k] for k in range(len(sources))]
     if deck.output.directory is None:
         stem = p.stem if p is not None else "deck"
         deck.output.directory = f"out/{stem}"
@@ -208,6 +234,7 @@ def validate_deck(
         law_class=law_class,
         boundary_classes=boundary_classes,
         overrides=overrides,
+        source_classes=[source_classes[k] for k in range(len(sources))],
     )
 
 
@@ -232,11 +259,23 @@ def _load_plugin(group: str, name: str) -> tuple[Any, str | None]:
     except PluginError as exc:
         try:
             installed = sorted(plugins.available(group))
+        except PluginError as listing_error:  # e.g. a name registered by two distributions
+            return None, str(listing_error)
         except Exception:  # noqa: BLE001
             installed = []
         if name in installed:
             return None, str(exc)
         label = _PLUGIN_LABEL.get(group, group)
+        if group == "sources":  # pdem's own in the documented order, then the others by name
+            from ..sources.builtin import BUILTIN_SOURCES
+
+            own = [n for n in BUILTIN_SOURCES if n in installed]
+            listing = ", ".join(f"'{n}'" for n in own + [n for n in installed if n not in own])
+            return None, (
+                f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; must be one of "
+                f"{listing or '(none)'} (the installed entry points of group pdem.sources). "
+                "Install the package that provides it (pip install …) or fix the name"
+            )
         listing = ", ".join(f"'{n}'" for n in installed) or "(none)"
         return None, (
             f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; installed: {listing}. "
@@ -351,6 +390,71 @@ def _validate_per_rank_writers(data: dict) -> list[tuple[Loc, str]]:
     return problems
 
 
+def _validate_sources(
+    data: dict, context: dict
+) -> tuple[dict[int, type], dict[int, BaseModel], list[tuple[Loc, str]]]:
+    """Each ``[[particles]]`` table validated by the ``Params`` of the source plugin it names (by the
+    table's index); then the periodic-box checks that need the sources' sizes and extents."""
+    from ..sources.api import SourceParams
+
+    raw = data.get("particles", [])
+    classes: dict[int, type] = {}
+    params: dict[int, BaseModel] = {}
+    problems: list[tuple[Loc, str]] = []
+    if not isinstance(raw, list):
+        return classes, params, problems
+    for k, table in enumerate(raw):
+        if not isinstance(table, dict) or not isinstance(table.get("source"), str):
+            continue  # the schema reports a missing / non-string source
+        loc: Loc = ("particles", k)
+        name = table["source"]
+        cls, err = _load_plugin("sources", name)
+        if err is not None:
+            problems.append((loc + ("source",), err))
+            continue
+        model, bad = _params_model(cls, loc + ("source",), f"particle source '{name}'")
+        if model is not None and not issubclass(model, SourceParams):
+            bad = [
+                (
+                    loc + ("source",),
+                    f"particle source '{name}' {cls!r}: its Params does not derive from "
+                    "pdem.sources.api.SourceParams; it does not honour the plugin contract (report this "
+                    "to its author)",
+                )
+            ]
+            model = None
+        problems += bad
+        if model is None:
+            continue
+        nonfinite = _non_finite(table, loc)
+        try:  # like the deck's own models: Python mode, strictness from the Strict-annotated types
+            p = model.model_validate(copy.deepcopy(table), context=context)
+        except ValidationError as exc:
+            problems += nonfinite + translate(exc, model, loc)
+            continue
+        if nonfinite:
+            problems += nonfinite
+            continue
+        classes[k] = cls
+        params[k] = p
+    extents: dict[int, tuple[float | None, Any, str | None]] = {}
+    for k, p in params.items():
+        try:
+            source = classes[k](p)
+            key = "region" if "region" in type(p).model_fields else None
+            extents[k] = (source.r_max(), source.bounds(), key)
+        except Exception as exc:  # noqa: BLE001 - a plugin's hook failing is reported like a bad key
+            problems.append(
+                (
+                    ("particles", k),
+                    f"particle source '{p.source}' failed to report its size or extent: "
+                    f"{type(exc).__name__}: {exc}",
+                )
+            )
+    problems += periodic_source_checks(data, extents)
+    return classes, params, problems
+
+
 def _validate_boundaries(data: dict) -> tuple[dict[str, type], dict[str, BaseModel], list[tuple[Loc, str]]]:
     raw = data.get("boundaries", {})
     classes: dict[str, type] = {}
@@ -438,15 +542,17 @@ def _mark_overrides(problems: list[tuple[Loc, str]], applied: list[Override]) ->
 def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
     """JSON Schema (draft 2020-12) of a deck, for editors (e.g. Taplo / Even Better TOML).
 
-    ``[contact]`` and ``[boundaries.NAME]`` are open objects in the core schema; for every installed
-    contact law and boundary plugin (only pdem's own with ``builtin_only``) an ``if``/``then`` clause
-    adds the plugin's own parameter schema, selected by ``law`` / ``type``.
+    ``[contact]``, ``[[particles]]`` and ``[boundaries.NAME]`` are open objects in the core schema; for
+    every installed contact law, particle source and boundary plugin (only pdem's own with
+    ``builtin_only``) an ``if``/``then`` clause adds the plugin's own parameter schema, selected by
+    ``law`` / ``source`` / ``type``.
     """
     from pydantic.json_schema import models_json_schema
 
     laws: dict[str, type[BaseModel]] = {}
     bnds: dict[str, type[BaseModel]] = {}
-    for group, target in (("contact_laws", laws), ("boundaries", bnds)):
+    srcs: dict[str, type[BaseModel]] = {}
+    for group, target in (("contact_laws", laws), ("boundaries", bnds), ("sources", srcs)):
         for name, info in sorted(plugins.available(group).items()):
             if builtin_only and info.distribution != "pdem":
                 continue
@@ -457,7 +563,7 @@ def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
             model = getattr(cls, "Params", None)
             if isinstance(model, type) and issubclass(model, BaseModel):
                 target[name] = model
-    models = [Deck, *laws.values(), *bnds.values()]
+    models = [Deck, *laws.values(), *srcs.values(), *bnds.values()]
     unique = list(dict.fromkeys(models))
     keys, top = models_json_schema(
         [(m, "validation") for m in unique], ref_template="#/$defs/{model}", title="pdem deck"
@@ -481,6 +587,15 @@ def deck_json_schema(builtin_only: bool = False) -> dict[str, Any]:
             clauses.append({"if": {"properties": {"law": {"const": name}}}, "then": then})
         if clauses:
             contact["allOf"] = clauses
+    items = root["properties"]["particles"].get("items", {})
+    items_name = items.get("$ref", "").rsplit("/", 1)[-1]
+    if items_name in defs:
+        pdef = defs[items_name]
+        pdef["properties"]["source"]["examples"] = sorted(srcs)
+        pdef["allOf"] = [
+            {"if": {"properties": {"source": {"const": name}}}, "then": ref(model)}
+            for name, model in srcs.items()
+        ]
     entry = root["properties"]["boundaries"].get("additionalProperties", {})
     entry_name = entry.get("$ref", "").rsplit("/", 1)[-1]
     if entry_name in defs:

@@ -15,10 +15,13 @@ validator **whether or not the fields themselves validated**, so a deck with a b
 and a dangling material name elsewhere reports both at once. Rules therefore never assume that a
 raw value has the right type.
 
-Two sections belong to plugins and are validated in a second pass by :mod:`pdem.deck.load` with the
-plugin's own ``Params`` model: the keys of ``[contact]`` other than ``law`` (the contact law's
-parameters) and each ``[boundaries.NAME]`` table (the boundary plugin's parameters). Their models
-here (:class:`ContactSection`, :class:`BoundaryEntry`) are the only ones that accept extra keys.
+Three sections belong to plugins and are validated in a second pass by :mod:`pdem.deck.load` with
+the plugin's own ``Params`` model: the keys of ``[contact]`` other than ``law`` (the contact law's
+parameters), each ``[[particles]]`` table (the source plugin's parameters) and each
+``[boundaries.NAME]`` table (the boundary plugin's parameters). Their models here
+(:class:`ContactSection`, :class:`ParticleEntry`, :class:`BoundaryEntry`) are the only ones that
+accept extra keys. The periodic-box checks that need the sources' sizes (:func:`periodic_source_checks`)
+run in that pass too.
 """
 
 from __future__ import annotations
@@ -27,17 +30,17 @@ import dataclasses
 import difflib
 import math
 import re
-from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    SerializeAsAny,
     Strict,
     ValidationError,
     ValidationInfo,
-    field_validator,
+    model_serializer,
     model_validator,
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
@@ -61,11 +64,7 @@ __all__ = [
     "NormalSizes",
     "TableSizes",
     "SizeSpec",
-    "RandomFillSource",
-    "LatticeSource",
-    "FileSource",
-    "PluviateSource",
-    "ParticleSource",
+    "ParticleEntry",
     "BoundaryEntry",
     "StageEnd",
     "OutputCadence",
@@ -77,6 +76,7 @@ __all__ = [
     "RULE_ERROR",
     "MAX_TITLE_LENGTH",
     "MAX_STAGE_STEPS",
+    "periodic_source_checks",
 ]
 
 #: writers accepted in ``output.formats`` when the caller passes no list of installed writers
@@ -357,9 +357,36 @@ class MaterialSpec(_DeckModel):
         ge=0,
         description="rolling friction coefficient μ_r [-] (multiplies R* F_n; 0 disables rolling resistance)",
     )
+    rigid: bool = Field(
+        False,
+        description="a rigid wall material (walls only): infinite stiffness, so a contact's E* is the "
+        "grain's alone; give no density, youngs_modulus or poisson_ratio; restitution, friction and "
+        "rolling_friction, when given, are the wall's own (not mixed), else the grain's apply",
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if data.get("rigid") is True:
+            return [
+                ((k,), f"a rigid material has no {k}; remove it (E* comes from the grain alone)")
+                for k in ("density", "youngs_modulus", "poisson_ratio")
+                if _given(data, k)
+            ]
+        return []
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        out = handler(self)
+        if self.rigid:  # unset keys stay unset: "the grain's value", also after a resume
+            return {k: v for k, v in out.items() if k == "rigid" or k in self.model_fields_set}
+        return out
 
     def to_material(self, name: str) -> Material:
         """The :class:`pdem.materials.Material` called ``name``."""
+        if self.rigid:
+            own = {k: getattr(self, k) for k in ("restitution", "friction", "rolling_friction")
+                   if k in self.model_fields_set}  # fmt: skip
+            return Material.rigid_wall(name, **own)
         return Material(name=name, **self.model_dump())
 
 
@@ -575,231 +602,15 @@ def _fit_problem(region_raw: Any, largest: float, what: str, key: str) -> Proble
 # -------------------------------------------------------------------------------------------------
 
 
-class _SourceBase(_DeckModel):
-    material: Str = Field(description="name of a material defined under [materials]")
-    stage: Str | None = Field(
-        None,
-        description="name of the stage at whose start the particles are inserted; default: before "
-        "the first stage",
+class ParticleEntry(_DeckModel):
+    """``[[particles]]``: one particle source; ``source`` names the plugin, the other keys are its
+    parameters (validated by the plugin's ``Params`` model)."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    source: Str = Field(
+        description="particle source: 'random_fill', 'lattice', 'file', 'pluviate' or another installed "
+        "entry point of group pdem.sources (see `pdem plugins`); the other keys are its parameters"
     )
-    motion: Literal["free", "fixed", "prescribed"] = Field(
-        "free",
-        description="'free' (integrated), 'fixed' (never move) or 'prescribed' (move at their "
-        "initial velocity, unaffected by forces)",
-    )
-    velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity (x, y, z) [m/s]")
-
-
-#: above this solid fraction random sequential addition cannot succeed (it jams near 0.38 for equal spheres)
-RSA_LIMIT = 0.5
-
-
-class RandomFillSource(_SourceBase):
-    """Non-overlapping spheres placed at random (random sequential addition) in a region."""
-
-    source: Literal["random_fill"] = Field(description="source kind")
-    region: RegionSpec = Field(description="region to fill: {type = 'box', …} or {type = 'cylinder', …}")
-    sizes: SizeSpec = Field(
-        description="size distribution: {type = 'single' | 'uniform' | 'normal' | 'table', …}"
-    )
-    n: Int | None = Field(
-        None, gt=0, description="number of spheres (give exactly one of n, volume_fraction)"
-    )
-    volume_fraction: Float | None = Field(
-        None,
-        gt=0,
-        lt=RSA_LIMIT,
-        description=f"target solid volume fraction of the region [-], < {RSA_LIMIT} (random sequential "
-        "addition jams near 0.38 for equal spheres); exactly one of n, volume_fraction",
-    )
-    gap: Float = Field(0.0, ge=0, description="minimum clearance between sphere surfaces [m]")
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        out: Problems = []
-        if _given(data, "n") == _given(data, "volume_fraction"):
-            which = "both" if _given(data, "n") else "neither"
-            loc = ("volume_fraction",) if which == "both" else ()
-            out.append((loc, f"give exactly one of n (number of spheres) and volume_fraction; {which} given"))
-        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
-        if sizes is not None:
-            out += _fit_problem(data.get("region"), sizes.r_max, "the largest radius", "sizes")
-            region = _try_build(_REGION_MODELS, data.get("region"))
-            n = data.get("n")
-            if (
-                region is not None
-                and isinstance(n, int)
-                and not isinstance(n, bool)
-                and n > 0
-                and not _given(data, "volume_fraction")
-            ):
-                frac = n * sizes.mean_volume() / region.volume
-                if frac >= RSA_LIMIT:
-                    out.append(
-                        (
-                            ("n",),
-                            f"{n} spheres would fill {frac:.3g} of the region's volume; random "
-                            f"sequential addition cannot exceed about 0.38 (limit {RSA_LIMIT}); "
-                            "use fewer spheres, a larger region, or source = 'pluviate'",
-                        )
-                    )
-        return out
-
-
-class LatticeSource(_SourceBase):
-    """Equal spheres on a regular lattice: sc, fcc or hcp in a 3-D region, or a hex2d plane."""
-
-    source: Literal["lattice"] = Field(description="source kind")
-    lattice: Literal["sc", "fcc", "hcp", "hex2d"] = Field(
-        description="'sc' (simple cubic), 'fcc', 'hcp' (in `region`) or 'hex2d' (n_cols × n_rows in a plane)"
-    )
-    radius: Float = Field(gt=0, description="sphere radius [m]")
-    spacing: Float | None = Field(
-        None, gt=0, description="centre distance of nearest neighbours [m], >= 2 radius; default 2 radius"
-    )
-    region: RegionSpec | None = Field(None, description="region to fill (sc, fcc, hcp only)")
-    n_cols: Int | None = Field(None, ge=1, description="spheres per row (hex2d only)")
-    n_rows: Int | None = Field(None, ge=1, description="number of rows (hex2d only)")
-    origin: Vec3 | None = Field(
-        None, description="centre of the first sphere [m] (hex2d only; default 0, 0, 0)"
-    )
-    plane: Literal["xy", "xz", "yz"] | None = Field(
-        None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')"
-    )
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        out: Problems = []
-        lattice = data.get("lattice")
-        if lattice == "hex2d":
-            out += [
-                ((k,), f"required for lattice = 'hex2d': {k}")
-                for k in ("n_cols", "n_rows")
-                if not _given(data, k)
-            ]
-            if _given(data, "region"):
-                out.append(
-                    (
-                        ("region",),
-                        "a 'hex2d' lattice takes n_cols, n_rows, origin and plane, not a "
-                        "region; remove region",
-                    )
-                )
-        elif lattice in ("sc", "fcc", "hcp"):
-            if not _given(data, "region"):
-                out.append((("region",), f"required for lattice = '{lattice}': region (box or cylinder)"))
-            for k in ("n_cols", "n_rows", "origin", "plane"):
-                if _given(data, k):
-                    out.append(((k,), f"{k} applies to lattice = 'hex2d' only; remove it for '{lattice}'"))
-            radius = data.get("radius")
-            if _is_num(radius) and radius > 0:
-                out += _fit_problem(data.get("region"), radius, "radius", "radius")
-        radius, spacing = data.get("radius"), data.get("spacing")
-        if _is_num(radius) and _is_num(spacing) and spacing < 2 * radius * (1 - 1e-12):
-            out.append(
-                (
-                    ("spacing",),
-                    f"spacing = {spacing} is smaller than the diameter {2 * radius}; "
-                    "neighbouring spheres would overlap (use spacing >= 2 radius or "
-                    "omit it)",
-                )
-            )
-        return out
-
-    @model_validator(mode="after")
-    def _hex2d_defaults(self) -> LatticeSource:
-        if self.lattice == "hex2d":
-            if self.origin is None:
-                self.origin = (0.0, 0.0, 0.0)
-            if self.plane is None:
-                self.plane = "xz"
-        return self
-
-
-class FileSource(_SourceBase):
-    """Spheres read from a packing file (text ``x y z diameter [vx vy vz]`` or HDF5)."""
-
-    source: Literal["file"] = Field(description="source kind")
-    path: Str = Field(
-        description="packing file, relative to the deck's directory (stored as an absolute path once "
-        "validated); must exist"
-    )
-    velocity: Vec3 | None = Field(
-        None,
-        description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
-        "default zero",
-    )
-
-    @field_validator("path")
-    @classmethod
-    def _absolute(cls, value: str, info: ValidationInfo) -> str:
-        base = _ctx(info).get("base_dir")
-        p = Path(value).expanduser()
-        if not p.is_absolute():
-            p = Path(base if base is not None else ".") / p
-        return str(p.resolve())
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        value = data.get("path")
-        if isinstance(value, str) and value:
-            base = Path(context.get("base_dir", "."))
-            p = Path(value).expanduser()
-            full = p if p.is_absolute() else base / p
-            if not full.is_file():
-                return [
-                    (
-                        ("path",),
-                        f"file '{value}' does not exist (looked for {full}); paths are relative "
-                        "to the deck's directory",
-                    )
-                ]
-        elif isinstance(value, str):
-            return [(("path",), "path is empty; give the packing file's name")]
-        return []
-
-
-class PluviateSource(_SourceBase):
-    """Spheres poured into a container and settled under gravity (a dense random packing)."""
-
-    source: Literal["pluviate"] = Field(description="source kind")
-    region: RegionSpec = Field(
-        description="the container: box or cylinder; its footprint and floor are used, its height is not"
-    )
-    sizes: SizeSpec = Field(description="size distribution")
-    n: Int = Field(gt=0, description="number of spheres")
-    fill_fraction: Float = Field(
-        0.3, ge=0.05, le=0.35, description="solid fraction of the loose column the spheres rain from [-]"
-    )
-    max_time: Float = Field(2.0, gt=0, description="settling time allowed before giving up [s]")
-    rest_speed: Float | None = Field(
-        None,
-        gt=0,
-        description="settled when the fastest sphere is slower than this [m/s]; default 0.01 sqrt(g d_mean)",
-    )
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
-        region = _try_build(_REGION_MODELS, data.get("region"))
-        if sizes is None or region is None:
-            return []
-        lo, hi = region.bounds
-        room = region.radius if hasattr(region, "radius") else 0.5 * float(min(hi[0] - lo[0], hi[1] - lo[1]))
-        if sizes.r_max > room:
-            return [
-                (
-                    ("sizes",),
-                    f"the largest radius {sizes.r_max!r} m does not fit in the container's "
-                    f"footprint (largest radius that fits: {room!r} m)",
-                )
-            ]
-        return []
-
-
-ParticleSource = Annotated[
-    RandomFillSource | LatticeSource | FileSource | PluviateSource, Field(discriminator="source")
-]
 
 
 # -------------------------------------------------------------------------------------------------
@@ -1041,7 +852,8 @@ class Deck(_DeckModel):
     material_pairs: list[MaterialPair] = Field(
         default_factory=list, description="per-pair overrides of restitution, friction, rolling_friction"
     )
-    particles: list[ParticleSource] = Field(
+    # after validation each entry is the source plugin's own Params model: serialised as that
+    particles: list[SerializeAsAny[ParticleEntry]] = Field(
         default_factory=list, description="particle sources (arrays of tables [[particles]]), by `source`"
     )
     boundaries: dict[Str, BoundaryEntry] = Field(
@@ -1052,24 +864,22 @@ class Deck(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        return _cross_checks(data) + _domain_checks(data) + _stage_length_checks(data)
+        return _cross_checks(data) + _stage_length_checks(data)
 
     def stage_names(self) -> list[str]:
         return [s.name for s in self.stages]
 
 
-def _source_r_max(src: dict) -> float | None:
-    """Largest radius of a raw ``[[particles]]`` table, if it is known before the run."""
-    if src.get("source") == "lattice":
-        r = src.get("radius")
-        return float(r) if _is_num(r) else None
-    sizes = _try_build(_SIZE_MODELS, src.get("sizes"))
-    return float(sizes.r_max) if sizes is not None else None
-
-
-def _domain_checks(data: dict) -> Problems:
+def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, Any, str | None]]) -> Problems:
     """With periodic axes: the box is long enough for the particles (the run checks it again with
-    the actual skin), and no source region is wider than the box (it would overlap itself)."""
+    the actual skin), and no source region is wider than the box (it would overlap itself).
+
+    ``data`` is the raw deck; ``extents`` maps the index of each validated ``[[particles]]`` table to
+    ``(r_max, bounds, key)``: the largest radius and the ``(lo, hi)`` box of its particles as its
+    source plugin reports them (:meth:`pdem.sources.api.Source.r_max`,
+    :meth:`~pdem.sources.api.Source.bounds`; None where unknown before the run) and the key a
+    too-wide box is reported under (``"region"``, or None for the table itself).
+    """
     domain = data.get("domain")
     if not isinstance(domain, dict):
         return []
@@ -1079,9 +889,7 @@ def _domain_checks(data: dict) -> Problems:
         return []
     periodic = [d for d, a in enumerate("xyz") if a in axes and hi[d] > lo[d]]
     out: Problems = []
-    particles = data.get("particles")
-    sources = [s for s in particles if isinstance(s, dict)] if isinstance(particles, list) else []
-    radii = [r for r in (_source_r_max(s) for s in sources) if r is not None]
+    radii = [r for k, (r, _, _) in sorted(extents.items()) if r is not None]
     run = data.get("run")
     skin = run.get("skin") if isinstance(run, dict) else None
     skin = float(skin) if _is_num(skin) and skin >= 0 else 0.0
@@ -1100,22 +908,20 @@ def _domain_checks(data: dict) -> Problems:
                         "long (domain.lo, domain.hi) or use smaller particles",
                     )
                 )
-    for k, src in enumerate(particles if isinstance(particles, list) else []):
-        if not isinstance(src, dict) or "region" not in src:
+    for k, (_, bounds, key) in sorted(extents.items()):
+        if bounds is None:
             continue
-        region = _try_build(_REGION_MODELS, src.get("region"))
-        if region is None:
-            continue
-        rlo, rhi = region.bounds
+        rlo, rhi = bounds
+        what = "region" if key else "source's extent"
         for d in periodic:
             length = hi[d] - lo[d]
             if rhi[d] - rlo[d] > length * (1 + 1e-12):
                 out.append(
                     (
-                        ("particles", k, "region"),
-                        f"the region is {rhi[d] - rlo[d]:.4g} m wide along the periodic axis "
+                        ("particles", k, key) if key else ("particles", k),
+                        f"the {what} is {rhi[d] - rlo[d]:.4g} m wide along the periodic axis "
                         f"{'xyz'[d]}, wider than the periodic box ({length:.4g} m): wrapped into the box, "
-                        "its particles would overlap; make the region at most as wide as the box (it may "
+                        f"its particles would overlap; make the {what} at most as wide as the box (it may "
                         "straddle a periodic face: positions are wrapped)",
                     )
                 )
@@ -1208,11 +1014,18 @@ def _cross_checks(data: dict) -> Problems:
             out.append((loc, f"unknown stage '{value}'{hint}; defined stages: {_listing(stage_names)}"))
 
     particles = data.get("particles")
-    if isinstance(particles, list):
+    if isinstance(particles, list):  # any source plugin: keys naming materials and stages, as below
         for k, src in enumerate(particles):
             if isinstance(src, dict):
-                check_material(("particles", k, "material"), src.get("material"))
-                check_stage(("particles", k, "stage"), src.get("stage"))
+                for key in _material_keys(src):
+                    check_material(("particles", k, key), src[key])
+                for key in _stage_keys(src):
+                    value = src[key]
+                    if isinstance(value, list):
+                        for j, v in enumerate(value):
+                            check_stage(("particles", k, key, j), v)
+                    else:
+                        check_stage(("particles", k, key), value)
 
     pairs = data.get("material_pairs")
     if isinstance(pairs, list):

@@ -2,6 +2,10 @@
 
 Every source returns plain arrays, ``positions`` (n,3) and ``radii`` (n,) float64, in a
 deterministic, spatially coherent order (particle ids are assigned in that order).
+
+A deck's ``[[particles]] source = "NAME"`` names a plugin of entry-point group ``pdem.sources``: the
+contract is :mod:`pdem.sources.api`, pdem's own sources (built on the functions here) are
+:mod:`pdem.sources.builtin`.
 """
 
 from .files import read_spheres, write_spheres_text

@@ -1,0 +1,189 @@
+"""The particle-source plugin contract (entry-point group ``pdem.sources``).
+
+A source makes the spheres of one ``[[particles]]`` table. The entry-point name is the deck's
+``source``::
+
+    [[particles]]
+    source = "lattice"
+    material = "glass"
+    lattice = "fcc"
+    radius = 1e-3
+    region = { type = "box", lo = [0, 0, 0], hi = [0.01, 0.01, 0.01] }
+
+A source class derives from :class:`Source` and declares
+
+* ``Params``: a pydantic model derived from :class:`SourceParams`, which holds the keys every source
+  has (``source``, ``material``, ``stage``, ``motion``, ``velocity``); unknown keys, non-finite
+  numbers and (in a deck) strings for numbers are errors. The deck validates each ``[[particles]]``
+  table with the ``Params`` of the plugin its ``source`` names, reporting problems under
+  ``particles.<index>.<key>``. Checks across keys go in a ``rules(data, context)`` classmethod that
+  returns ``[(relative key path, message), ...]`` for the *raw* table (it runs even when some keys
+  have the wrong type, so it never assumes they do; ``context["base_dir"]`` is the deck's directory)
+  or in a pydantic ``@model_validator`` that raises ``ValueError``. ``RegionSpec`` and ``SizeSpec``
+  (re-exported here) are the deck's region and size-distribution tables.
+* ``generate(*, base_dir, seed, material) -> SourceOutput``: the spheres, on an instance built as
+  ``cls(params)``.
+* optionally ``r_max()`` (the largest radius, if known before generating: the deck checks a periodic
+  box against it) and ``bounds()`` (the box ``(lo, hi)`` the spheres lie in, if known: the deck checks
+  that it is not wider than a periodic box). The defaults read a ``sizes`` / ``region`` key of the
+  parameters when it is a :data:`SizeSpec` / :data:`RegionSpec`, and give None otherwise.
+
+Units are SI (m, m/s). Determinism: ``generate`` must return bitwise the same arrays for the same
+parameters and ``seed`` (``run.seed`` plus the index of the table in the deck) on any machine and
+process; it is called on every MPI rank, and each rank keeps the spheres in its own subdomain, so it
+must not communicate or depend on the rank. Particle ids are given in the order returned: return the
+spheres in a spatially coherent order (:func:`pdem.sources.spatial_order`) so that neighbours in
+space are near in memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field
+
+from ..deck.schema import (
+    Bool,
+    Float,
+    Int,
+    Problems,
+    RegionSpec,
+    SizeSpec,
+    Str,
+    Vec3,
+    _DeckModel,
+)
+from ..errors import PluginError
+from ..materials import Material
+
+__all__ = [
+    "Source",
+    "SourceParams",
+    "SourceOutput",
+    "produce",
+    "RegionSpec",
+    "SizeSpec",
+    "Float",
+    "Int",
+    "Bool",
+    "Str",
+    "Vec3",
+    "Problems",
+]
+
+
+class SourceParams(_DeckModel):
+    """Keys of every ``[[particles]]`` table; a source's ``Params`` adds its own.
+
+    Derived models may narrow ``source`` to their entry-point name (``Literal["lattice"]``) and change
+    the default of ``velocity`` (the file source makes it optional). Unknown keys are errors.
+    """
+
+    source: Str = Field(
+        description="particle source: an entry point of group pdem.sources (see `pdem plugins`)"
+    )
+    material: Str = Field(description="name of a material defined under [materials]")
+    stage: Str | None = Field(
+        None,
+        description="name of the stage at whose start the particles are inserted; default: before "
+        "the first stage",
+    )
+    motion: Literal["free", "fixed", "prescribed"] = Field(
+        "free",
+        description="'free' (integrated), 'fixed' (never move) or 'prescribed' (move at their "
+        "initial velocity, unaffected by forces)",
+    )
+    velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity (x, y, z) [m/s]")
+
+
+@dataclass(frozen=True)
+class SourceOutput:
+    """What a source produces: ``positions`` (n, 3) [m], ``radii`` (n,) [m] and optionally
+    ``velocities`` (n, 3) [m/s] (None: every sphere gets the table's ``velocity``). Converted to
+    float64 arrays; a wrong shape is a :class:`~pdem.errors.PluginError`."""
+
+    positions: np.ndarray
+    radii: np.ndarray
+    velocities: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        x = np.ascontiguousarray(np.asarray(self.positions, dtype=np.float64))
+        if x.ndim == 1 and x.size == 0:
+            x = x.reshape(0, 3)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise PluginError(
+                f"SourceOutput: positions must have shape (n, 3); got {np.shape(self.positions)}"
+            )
+        r = np.ascontiguousarray(np.asarray(self.radii, dtype=np.float64))
+        if r.shape != (x.shape[0],):
+            raise PluginError(
+                f"SourceOutput: radii must have shape ({x.shape[0]},), one per position; got {r.shape}"
+            )
+        v = self.velocities
+        if v is not None:
+            v = np.ascontiguousarray(np.asarray(v, dtype=np.float64))
+            if v.shape != x.shape:
+                raise PluginError(f"SourceOutput: velocities must have shape {x.shape}; got {v.shape}")
+        object.__setattr__(self, "positions", x)
+        object.__setattr__(self, "radii", r)
+        object.__setattr__(self, "velocities", v)
+
+    def __len__(self) -> int:
+        return int(self.radii.shape[0])
+
+
+class Source:
+    """Base of particle-source plugins: construct with validated ``Params``, then ``generate``."""
+
+    Params: ClassVar[type[SourceParams]] = SourceParams
+
+    def __init__(self, params: SourceParams) -> None:
+        self.params = params
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+        """The spheres of this table.
+
+        ``base_dir``: the deck's directory (relative file names in parameters are resolved against
+        it); ``seed``: the seed of any random draw (``run.seed`` + the table's index); ``material``:
+        the :class:`pdem.materials.Material` named by ``material`` (density, stiffness, … for
+        sources that simulate, like ``pluviate``).
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not implement generate()")
+
+    def r_max(self) -> float | None:
+        """The largest radius [m], if known before generating (default: from a ``sizes`` key)."""
+        sizes = getattr(self.params, "sizes", None)
+        build = getattr(sizes, "build", None)
+        if callable(build) and hasattr(sizes, "type"):
+            return float(build().r_max)
+        return None
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(lo, hi)`` [m] of the box the spheres lie in, if known (default: a ``region`` key's)."""
+        region = getattr(self.params, "region", None)
+        build = getattr(region, "build", None)
+        if callable(build) and hasattr(region, "type"):
+            lo, hi = build().bounds
+            return np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+        return None
+
+
+def produce(
+    source: Source, *, base_dir: Path, seed: int, material: Material, where: str = ""
+) -> SourceOutput:
+    """Call ``source.generate`` and check that it honours the contract (a :class:`SourceOutput`);
+    ``where`` (e.g. ``"particles.2"``) is named in the error."""
+    label = f"particle source '{source.params.source}'" + (f" ({where})" if where else "")
+    try:
+        out: Any = source.generate(base_dir=Path(base_dir), seed=int(seed), material=material)
+    except PluginError as exc:
+        raise PluginError(f"{label}: {exc}") from exc
+    if not isinstance(out, SourceOutput):
+        raise PluginError(
+            f"{label}: generate() returned {type(out).__name__}, not a pdem.sources.api.SourceOutput; "
+            "it does not honour the plugin contract (report this to its author)"
+        )
+    return out

@@ -1,0 +1,329 @@
+"""pdem's own particle sources, registered as plugins of group ``pdem.sources`` in pdem's
+``pyproject.toml`` exactly like third-party ones: ``random_fill``, ``lattice``, ``file`` and
+``pluviate``.
+
+Each is a :class:`~pdem.sources.api.Source` with a ``Params`` model (``RandomFillParams``, …): the
+keys, defaults, rules and messages of the deck's ``[[particles]]`` tables (docs/deck.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from ..deck.rules import REGION_MODELS as _REGION_MODELS
+from ..deck.rules import SIZE_MODELS as _SIZE_MODELS
+from ..deck.rules import context_of as _ctx
+from ..deck.rules import fit_problem as _fit_problem
+from ..deck.rules import given as _given
+from ..deck.rules import is_number as _is_num
+from ..deck.rules import try_build as _try_build
+from ..deck.schema import (
+    Float,
+    Int,
+    Problems,
+    RegionSpec,
+    SizeSpec,
+    Str,
+    Vec3,
+)
+from ..materials import Material
+from .api import Source, SourceOutput, SourceParams
+
+__all__ = [
+    "BUILTIN_SOURCES",
+    "RSA_LIMIT",
+    "RandomFillParams",
+    "LatticeParams",
+    "FileParams",
+    "PluviateParams",
+    "RandomFillSource",
+    "LatticeSource",
+    "FileSource",
+    "PluviateSource",
+]
+
+#: pdem's own sources, in the order the documentation (and an unknown-source message) lists them
+BUILTIN_SOURCES = ("random_fill", "lattice", "file", "pluviate")
+
+#: above this solid fraction random sequential addition cannot succeed (it jams near 0.38 for equal spheres)
+RSA_LIMIT = 0.5
+
+
+class RandomFillParams(SourceParams):
+    """Non-overlapping spheres placed at random (random sequential addition) in a region."""
+
+    source: Literal["random_fill"] = Field(description="source kind")
+    region: RegionSpec = Field(description="region to fill: {type = 'box', …} or {type = 'cylinder', …}")
+    sizes: SizeSpec = Field(
+        description="size distribution: {type = 'single' | 'uniform' | 'normal' | 'table', …}"
+    )
+    n: Int | None = Field(
+        None, gt=0, description="number of spheres (give exactly one of n, volume_fraction)"
+    )
+    volume_fraction: Float | None = Field(
+        None,
+        gt=0,
+        lt=RSA_LIMIT,
+        description=f"target solid volume fraction of the region [-], < {RSA_LIMIT} (random sequential "
+        "addition jams near 0.38 for equal spheres); exactly one of n, volume_fraction",
+    )
+    gap: Float = Field(0.0, ge=0, description="minimum clearance between sphere surfaces [m]")
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        if _given(data, "n") == _given(data, "volume_fraction"):
+            which = "both" if _given(data, "n") else "neither"
+            loc = ("volume_fraction",) if which == "both" else ()
+            out.append((loc, f"give exactly one of n (number of spheres) and volume_fraction; {which} given"))
+        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
+        if sizes is not None:
+            out += _fit_problem(data.get("region"), sizes.r_max, "the largest radius", "sizes")
+            region = _try_build(_REGION_MODELS, data.get("region"))
+            n = data.get("n")
+            if (
+                region is not None
+                and isinstance(n, int)
+                and not isinstance(n, bool)
+                and n > 0
+                and not _given(data, "volume_fraction")
+            ):
+                frac = n * sizes.mean_volume() / region.volume
+                if frac >= RSA_LIMIT:
+                    out.append(
+                        (
+                            ("n",),
+                            f"{n} spheres would fill {frac:.3g} of the region's volume; random "
+                            f"sequential addition cannot exceed about 0.38 (limit {RSA_LIMIT}); "
+                            "use fewer spheres, a larger region, or source = 'pluviate'",
+                        )
+                    )
+        return out
+
+
+class LatticeParams(SourceParams):
+    """Equal spheres on a regular lattice: sc, fcc or hcp in a 3-D region, or a hex2d plane."""
+
+    source: Literal["lattice"] = Field(description="source kind")
+    lattice: Literal["sc", "fcc", "hcp", "hex2d"] = Field(
+        description="'sc' (simple cubic), 'fcc', 'hcp' (in `region`) or 'hex2d' (n_cols × n_rows in a plane)"
+    )
+    radius: Float = Field(gt=0, description="sphere radius [m]")
+    spacing: Float | None = Field(
+        None, gt=0, description="centre distance of nearest neighbours [m], >= 2 radius; default 2 radius"
+    )
+    region: RegionSpec | None = Field(None, description="region to fill (sc, fcc, hcp only)")
+    n_cols: Int | None = Field(None, ge=1, description="spheres per row (hex2d only)")
+    n_rows: Int | None = Field(None, ge=1, description="number of rows (hex2d only)")
+    origin: Vec3 | None = Field(
+        None, description="centre of the first sphere [m] (hex2d only; default 0, 0, 0)"
+    )
+    plane: Literal["xy", "xz", "yz"] | None = Field(
+        None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')"
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        lattice = data.get("lattice")
+        if lattice == "hex2d":
+            out += [
+                ((k,), f"required for lattice = 'hex2d': {k}")
+                for k in ("n_cols", "n_rows")
+                if not _given(data, k)
+            ]
+            if _given(data, "region"):
+                out.append(
+                    (
+                        ("region",),
+                        "a 'hex2d' lattice takes n_cols, n_rows, origin and plane, not a "
+                        "region; remove region",
+                    )
+                )
+        elif lattice in ("sc", "fcc", "hcp"):
+            if not _given(data, "region"):
+                out.append((("region",), f"required for lattice = '{lattice}': region (box or cylinder)"))
+            for k in ("n_cols", "n_rows", "origin", "plane"):
+                if _given(data, k):
+                    out.append(((k,), f"{k} applies to lattice = 'hex2d' only; remove it for '{lattice}'"))
+            radius = data.get("radius")
+            if _is_num(radius) and radius > 0:
+                out += _fit_problem(data.get("region"), radius, "radius", "radius")
+        radius, spacing = data.get("radius"), data.get("spacing")
+        if _is_num(radius) and _is_num(spacing) and spacing < 2 * radius * (1 - 1e-12):
+            out.append(
+                (
+                    ("spacing",),
+                    f"spacing = {spacing} is smaller than the diameter {2 * radius}; "
+                    "neighbouring spheres would overlap (use spacing >= 2 radius or "
+                    "omit it)",
+                )
+            )
+        return out
+
+    @model_validator(mode="after")
+    def _hex2d_defaults(self) -> LatticeParams:
+        if self.lattice == "hex2d":
+            if self.origin is None:
+                self.origin = (0.0, 0.0, 0.0)
+            if self.plane is None:
+                self.plane = "xz"
+        return self
+
+
+class FileParams(SourceParams):
+    """Spheres read from a packing file (text ``x y z diameter [vx vy vz]`` or HDF5)."""
+
+    source: Literal["file"] = Field(description="source kind")
+    path: Str = Field(
+        description="packing file, relative to the deck's directory (stored as an absolute path once "
+        "validated); must exist"
+    )
+    velocity: Vec3 | None = Field(
+        None,
+        description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
+        "default zero",
+    )
+
+    @field_validator("path")
+    @classmethod
+    def _absolute(cls, value: str, info: ValidationInfo) -> str:
+        base = _ctx(info).get("base_dir")
+        p = Path(value).expanduser()
+        if not p.is_absolute():
+            p = Path(base if base is not None else ".") / p
+        return str(p.resolve())
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        value = data.get("path")
+        if isinstance(value, str) and value:
+            base = Path(context.get("base_dir", "."))
+            p = Path(value).expanduser()
+            full = p if p.is_absolute() else base / p
+            if not full.is_file():
+                return [
+                    (
+                        ("path",),
+                        f"file '{value}' does not exist (looked for {full}); paths are relative "
+                        "to the deck's directory",
+                    )
+                ]
+        elif isinstance(value, str):
+            return [(("path",), "path is empty; give the packing file's name")]
+        return []
+
+
+class PluviateParams(SourceParams):
+    """Spheres poured into a container and settled under gravity (a dense random packing)."""
+
+    source: Literal["pluviate"] = Field(description="source kind")
+    region: RegionSpec = Field(
+        description="the container: box or cylinder; its footprint and floor are used, its height is not"
+    )
+    sizes: SizeSpec = Field(description="size distribution")
+    n: Int = Field(gt=0, description="number of spheres")
+    fill_fraction: Float = Field(
+        0.3, ge=0.05, le=0.35, description="solid fraction of the loose column the spheres rain from [-]"
+    )
+    max_time: Float = Field(2.0, gt=0, description="settling time allowed before giving up [s]")
+    rest_speed: Float | None = Field(
+        None,
+        gt=0,
+        description="settled when the fastest sphere is slower than this [m/s]; default 0.01 sqrt(g d_mean)",
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        sizes = _try_build(_SIZE_MODELS, data.get("sizes"))
+        region = _try_build(_REGION_MODELS, data.get("region"))
+        if sizes is None or region is None:
+            return []
+        lo, hi = region.bounds
+        room = region.radius if hasattr(region, "radius") else 0.5 * float(min(hi[0] - lo[0], hi[1] - lo[1]))
+        if sizes.r_max > room:
+            return [
+                (
+                    ("sizes",),
+                    f"the largest radius {sizes.r_max!r} m does not fit in the container's "
+                    f"footprint (largest radius that fits: {room!r} m)",
+                )
+            ]
+        return []
+
+
+# -------------------------------------------------------------------------------------------------
+# the plugins
+# -------------------------------------------------------------------------------------------------
+
+
+class RandomFillSource(Source):
+    """``source = "random_fill"``: :func:`pdem.sources.random_fill` in a region."""
+
+    Params = RandomFillParams
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+        from . import random_fill
+
+        p = self.params
+        x, r = random_fill(
+            p.region.build(), p.sizes.build(), n=p.n, volume_fraction=p.volume_fraction, seed=seed, gap=p.gap
+        )
+        return SourceOutput(x, r)
+
+
+class LatticeSource(Source):
+    """``source = "lattice"``: :func:`pdem.sources.simple_cubic`, ``fcc``, ``hcp`` or ``hex2d``."""
+
+    Params = LatticeParams
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+        from . import fcc, hcp, hex2d, simple_cubic
+
+        p = self.params
+        if p.lattice == "hex2d":
+            x, r = hex2d(p.n_cols, p.n_rows, p.radius, origin=p.origin, plane=p.plane, spacing=p.spacing)
+        else:
+            fn = {"sc": simple_cubic, "fcc": fcc, "hcp": hcp}[p.lattice]
+            x, r = fn(p.region.build(), p.radius, spacing=p.spacing)
+        return SourceOutput(x, r)
+
+    def r_max(self) -> float | None:
+        return float(self.params.radius)
+
+
+class FileSource(Source):
+    """``source = "file"``: spheres (and velocities, if given) read by :func:`pdem.sources.read_spheres`."""
+
+    Params = FileParams
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+        from . import read_spheres
+
+        d = read_spheres(Path(base_dir) / self.params.path)  # the validated path is absolute
+        return SourceOutput(d["positions"], d["radii"], d.get("velocities"))
+
+
+class PluviateSource(Source):
+    """``source = "pluviate"``: :func:`pdem.sources.pluviate`, poured and settled with pdem itself."""
+
+    Params = PluviateParams
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+        from . import pluviate
+
+        p = self.params
+        x, r = pluviate(
+            p.region.build(),
+            p.sizes.build(),
+            p.n,
+            material,
+            seed=seed,
+            fill_fraction=p.fill_fraction,
+            max_time=p.max_time,
+            rest_speed=p.rest_speed,
+        )
+        return SourceOutput(x, r)
