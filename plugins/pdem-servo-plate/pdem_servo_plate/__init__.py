@@ -35,9 +35,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
-
 from pdem.api import Boundary, BoundaryParams, Controlled, RigidBody, Vec3, shapes
+from pydantic import Field, model_validator
 
 __all__ = ["ServoPlate", "ServoPlateParams"]
 

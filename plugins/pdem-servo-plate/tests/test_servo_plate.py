@@ -6,13 +6,13 @@ import json
 import textwrap
 
 import numpy as np
-import pytest
-
 import pdem
+import pytest
 from pdem.api import shapes
 from pdem.cli import main
 from pdem.plugins import available
 from pdem.sources import BoxRegion, Single, random_fill
+
 from pdem_servo_plate import ServoPlate, ServoPlateParams
 
 L = 0.01  # box side [m]
