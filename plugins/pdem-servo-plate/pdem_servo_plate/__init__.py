@@ -14,7 +14,8 @@ reaction: use ``control = "force"``, where the plate is a free rigid body of mas
 along its normal by the constant force σ_target · area and held by the grains (solved with them by
 DEM-C; explicit in the load for DEM-P), moving along its normal only. Measured every series row:
 ``stress`` [Pa], ``position`` [m] (the plate's travel along its normal), ``error``
-(σ/σ_target − 1). Summary: the mean and the 95th percentile of |error| over the second half of the stages in which it is active.
+(σ/σ_target − 1). Summary: the mean and the 95th percentile of |error| over the second half of
+the stages in which it is active.
 
 Deck::
 
