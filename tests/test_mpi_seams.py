@@ -49,7 +49,8 @@ SCRIPT = textwrap.dedent(
     floor = shapes.TriangleMesh([[-9e-3, -9e-3, 0], [9e-3, -9e-3, 0], [9e-3, 9e-3, 0], [-9e-3, 9e-3, 0]],
                                 [[0, 1, 2], [0, 2, 3]])
     sim.add_wall(floor, name="floor")
-    sim.add_wall(shapes.Cylinder((0, 0, 0), (0, 0, 1), 9.0 * R), name="cell", motion=Resize({"radius": -0.05}))
+    cell = shapes.Cylinder((0, 0, 0), (0, 0, 1), 9.0 * R)
+    sim.add_wall(cell, name="cell", motion=Resize({"radius": -0.05}))
     ball = RigidBody(mass=2e-4, gravity=(0, 0, -9.81), velocity=(0, 0, -0.2), fixed_translation="xy")
     sim.add_wall(shapes.Sphere((0, 0, 0.0121), 3 * R), name="ball", motion=ball)
     sim.add_boundary(Push("push", BoundaryParams(type="push")))
