@@ -16,6 +16,19 @@ from .._jit import njit
 FLAG_NONFINITE = 2
 
 
+@njit(inline="always")
+def _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h):
+    """Half kick of component c of particle i; a locked component (``dof`` bits) is skipped."""
+    if lock == 0:
+        v[i, c] += h * f[i, c] * inv_m[i]
+        w[i, c] += h * t[i, c] * inv_i[i]
+    else:
+        if (lock >> c) & 1 == 0:
+            v[i, c] += h * f[i, c] * inv_m[i]
+        if (lock >> (c + 3)) & 1 == 0:
+            w[i, c] += h * t[i, c] * inv_i[i]
+
+
 @njit
 def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dof, dt, n, snap):
     """``snap[c]`` > 0 rounds the displacement along axis c to the periodic position grid:
@@ -28,14 +41,7 @@ def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dof, dt, n, snap):
         if mo == 0:
             lock = dof[i]
             for c in range(3):
-                if lock == 0:
-                    v[i, c] += h * f[i, c] * inv_m[i]
-                    w[i, c] += h * t[i, c] * inv_i[i]
-                else:
-                    if (lock >> c) & 1 == 0:
-                        v[i, c] += h * f[i, c] * inv_m[i]
-                    if (lock >> (c + 3)) & 1 == 0:
-                        w[i, c] += h * t[i, c] * inv_i[i]
+                _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h)
                 d = dt * v[i, c]
                 if snap[c] != 0.0:
                     d = (d + snap[c]) - snap[c]
@@ -62,14 +68,7 @@ def add_body_force_and_final_integrate(v, w, f, t, mass, inv_m, inv_i, motion, d
             s = 0.0
             lock = dof[i]
             for c in range(3):
-                if lock == 0:
-                    v[i, c] += h * f[i, c] * inv_m[i]
-                    w[i, c] += h * t[i, c] * inv_i[i]
-                else:
-                    if (lock >> c) & 1 == 0:
-                        v[i, c] += h * f[i, c] * inv_m[i]
-                    if (lock >> (c + 3)) & 1 == 0:
-                        w[i, c] += h * t[i, c] * inv_i[i]
+                _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h)
                 s += v[i, c] + w[i, c]
             if not math.isfinite(s):
                 flags |= FLAG_NONFINITE
