@@ -9,7 +9,7 @@ Python API (SI units throughout)::
     sim.add_particles(positions, radii, material="glass")
     sim.add_wall(pdem.shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
     sim.set_periodic(lo=(0, 0, 0), hi=(0.05, 0.02, 0), axes="xy")   # optional: periodic sides
-    sim.gravity = (0, 0, -9.81)
+    sim.gravity = (0, 0, -9.81)      # none unless set, here and in a deck's [run] alike
     sim.run(steps=1000)            # or sim.run(until=0.1)
     p = sim.get_particles()        # arrays ordered by particle id
     sim.walls["floor"].force       # load on the floor [N]

@@ -215,3 +215,11 @@ def test_wall_contacts_and_solver_stats_are_public(law):
     else:
         st = sim.solver_stats()
         assert st["steps"] == 5 and st["iterations"] >= 1 and st["residual"] >= 0.0
+
+
+def test_one_gravity_rule_for_decks_and_python():
+    """No gravity unless it is given, in decks and in Simulation() alike."""
+    from pdem.deck.schema import RunSection
+
+    assert tuple(RunSection().gravity) == (0.0, 0.0, 0.0)
+    assert tuple(pdem.Simulation().gravity) == (0.0, 0.0, 0.0)

@@ -220,7 +220,10 @@ class RunSection(_DeckModel):
     force_dt: Bool = Field(
         False, description="allow a dt (here or in a stage) above the law's stability estimate"
     )
-    gravity: Vec3 = Field((0.0, 0.0, -9.81), description="gravitational acceleration (x, y, z) [m/s²]")
+    gravity: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="gravitational acceleration (x, y, z) [m/s²]; none unless given (as in Simulation())",
+    )
     skin: Float | None = Field(
         None, ge=0, description="Verlet-list skin [m]; default: 0.1 of the mean particle diameter"
     )
