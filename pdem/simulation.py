@@ -401,6 +401,14 @@ class Simulation:
         self._force_rebuild = True
         self.contact_store.walls_changed = True
 
+    def set_wall_motion(self, name: str, motion: Motion) -> None:
+        """Give wall ``name`` a new motion from the next step on (e.g. a servo during one stage, a
+        constant velocity during the next). Its pose is kept."""
+        if name not in self.walls:
+            raise InputError(f"no wall named '{name}'; walls: {', '.join(self.walls) or '(none)'}")
+        self.walls[name].motion = motion
+        self.contact_store.walls_changed = True
+
     def remove_particles(self, mask: np.ndarray) -> tuple[int, float]:
         """Remove the owned particles where ``mask`` is true (an outflow); returns (count, mass).
 

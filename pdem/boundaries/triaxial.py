@@ -1,0 +1,316 @@
+"""Triaxial cell: a cylindrical specimen between two platens, confined by a flexible membrane.
+
+**Membrane** (why this design): the confining pressure σ₃ acts on the grains of the lateral surface,
+found anew every step as the outermost grain (largest ρ + r about the specimen axis) of each cell of
+an (θ, z) grid over the current specimen height; ties go to the lower id. The surface radius of cell
+(k, m) is R = ρ + r of its grain, and the force on that grain,
+
+    F = −σ₃ · R Δθ Δz · ρ̂,
+
+is σ₃ × the area of the surface patch it represents, along the inward radial direction. (Tilting the
+normal by the bulge's slope ∂R/∂z, estimated from neighbouring cells, was tried: at the grain scale
+the slopes are noise, and their end terms do not cancel — it loaded the bottom platen 38 % more than
+the top one with no gravity. On a real specimen the membrane's axial pull goes to the platens; here
+the lateral pressure is horizontal, and the measured platen loads then agree with each other and with
+the grains' own stress within 0.2 %.) Nothing holds the
+grains radially but these forces, so the specimen is free to bulge. It needs no membrane elements
+and no bonds (the bonded-ball membrane of Qu et al. 2019 is stiffer to set up and adds its own
+elasticity); it works with both methods (DEM-C takes the forces into the free velocity) and, since
+the outermost grain is a global maximum (exact under any reduction) and forces act on owned grains,
+it gives bitwise identical results on any number of ranks. Its limits: a grain smaller than the
+cells can slip between the loaded ones (cells of about one grain diameter, the default, avoid it),
+and the enclosed volume is that of the cells' radii (the specimen volume to within a grain's
+roughness).
+
+**Platens**: horizontal planes; the bottom one is fixed. The top one is servo-controlled to σ₃
+during consolidation (a velocity servo for soft grains; for rigid grains, ``control = "force"``, a
+free plate under the load σ₃ A, solved with the grains by DEM-C), then driven down at a constant
+axial strain rate during shearing (v = ε̇ H₀).
+
+**Preparation**: an optional rigid mould (a cylinder wall of the specimen's radius) is active in the
+stages listed in ``mould_stages`` (e.g. while grains are poured and settle); the membrane takes over
+in ``consolidation_stage`` and ``shear_stage``.
+
+Measured every series row: ``sigma1`` (top platen force / current cross-section V/H), ``sigma3``
+(realised: total radial membrane force / lateral area), ``eps_a`` (axial strain from the start of
+shearing, compression positive), ``eps_v`` (volumetric strain, from the membrane's enclosed volume),
+``q`` = σ₁ − σ₃, ``p`` = (σ₁ + 2σ₃)/3, ``height``, ``radius`` (mean of the cells), and the average
+stress of the grains from their contacts (Love–Weber, ``lw_szz``, ``lw_srr``): σ = (1/V) Σ_c l_c ⊗ f_c
+over pair contacts (branch vectors), platen contacts and membrane forces (levers from the grain
+centres), an independent check of the boundary stresses. Lengths in m, stresses in Pa.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from . import shapes
+from .api import Boundary, BoundaryParams, Vec3
+from .walls import Controlled, RigidBody
+
+__all__ = ["TriaxialCell", "TriaxialParams"]
+
+
+class TriaxialParams(BoundaryParams):
+    """Keys of ``[boundaries.NAME]`` with ``type = "triaxial"``."""
+
+    material: str = Field(description="material of the platens (and of the mould)")
+    base_center: Vec3 = Field(description="centre of the bottom platen [m]; the axis is +z")
+    radius: float = Field(gt=0, description="initial specimen radius (the mould's) [m]")
+    height: float = Field(gt=0, description="initial specimen height (the top platen's start) [m]")
+    sigma3: float = Field(gt=0, description="confining pressure σ₃ [Pa]")
+    strain_rate: float = Field(gt=0, description="axial strain rate during shearing [1/s]")
+    consolidation_stage: str = Field(description="stage in which the specimen is consolidated to σ₃")
+    shear_stage: str = Field(description="stage in which it is sheared at constant axial strain rate")
+    mould_stages: list[str] = Field(
+        default_factory=list, description="stages with the rigid mould in place"
+    )
+    cell_size: float | None = Field(
+        default=None, gt=0,
+        description="membrane cell size [m] along z and around; default one mean diameter",
+    )
+    control: str = Field(
+        "auto", pattern="^(auto|velocity|force)$",
+        description="top platen during consolidation: 'velocity' servo (soft grains), 'force' (a free "
+        "plate under σ₃ A; rigid grains); 'auto': by the contact law",
+    )
+    max_speed: float = Field(0.05, gt=0, description="largest platen speed of the velocity servo [m/s]")
+
+    @model_validator(mode="after")
+    def _stages(self):
+        if self.consolidation_stage == self.shear_stage:
+            raise ValueError("consolidation_stage and shear_stage must be different stages")
+        return self
+
+
+class TriaxialCell(Boundary):
+    """See the module docstring."""
+
+    Params = TriaxialParams
+
+    def __init__(self, name: str, params: BoundaryParams) -> None:
+        super().__init__(name, params)
+        self.phase = "off"
+        self.h0 = self.v0 = None
+        self._cells: tuple | None = None
+        self._membrane_force = np.zeros(3)
+        self._lateral_area = 0.0
+        self._volume = math.nan
+        self._radius = math.nan
+
+    # ------------------------------------------------------------------ building, stages
+    def build(self, sim: Any) -> None:
+        p = self.params
+        c = np.asarray(p.base_center, dtype=float)
+        self.axis_xy = c[:2].copy()
+        self.z0 = float(c[2])
+        self.bottom = self.add_wall(sim, shapes.Plane(c, (0, 0, 1)), "bottom")
+        self.motion = Controlled()
+        top = shapes.Plane(c + (0, 0, p.height), (0, 0, -1))
+        self.top = self.add_wall(sim, top, "top", motion=self.motion)
+        mould = shapes.Cylinder(c, (0, 0, 1), p.radius)
+        self.mould = self.add_wall(sim, mould, "mould") if p.mould_stages else None
+        self._comm = sim.comm
+
+    def on_stage(self, sim: Any, stage: str) -> None:
+        p = self.params
+        stages = getattr(p, "stages", None)
+        self.active = stages is None or stage in stages
+        for wall in (self.bottom, self.top):
+            sim.set_wall_active(wall.name, self.active)
+        if self.mould is not None:
+            sim.set_wall_active(self.mould.name, self.active and stage in p.mould_stages)
+        if not self.active:
+            self.phase = "off"
+            return
+        if stage == p.consolidation_stage:
+            self.phase = "consolidate"
+            control = p.control
+            if control == "auto":
+                control = "force" if sim.law.kind == "complementarity" else "velocity"
+            if control == "force":
+                area = math.pi * p.radius**2
+                body = RigidBody(mass=p.sigma3 * area / 10.0, force=(0.0, 0.0, -p.sigma3 * area),
+                                 fixed_translation="xy")  # fmt: skip
+                sim.set_wall_motion(self.top.name, body)
+            else:
+                self.motion = Controlled()
+                sim.set_wall_motion(self.top.name, self.motion)
+        elif stage == p.shear_stage:
+            self.phase = "shear"
+            self.motion = Controlled()
+            sim.set_wall_motion(self.top.name, self.motion)
+            self.h0 = None  # taken at the first step of shearing
+        else:
+            self.phase = "prepare"
+
+    # ------------------------------------------------------------------ geometry
+    def height(self) -> float:
+        return float(self.top.reference_point[2] - self.bottom.reference_point[2])
+
+    def _own(self, sim):
+        p = sim.particles
+        n = p.n_owned
+        live = p.motion[:n] != 3  # not removed
+        return p, n, live
+
+    # ------------------------------------------------------------------ hooks
+    def _area(self) -> float:
+        """Current cross-section: the membrane's enclosed volume / height (the mould's before)."""
+        vol = self._volume
+        return vol / self.height() if vol == vol else math.pi * self.params.radius**2
+
+    def before_step(self, sim: Any) -> None:
+        if self.phase == "consolidate" and isinstance(self.top.motion, RigidBody):
+            self.top.motion.force = (0.0, 0.0, -self.params.sigma3 * self._area())
+        elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
+            area = self._area()
+            sigma1 = float(self.top.force[2]) / area  # grains push the top platen up
+            gain = self.params.max_speed / self.params.sigma3
+            vmax = self.params.max_speed
+            v = float(np.clip(gain * (self.params.sigma3 - sigma1), -vmax, vmax))
+            self.motion.velocity = np.array([0.0, 0.0, -v])
+        elif self.phase == "shear":
+            if self.h0 is None:
+                self.h0, self.v0 = self.height(), self._volume
+            self.motion.velocity = np.array([0.0, 0.0, -self.params.strain_rate * self.h0])
+
+    def apply_forces(self, sim: Any) -> None:
+        if self.phase not in ("consolidate", "shear"):
+            return
+        self._membrane(sim, apply=True)
+
+    def _membrane(self, sim: Any, apply: bool) -> None:
+        """Find the outermost grain of every (θ, z) cell (globally) and load it (owned grains)."""
+        p, n, live = self._own(sim)
+        x, r, ids = p.x[:n][live], p.r[:n][live], p.id[:n][live]
+        rows = np.flatnonzero(live)
+        h = self.height()
+        size = self.params.cell_size
+        if size is None:
+            r_mean = float(r.mean()) if r.size else 0.0
+            if sim.comm.size > 1:
+                tot = sim.comm.allgather((float(r.sum()), r.size))
+                r_mean = sum(t[0] for t in tot) / max(sum(t[1] for t in tot), 1)
+            size = 2.0 * r_mean
+        radius_guess = self.params.radius if self._radius != self._radius else self._radius
+        nz = max(int(round(h / size)), 1)
+        nt = max(int(round(2 * math.pi * radius_guess / size)), 6)
+        dx = x[:, 0] - self.axis_xy[0]
+        dy = x[:, 1] - self.axis_xy[1]
+        rho = np.hypot(dx, dy)
+        theta = np.arctan2(dy, dx)
+        zrel = x[:, 2] - self.bottom.reference_point[2]
+        kt = np.minimum(((theta + math.pi) / (2 * math.pi) * nt).astype(np.int64), nt - 1)
+        kz = np.clip((zrel / h * nz).astype(np.int64), 0, nz - 1)
+        cell = kz * nt + kt
+        val = rho + r
+        order = np.lexsort((ids, -val, cell))
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = cell[order][1:] != cell[order][:-1]
+        win = order[first]
+        local = (cell[win], val[win], ids[win])
+        if sim.comm.size > 1:  # the outermost grain of a cell may be on another rank: global max
+            parts = sim.comm.allgather(local)
+            cells = np.concatenate([q[0] for q in parts])
+            vals = np.concatenate([q[1] for q in parts])
+            wids = np.concatenate([q[2] for q in parts])
+            o = np.lexsort((wids, -vals, cells))
+            f1 = np.ones(o.size, dtype=bool)
+            f1[1:] = cells[o][1:] != cells[o][:-1]
+            gcell, gval, gid = cells[o][f1], vals[o][f1], wids[o][f1]
+        else:
+            gcell, gval, gid = local
+            o = np.argsort(gcell, kind="stable")
+            gcell, gval, gid = gcell[o], gval[o], gid[o]
+        R = np.full(nz * nt, np.nan)
+        R[gcell] = gval
+        dz = h / nz
+        dth = 2 * math.pi / nt
+        filled = np.isfinite(R)
+        self._volume = float(0.5 * np.sum(R[filled] ** 2) * dth * dz)
+        self._lateral_area = float(np.sum(R[filled]) * dth * dz)
+        self._radius = float(np.mean(R[filled])) if filled.any() else math.nan
+        self._cells = (nz, nt, int(filled.sum()))
+        if not apply:
+            return
+        # the global winners this rank owns, loaded with σ3 × their patch along the inward normal
+        owner = np.full(nz * nt, -1, dtype=np.int64)
+        owner[gcell] = gid
+        w = win[owner[cell[win]] == ids[win]]
+        k = cell[w]
+        rhat = np.stack([dx[w], dy[w], np.zeros(w.size)], axis=1) / np.maximum(rho[w], 1e-300)[:, None]
+        f = -self.params.sigma3 * (R[k] * dth * dz)[:, None] * rhat
+        p.f[rows[w]] += f
+        # kept for the measurements: the load and the lever r ρ̂ of each loaded grain, and the area
+        self._applied = (f, r[w][:, None] * rhat, rhat)
+        self._applied_area = self._lateral_area
+
+    # ------------------------------------------------------------------ measuring
+    def measurements(self, sim: Any) -> dict[str, float]:
+        if self.phase in ("consolidate", "shear"):
+            self._membrane(sim, apply=False)
+        h = self.height()
+        vol = self._volume
+        area = vol / h if vol == vol and h > 0 else math.pi * self.params.radius**2
+        sigma1 = float(self.top.force[2]) / area
+        # realised σ3: the membrane's radial load over its lateral area (exact sum over ranks)
+        fr = self._radial_membrane_load(sim)
+        area3 = getattr(self, "_applied_area", 0.0)
+        sigma3 = fr / area3 if area3 > 0 else math.nan
+        out = {
+            "sigma1": sigma1,
+            "sigma3": sigma3,
+            "q": sigma1 - sigma3,
+            "p": (sigma1 + 2 * sigma3) / 3,
+            "height": h,
+            "radius": self._radius,
+            "volume": vol,
+            "eps_a": (self.h0 - h) / self.h0 if self.h0 else 0.0,
+            "eps_v": (self.v0 - vol) / self.v0 if self.v0 else 0.0,
+        }
+        out.update(self._love_weber(sim, vol))
+        return out
+
+    def _radial_membrane_load(self, sim) -> float:
+        """Σ F·(−ρ̂) of the membrane forces applied at the last evaluation (exact over ranks)."""
+        f, _lever, rhat = getattr(self, "_applied", (np.zeros((0, 3)), None, np.zeros((0, 3))))
+        return sim.exact_sum(-np.einsum("ij,ij->i", f, rhat))
+
+    def _love_weber(self, sim: Any, vol: float) -> dict[str, float]:
+        """Average stress of the grains, compression positive: −(1/V) Σ lever ⊗ force over every
+        force on every grain (pairs: −l ⊗ f with the branch vector; platens; membrane)."""
+        if not (vol == vol and vol > 0):
+            return {"lw_szz": math.nan, "lw_srr": math.nan}
+        parts = sim.get_particles()  # collective
+        ids, x, r = parts["id"], parts["x"], parts["r"]
+        c = sim.contacts()  # collective, each contact once
+        s = np.zeros((3, 3))
+        if len(c["id_i"]):
+            xi = x[np.searchsorted(ids, c["id_i"])]
+            xj = x[np.searchsorted(ids, c["id_j"])]
+            s -= np.einsum("ka,kb->ab", xj - xi, c["force"])  # Σ (x_i − x_j) ⊗ f_j
+        wc = sim.wall_contacts()  # collective
+        names = list(sim.walls)
+        for wall, sign in ((self.bottom, -1.0), (self.top, 1.0)):
+            sel = wc["wall"] == names.index(wall.name)
+            if not sel.any():
+                continue
+            rr = r[np.searchsorted(ids, wc["id"][sel])] - 0.5 * wc["overlap"][sel]
+            lever = np.zeros((rr.size, 3))
+            lever[:, 2] = sign * rr
+            s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
+        f, lever, _ = getattr(self, "_applied", (np.zeros((0, 3)), np.zeros((0, 3)), None))
+        local = np.einsum("ka,kb->ab", lever, f).reshape(-1) if len(f) else np.zeros(9)
+        if sim.comm.size > 1:  # membrane forces act on owned grains: add every rank's (exactly)
+            from ..parallel.exact import exact_sums
+
+            terms = np.einsum("ka,kb->kab", lever, f).reshape(-1, 9) if len(f) else np.zeros((0, 9))
+            local = exact_sums(sim.comm, terms)
+        s += local.reshape(3, 3)
+        sigma = -s / vol
+        return {"lw_szz": float(sigma[2, 2]), "lw_srr": float(0.5 * (sigma[0, 0] + sigma[1, 1]))}
