@@ -95,6 +95,7 @@ class TriaxialCell(Boundary):
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)
         self.phase = "off"
+        self._size = None
         self.h0 = self.v0 = None
         self._cells: tuple | None = None
         self._membrane_force = np.zeros(3)
@@ -118,6 +119,7 @@ class TriaxialCell(Boundary):
 
     def on_stage(self, sim: Any, stage: str) -> None:
         p = self.params
+        self._size = None
         stages = getattr(p, "stages", None)
         self.active = stages is None or stage in stages
         for wall in (self.bottom, self.top):
@@ -191,12 +193,10 @@ class TriaxialCell(Boundary):
         rows = np.flatnonzero(live)
         h = self.height()
         size = self.params.cell_size
-        if size is None:
-            r_mean = float(r.mean()) if r.size else 0.0
-            if sim.comm.size > 1:
-                tot = sim.comm.allgather((float(r.sum()), r.size))
-                r_mean = sum(t[0] for t in tot) / max(sum(t[1] for t in tot), 1)
-            size = 2.0 * r_mean
+        if size is None:  # one mean diameter (exact sums: the same on any rank count), once a stage
+            if self._size is None:
+                self._size = 2.0 * sim.exact_sum(r) / max(sim.count(r.size), 1)
+            size = self._size
         radius_guess = self.params.radius if self._radius != self._radius else self._radius
         nz = max(int(round(h / size)), 1)
         nt = max(int(round(2 * math.pi * radius_guess / size)), 6)
@@ -305,12 +305,8 @@ class TriaxialCell(Boundary):
             lever[:, 2] = sign * rr
             s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
         f, lever, _ = getattr(self, "_applied", (np.zeros((0, 3)), np.zeros((0, 3)), None))
-        local = np.einsum("ka,kb->ab", lever, f).reshape(-1) if len(f) else np.zeros(9)
-        if sim.comm.size > 1:  # membrane forces act on owned grains: add every rank's (exactly)
-            from ..parallel.exact import exact_sums
-
-            terms = np.einsum("ka,kb->kab", lever, f).reshape(-1, 9) if len(f) else np.zeros((0, 9))
-            local = exact_sums(sim.comm, terms)
-        s += local.reshape(3, 3)
+        # membrane forces act on owned grains: every rank's terms, summed exactly (any rank count)
+        terms = np.einsum("ka,kb->kab", lever, f).reshape(-1, 9) if len(f) else np.zeros((0, 9))
+        s += np.array([sim.exact_sum(terms[:, c]) for c in range(9)]).reshape(3, 3)
         sigma = -s / vol
         return {"lw_szz": float(sigma[2, 2]), "lw_srr": float(0.5 * (sigma[0, 0] + sigma[1, 1]))}
