@@ -28,8 +28,9 @@ free plate under the load σ₃ A, solved with the grains by DEM-C), then driven
 axial strain rate during shearing (v = ε̇ H₀).
 
 **Preparation**: an optional rigid mould (a cylinder wall of the specimen's radius) is active in the
-stages listed in ``mould_stages`` (e.g. while grains are poured and settle); the membrane takes over
-in ``consolidation_stage`` and ``shear_stage``.
+stages listed in ``mould_stages`` (e.g. while grains are poured and settle), while the top platen is
+servoed down to a small seating stress; the membrane takes over in ``consolidation_stage`` (its
+pressure rising over ``ramp_time``) and ``shear_stage``.
 
 Measured every series row: ``sigma1`` (top platen force / current cross-section V/H), ``sigma3``
 (realised: total radial membrane force / lateral area), ``eps_a`` (axial strain from the start of
@@ -79,6 +80,16 @@ class TriaxialParams(BoundaryParams):
         "plate under σ₃ A; rigid grains); 'auto': by the contact law",
     )
     max_speed: float = Field(0.05, gt=0, description="largest platen speed of the velocity servo [m/s]")
+    seating_stress: float | None = Field(
+        default=None, ge=0,
+        description="during the mould stages the top platen is servoed down onto the specimen to this "
+        "axial stress [Pa] (seating); default 0.05 sigma3",
+    )
+    ramp_time: float = Field(
+        0.0, ge=0,
+        description="the membrane pressure rises linearly from 0 to sigma3 over this time at the start of "
+        "consolidation [s] (0: at once)",
+    )
 
     @model_validator(mode="after")
     def _stages(self):
@@ -95,6 +106,7 @@ class TriaxialCell(Boundary):
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)
         self.phase = "off"
+        self._stage_t0 = 0.0
         self._size = None
         self.h0 = self.v0 = None
         self._cells: tuple | None = None
@@ -149,6 +161,9 @@ class TriaxialCell(Boundary):
             self.h0 = None  # taken at the first step of shearing
         else:
             self.phase = "prepare"
+            self.motion = Controlled()
+            sim.set_wall_motion(self.top.name, self.motion)
+        self._stage_t0 = sim.time
 
     # ------------------------------------------------------------------ geometry
     def height(self) -> float:
@@ -169,6 +184,14 @@ class TriaxialCell(Boundary):
     def before_step(self, sim: Any) -> None:
         if self.phase == "consolidate" and isinstance(self.top.motion, RigidBody):
             self.top.motion.force = (0.0, 0.0, -self.params.sigma3 * self._area())
+        elif self.phase == "prepare" and self.mould is not None and self.mould.active:
+            target = self.params.seating_stress
+            target = 0.05 * self.params.sigma3 if target is None else target
+            sigma1 = float(self.top.force[2]) / (math.pi * self.params.radius**2)
+            vmax = self.params.max_speed
+            gain = vmax / max(target, 1e-300)
+            v = float(np.clip(gain * (target - sigma1), -vmax, vmax))
+            self.motion.velocity = np.array([0.0, 0.0, -v])
         elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
             area = self._area()
             sigma1 = float(self.top.force[2]) / area  # grains push the top platen up
@@ -244,7 +267,7 @@ class TriaxialCell(Boundary):
         w = win[owner[cell[win]] == ids[win]]
         k = cell[w]
         rhat = np.stack([dx[w], dy[w], np.zeros(w.size)], axis=1) / np.maximum(rho[w], 1e-300)[:, None]
-        f = -self.params.sigma3 * (R[k] * dth * dz)[:, None] * rhat
+        f = -self.pressure(sim) * (R[k] * dth * dz)[:, None] * rhat
         p.f[rows[w]] += f
         # kept for the measurements: the load and the lever r ρ̂ of each loaded grain, and the area
         self._applied = (f, r[w][:, None] * rhat, rhat)
@@ -274,7 +297,51 @@ class TriaxialCell(Boundary):
             "eps_v": (self.v0 - vol) / self.v0 if self.v0 else 0.0,
         }
         out.update(self._love_weber(sim, vol))
+        # inertial number of the loading, I = ε̇ d sqrt(ρ/p) (grain density from their mass and volume)
+        if self.phase == "shear" and out["p"] > 0 and self._size:
+            prt = sim.particles
+            n = prt.n_owned
+            rho = sim.exact_sum(prt.mass[:n]) / sim.exact_sum(4.0 / 3.0 * math.pi * prt.r[:n] ** 3)
+            out["inertial"] = self.params.strain_rate * self._size * math.sqrt(rho / out["p"])
         return out
+
+    def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
+        """Peak deviator and where, final volumetric strain, servo accuracy of σ₃ and of σ₁ at the end
+        of consolidation, agreement of the boundary and Love–Weber stresses during shearing."""
+        key = lambda k: series.get(f"{self.name}.{k}")  # noqa: E731
+        ea, q, s1, s3 = key("eps_a"), key("q"), key("sigma1"), key("sigma3")
+        if ea is None or q is None or len(ea) < 3:
+            return {}
+        shear = ea > 0
+        out: dict[str, float] = {}
+        if shear.any():
+            k = int(np.nanargmax(np.where(shear, q, -np.inf)))
+            out["q_peak"] = float(q[k])
+            out["eps_a_at_peak"] = float(ea[k])
+            out["q_over_p_peak"] = float(q[k] / key("p")[k])
+            out["eps_a_final"] = float(ea[shear][-1])
+            out["eps_v_final"] = float(key("eps_v")[shear][-1])
+            err3 = np.abs(s3[shear] / self.params.sigma3 - 1)
+            out["sigma3_error_mean"] = float(np.nanmean(err3))
+            out["sigma3_error_p95"] = float(np.nanpercentile(err3, 95))
+            lz, lr = key("lw_szz"), key("lw_srr")
+            if lz is not None:
+                out["lw_sigma1_error_mean"] = float(np.nanmean(np.abs(lz[shear] / s1[shear] - 1)))
+                out["lw_sigma3_error_mean"] = float(np.nanmean(np.abs(lr[shear] / s3[shear] - 1)))
+            inert = key("inertial")
+            if inert is not None and np.isfinite(inert[shear]).any():
+                out["inertial_number_max"] = float(np.nanmax(inert[shear]))
+        before = ~shear & np.isfinite(s1)
+        if before.any():
+            out["sigma1_end_of_consolidation"] = float(s1[before][-1])
+        return out
+
+    def pressure(self, sim: Any) -> float:
+        """The membrane pressure now: σ₃, ramped over ``ramp_time`` at the start of consolidation."""
+        ramp = self.params.ramp_time
+        if self.phase == "consolidate" and ramp > 0:
+            return self.params.sigma3 * min(1.0, (sim.time - self._stage_t0) / ramp)
+        return self.params.sigma3
 
     def _radial_membrane_load(self, sim) -> float:
         """Σ F·(−ρ̂) of the membrane forces applied at the last evaluation (exact over ranks)."""
