@@ -238,6 +238,14 @@ class RunSection(_DeckModel):
         "(checked when the run starts; `pdem check` cannot know the rank count); default: "
         "chosen from the rank count to minimise the cut area over the particles",
     )
+    max_particles: Int | None = Field(
+        None,
+        ge=1,
+        le=2**31 - 1,
+        description="most particles the deck's sources may create together (estimated when the deck is "
+        "validated, at about 1 kB of memory per particle); default: this machine's memory / 1 kB, at most "
+        "2^31 - 1 (particle ids)",
+    )
     balance_threshold: Float | None = Field(
         1.05,
         gt=1,
