@@ -9,7 +9,8 @@
   ``--set contact.law=hertz_mindlin`` works without shell-quoting the quotes.
 * Missing intermediate tables are created; the override replaces whatever was there. In an array of
   tables, the index one past the last entry adds a new table: ``--set stages.2.name=rest`` on a deck
-  with two stages adds a third (then ``stages.2.end.time=0.5`` or ``stages.rest.end.time=0.5``).
+  with two stages adds a third (then ``stages.2.end.time=0.5`` or ``stages.rest.end.time=0.5``), and
+  so does a whole inline table (``--set 'particles.1={source = "lattice", …}'``).
 
 Keys are not checked here: the validation that follows reports an unknown key (with the closest valid
 key) at its path, and :mod:`pdem.deck.load` marks every problem under an overridden path with the
@@ -105,12 +106,12 @@ def _kind(v: Any) -> str:
     return type(v).__name__
 
 
-def _index(node: list, seg: str, loc: tuple, text: str, last: bool = False) -> int:
+def _index(node: list, seg: str, loc: tuple, text: str) -> int:
     where = ".".join(str(p) for p in loc)
     if re.fullmatch(r"\d+", seg):
         k = int(seg)
         tables = all(isinstance(e, dict) for e in node)
-        if k == len(node) and tables and not last:  # one past the end: a new entry of an array of tables
+        if k == len(node) and tables:  # one past the end: a new entry of an array of tables
             node.append({})
             return k
         if k >= len(node):
@@ -148,7 +149,7 @@ def apply_one(data: dict, text: str) -> Override:
     for i, seg in enumerate(segments):
         last = i == len(segments) - 1
         if isinstance(node, list):
-            key: str | int = _index(node, seg, loc, text, last)
+            key: str | int = _index(node, seg, loc, text)
         elif isinstance(node, dict):
             key = seg
         else:
