@@ -335,7 +335,10 @@ class Runner:
             sim.set_periodic(deck.domain.lo, deck.domain.hi, deck.domain.periodic)
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
-            self.boundaries[name] = sim.add_boundary(cls(name, params))
+            self.boundaries[name] = _plugin_call(
+                f"boundary '{name}' (type '{params.type}', {_where(cls)})",
+                lambda cls=cls, name=name, params=params: sim.add_boundary(cls(name, params)),
+            )
         self.sim = sim
         return sim
 
@@ -578,7 +581,7 @@ class Runner:
         out_cfg = self.deck.output
         self.output_parallel = out_cfg.parallel_mode(self.sim.count_particles(), self.comm.size)
         self._gathered_output = False  # on every rank: frames are gathered collectively
-        for _fmt, cls in classes:
+        for fmt, cls in classes:
             kwargs: dict[str, Any] = {
                 "fields": out_cfg.fields,
                 "metadata": {"deck": self.deck_text, "pdem_version": __version__},
@@ -586,13 +589,18 @@ class Runner:
             if self.append:
                 kwargs["append_after"] = (start.step, start.time)
             if self.output_parallel == "per_rank" and getattr(cls, "supports_per_rank", False):
-                w = cls(self.out, comm=self.comm, **kwargs)  # on every rank
+                w = _plugin_call(  # on every rank
+                    f"writer '{fmt}' ({_where(cls)})",
+                    lambda cls=cls, kw=kwargs: cls(self.out, comm=self.comm, **kw),
+                )
                 self._per_rank_writers.append(w)
             else:  # parallel = "auto" gathers frames for writers without per-rank support
                 self._gathered_output = True
                 if not self.root:
                     continue  # rank 0 decides when a gathered frame is due
-                w = cls(self.out, **kwargs)
+                w = _plugin_call(
+                    f"writer '{fmt}' ({_where(cls)})", lambda cls=cls, kw=kwargs: cls(self.out, **kw)
+                )
                 self._gathered_writers.append(w)
             if getattr(w, "last_step", None) is not None:
                 self._last_frame[id(w)] = int(w.last_step)
@@ -712,10 +720,32 @@ class Runner:
         self._enter_stage(0, stages[0])
         self._check_stages(0)
         self._check_later_files(0)
+        self._check_measured(0)
         return (
             f"{sim.count_particles()} particles at the start, dt = {sim.dt:.4g} s (stability estimate "
             f"{sim.dt_critical:.4g} s)"
         )
+
+    def _check_measured(self, start_index: int) -> None:
+        """Every quantity a stage ends on (and every thermo column) is one the boundaries measure:
+        a boundary plugin that does not declare its keys is only known once built (collective)."""
+        measured = sorted(self.measurements())
+        wanted = []
+        for index, stage in enumerate(self.deck.stages):
+            if index >= start_index and stage.end.quantity is not None:
+                wanted.append((f"stages.{stage.name}.end.quantity", stage.end.quantity))
+            out = self.resolved.output_for(stage.name)
+            for k, key in enumerate(getattr(out, "thermo", None) or ()):
+                if "." in key:
+                    wanted.append((f"output.thermo.{k}", key))
+        for where, key in wanted:
+            if key not in measured:
+                name = key.split(".", 1)[0]
+                mine = [m for m in measured if m.startswith(name + ".")]
+                raise InputError(
+                    f"{where}: '{key}' is not measured; boundary '{name}' measures "
+                    + (", ".join(f"'{m}'" for m in mine) if mine else "nothing")
+                )
 
     def _check_later_files(self, start_index: int) -> None:
         """Read the packing files of the sources of later stages now (they are validated as they are
@@ -771,10 +801,11 @@ class Runner:
             self._enter_stage(start_index, stage)
             self._check_stages(start_index)
             self._check_later_files(start_index)
-        self._open_output(classes, start)
+            self._check_measured(start_index)
         t_start = _time.perf_counter()
         steps_start = sim.step_count
         try:
+            self._open_output(classes, start)
             if start_index >= len(stages):
                 self._setup_done = True  # a finished run: nothing left to step
             for index in range(start_index, len(stages)):
@@ -1035,6 +1066,27 @@ class Runner:
             else:
                 values.append(meas.get(k, math.nan))
         return values
+
+
+def _where(cls: Any) -> str:
+    return f"{getattr(cls, '__module__', '?')}.{getattr(cls, '__qualname__', cls)}"
+
+
+def _plugin_call(what: str, action: Any) -> Any:
+    """Call a plugin's constructor (or build): pdem's own errors pass through; any other exception
+    is a bug of the plugin, reported as a :class:`~pdem.errors.PluginError` naming it (exit code 2)
+    rather than a traceback."""
+    from .errors import PluginError
+
+    try:
+        return action()
+    except PdemError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a third-party plugin may raise anything
+        raise PluginError(
+            f"{what} failed: {type(exc).__name__}: {exc}; the plugin has a bug or does not honour "
+            "pdem's plugin contract (docs/plugins.md): report it to its author, or remove it from the deck"
+        ) from exc
 
 
 #: packing files of later stages below this size are read (validated) when the run starts

@@ -218,3 +218,46 @@ def test_failure_after_output_opened_removes_what_the_run_created(tmp_path, caps
     empty.mkdir()
     code, err = run([deck, "--output", empty, "--quiet"], capsys)
     assert code == 1 and list(empty.iterdir()) == [], err
+
+
+def test_python_api_runner(tmp_path):
+    """Runner used directly: an output path that is a file is an InputError (not a traceback from
+    mkdir), a deck given as a dict (no file) runs and checkpoints, and a resumed Runner refuses a
+    max_steps at or before the checkpoint."""
+    import tomllib
+
+    from test_cli_hostile import TINY
+
+    from pdem.deck import validate_deck
+    from pdem.errors import InputError
+    from pdem.io.checkpoint import read_checkpoint
+    from pdem.runner import Runner
+
+    resolved = validate_deck(tomllib.loads(TINY))
+    target = tmp_path / "a_file"
+    target.write_text("x")
+    with pytest.raises(InputError, match="a regular file"):
+        Runner(resolved, output=target, progress=None)
+    out = tmp_path / "out"
+    summary = Runner(resolved, output=out, progress=None, max_steps=10).run()
+    assert summary["steps"] == 10
+    state, meta = read_checkpoint(out / "checkpoints" / "latest.h5")
+    assert meta["deck_path"] == ""
+    with pytest.raises(InputError, match="step 10 already"):
+        Runner(resolved, output=tmp_path / "more", progress=None, resume=(state, meta), max_steps=10)
+    summary = Runner(resolved, output=out, progress=None, resume=(state, meta), append=True).run()
+    assert summary["steps"] == 20 and summary["completed"]
+
+
+def test_stage_too_long_at_the_automatic_dt(tmp_path, capsys):
+    """Without dt in the deck the step count is known only once the scene exists: a stage of 1e4 s
+    at a dt of ~1e-9 s (0.1 µm grains) is refused at the start, before anything is written (it used
+    to run for ever, or overflow int())."""
+    deck = tmp_path / "deck.toml"
+    text = FILE_DECK.replace("dt = 2e-6\n", "").replace("steps = 20\n[[stages]]", "time = 1e4\n[[stages]]", 1)
+    deck.write_text(text)
+    write_spheres_text(tmp_path / "pack.txt", np.array([[0.0, 0.0, 2e-7]]), np.array([1e-7]))
+    for args in (["check", deck], [deck, "--output", tmp_path / "out", "--quiet"]):
+        code, err = run(args, capsys)
+        assert code == 2 and "stages.drop.end.time" in err and "above the limit" in err, err
+    assert not (tmp_path / "out").exists()

@@ -877,6 +877,17 @@ class StageEnd(_DeckModel):
                 for k in ("above", "below")
                 if _given(data, k)
             ]
+        t, cap = data.get("time"), data.get("max_time")
+        others = [k for k in ("steps", "kinetic_energy_below", "quantity") if _given(data, k)]
+        if _is_num(t) and _is_num(cap) and t > 0 and cap > 0 and cap <= t and not others:
+            out.append(
+                (
+                    ("max_time",),
+                    f"max_time = {cap!r} s is not above time = {t!r} s, the stage's only end condition: the "
+                    "stage would always stop with the max_time error before it ends; drop max_time or make "
+                    "it larger than time",
+                )
+            )
         quantity = data.get("quantity")
         if isinstance(quantity, str):
             head, _, tail = quantity.partition(".")
@@ -1131,7 +1142,8 @@ def _domain_checks(data: dict) -> Problems:
 
 
 def _stage_length_checks(data: dict) -> Problems:
-    """A stage that may take more than :data:`MAX_STAGE_STEPS` steps by its end time (or max_time)
+    """A stage of more than :data:`MAX_STAGE_STEPS` ``steps``, or that may take more than that by its
+    end time (or max_time)
     at a dt given in the deck: the run would never finish (``dt = 1e-300``). The stage's bound is
     the least of ``steps``, ``time / dt`` and ``max_time / dt``, so a stage that ends by ``steps``
     (or by ``time``) first is fine whatever its max_time; with dt from the law's estimate (not in
@@ -1144,6 +1156,16 @@ def _stage_length_checks(data: dict) -> Problems:
         if not isinstance(stage, dict) or not isinstance(stage.get("end"), dict):
             continue
         end = stage["end"]
+        steps = end.get("steps")
+        if isinstance(steps, int) and not isinstance(steps, bool) and steps > MAX_STAGE_STEPS:
+            name = stage.get("name") if isinstance(stage.get("name"), str) else str(k)
+            out.append(
+                (
+                    ("stages", k, "end", "steps"),
+                    f"stage '{name}': steps = {steps:,} is above the limit of {MAX_STAGE_STEPS:.0e} steps "
+                    "per stage (a run that long cannot finish); use fewer steps, or end the stage by time",
+                )
+            )
         if _is_num(stage.get("dt")):
             dt, dt_key = stage["dt"], f"stages.{k}.dt"
         elif stage.get("dt") is None and _is_num(run_dt):
