@@ -18,6 +18,10 @@ the output goes on in the run's own directory as one time series: series rows, s
 checkpoints the previous run wrote after the checkpoint's step are dropped (they belong to a future
 that is being replaced), everything up to it is kept unchanged, and new rows and frames follow.
 
+Thermo lines (``output.thermo_every = N``): every N steps rank 0 prints one line on stdout with the
+columns of ``output.thermo`` (step, time, dt, particles, kinetic energies, contacts, any measured
+quantity ``<boundary>.<key>``), after a header line at the start of each stage, as LAMMPS does.
+
 Snapshots under MPI are either gathered (every rank's particles collected, ordered by id, and written
 by rank 0) or written per rank (each rank writes the particles it owns with writers constructed with
 ``comm``; rank 0 writes the index joining the pieces): ``output.parallel``, decided once when output
@@ -231,8 +235,8 @@ class Runner:
     doc. ``series_from``: resuming into a new directory, the directory whose series (up to the
     checkpoint) the new series continue, so that they hold the whole run. ``max_steps`` counts steps
     from the start of the run (a resumed run included). ``stdout`` receives the thermo lines
-    (``output.thermo_every``), rank 0 only. ``dry``: only :meth:`check_scene` will be called (the
-    output path is not looked at).
+    (``output.thermo_every``; default ``sys.stdout``), rank 0 only. ``dry``: only
+    :meth:`check_scene` will be called (the output path is not looked at).
 
     Nothing is created on disk before :meth:`run` has built the scene and passed its checks.
     """
@@ -250,7 +254,7 @@ class Runner:
         overrides: tuple[str, ...] = (),
         append: bool = False,
         series_from: Path | None = None,
-        stdout: TextIO | None = sys.stdout,
+        stdout: TextIO | None = None,
         dry: bool = False,
     ) -> None:
         from .parallel.comm import SerialComm
@@ -297,7 +301,7 @@ class Runner:
         if resume is not None and _same_deck(resume[1].get("deck"), self.deck_text):
             self.deck_text = resume[1]["deck"]  # unchanged: keep its text (and header) as it was
         self.progress = _Progress(progress if self.root else None, self.comm, enabled=progress is not None)
-        self.stdout = stdout if self.root else None
+        self.stdout = (stdout if stdout is not None else sys.stdout) if self.root else None
         self.boundaries: dict[str, Any] = {}
         self.writers: list[Any] = []
         self._gathered_writers: list[Any] = []
@@ -956,6 +960,7 @@ class Runner:
         else:
             target_steps = self._stage_target(stage, sim.dt)
         self.progress.stage_start(sim.step_count)
+        self._thermo_header = None  # each stage's thermo lines start with a header
         if not resumed:
             self._series_row(stage.name)
             self._write_frame(stage.name)
@@ -1025,16 +1030,19 @@ class Runner:
         return True
 
     def _thermo(self, stage: str, out: Any) -> None:
-        """Thermo lines on stdout (``output.thermo_every``); see :mod:`pdem.runner` (collective)."""
+        """A thermo line on stdout at every multiple of ``output.thermo_every`` steps (see the module
+        doc); the values are collective, so every rank computes them."""
         every = getattr(out, "thermo_every", None)
         if not every or self.sim.step_count % every:
             return
+        from .deck.schema import THERMO_DEFAULT
+
         keys = list(getattr(out, "thermo", None) or THERMO_DEFAULT)
         values = self._thermo_values(keys)
         if self.stdout is None:
             return
         header = "  ".join(f"{k:>14s}" for k in keys)
-        if header != self._thermo_header:  # once, and again if a stage's columns differ
+        if header != self._thermo_header:  # at the first line of each stage
             self.stdout.write(header + "\n")
             self._thermo_header = header
         self.stdout.write("  ".join(_thermo_cell(v) for v in values) + "\n")
@@ -1103,10 +1111,6 @@ def _same_deck(text: Any, other: str) -> bool:
         return tomllib.loads(text) == tomllib.loads(other)
     except tomllib.TOMLDecodeError:
         return False
-
-
-#: thermo columns when ``output.thermo`` is not given
-THERMO_DEFAULT = ("step", "time", "particles", "ke", "contacts")
 
 
 def _thermo_cell(v: float | int) -> str:

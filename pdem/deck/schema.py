@@ -73,6 +73,8 @@ __all__ = [
     "OutputSection",
     "KNOWN_WRITERS",
     "OUTPUT_FIELDS",
+    "THERMO_KEYS",
+    "THERMO_DEFAULT",
     "NAME_PATTERN",
     "RULE_ERROR",
     "MAX_TITLE_LENGTH",
@@ -83,6 +85,10 @@ __all__ = [
 KNOWN_WRITERS: tuple[str, ...] = ("hdf5", "vtk")
 #: per-particle fields a snapshot may hold
 OUTPUT_FIELDS: tuple[str, ...] = ("x", "v", "w", "r", "material", "f", "contacts", "id")
+#: thermo columns besides measured quantities ``<boundary>.<key>``
+THERMO_KEYS: tuple[str, ...] = ("step", "time", "dt", "particles", "ke", "ke_trans", "ke_rot", "contacts")
+#: thermo columns when ``output.thermo`` is not given
+THERMO_DEFAULT: tuple[str, ...] = ("step", "time", "particles", "ke", "contacts")
 #: stage and boundary names: a letter or ``_`` first, then letters, digits, ``_`` or ``-``
 NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_-]*$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -956,6 +962,18 @@ class OutputSection(_DeckModel):
     checkpoint_every_steps: Int | None = Field(
         None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints"
     )
+    thermo_every: Int | None = Field(
+        None,
+        gt=0,
+        description="print a thermo line on stdout every this many steps (a header line first, as LAMMPS "
+        "does); default: none",
+    )
+    thermo: list[Str] | None = Field(
+        None,
+        description="thermo columns: any of " + ", ".join(THERMO_KEYS) + ", or a measured quantity "
+        "'<boundary>.<key>' (e.g. 'floor.fz', 'hopper.discharged_mass'); default: "
+        + ", ".join(THERMO_DEFAULT),
+    )
     parallel: Literal["auto", "gather", "per_rank"] = Field(
         "auto",
         description="how MPI runs write snapshots: 'gather' (rank 0 writes every particle), 'per_rank' "
@@ -1003,6 +1021,19 @@ class OutputSection(_DeckModel):
             dup = sorted({f for f in fields if isinstance(f, str) and fields.count(f) > 1})
             if dup:
                 out.append((("fields",), f"field(s) listed more than once: {_listing(dup)}"))
+        thermo = data.get("thermo")
+        if isinstance(thermo, list):
+            for k, key in enumerate(thermo):
+                if isinstance(key, str) and key not in THERMO_KEYS and "." not in key:
+                    out.append(
+                        (
+                            ("thermo", k),
+                            f"unknown thermo column '{key}'{did_you_mean(key, THERMO_KEYS, True)}; give one "
+                            f"of {_listing(list(THERMO_KEYS))} or a measured quantity '<boundary>.<key>'",
+                        )
+                    )
+            if not _given(data, "thermo_every"):
+                out.append((("thermo",), "thermo lists the columns of thermo lines; give thermo_every too"))
         return out
 
     @model_validator(mode="after")
@@ -1283,6 +1314,20 @@ def _cross_checks(data: dict) -> Problems:
                     check_stage(("boundaries", name, key, j), v)
             else:
                 check_stage(("boundaries", name, key), value)
+
+    output = data.get("output")
+    thermo = output.get("thermo") if isinstance(output, dict) else None
+    for k, key in enumerate(thermo if isinstance(thermo, list) else []):
+        if isinstance(key, str) and "." in key:
+            head = key.split(".", 1)[0]
+            if head not in bnd:
+                out.append(
+                    (
+                        ("output", "thermo", k),
+                        f"thermo column '{key}' names boundary '{head}', which is not defined"
+                        f"{did_you_mean(head, list(bnd), True)}; defined boundaries: {_listing(list(bnd))}",
+                    )
+                )
 
     if isinstance(stages, list):
         for k, stage in enumerate(stages):
