@@ -89,9 +89,12 @@ def full(tmp_path_factory) -> Path:
     return out
 
 
-def assert_one_series(out: Path, full: Path, stops: tuple[int, ...] = ()) -> None:
+def assert_one_series(out: Path, full: Path, resumed_from: int, stops: tuple[int, ...] = ()) -> None:
     """``out`` holds the uninterrupted run's output as one time series, plus frames where the run
-    was stopped (``stops``)."""
+    was stopped (``stops``), and its last run was the resume from step ``resumed_from`` (written
+    there, not to a directory beside it)."""
+    assert json.loads((out / "summary.json").read_text()).get("resumed_from_step") == resumed_from
+    assert not list(out.parent.glob(f"{out.name}-resumed*"))
     frames = xdmf_times(out / "particles.xdmf")
     times = [t for t, _ in frames]
     assert times == sorted(times) and len(set(times)) == len(times), frames  # each time once, in order
@@ -131,7 +134,7 @@ def test_resume_after_steps_appends_to_one_series(tmp_path, full, stop):
     code = pdem("resume", out / "checkpoints" / "latest.h5", "--quiet")[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full, stops=(stop,))
+    assert_one_series(out, full, stop, stops=(stop,))
 
 
 def test_resume_from_an_earlier_checkpoint_drops_the_later_output(tmp_path, full):
@@ -141,7 +144,7 @@ def test_resume_from_an_earlier_checkpoint_drops_the_later_output(tmp_path, full
     code = pdem("resume", out / "checkpoints" / "step_0000003000.h5", "--quiet")[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full)
+    assert_one_series(out, full, 3000)
 
 
 def test_resume_after_kill_9(tmp_path, full):
@@ -162,7 +165,7 @@ def test_resume_after_kill_9(tmp_path, full):
     code = pdem("resume", out / "checkpoints" / "latest.h5", "--quiet")[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full)
+    assert_one_series(out, full, steps[-1])
 
 
 def test_resume_after_max_time_with_a_larger_cap(tmp_path, full, capsys):
@@ -186,7 +189,7 @@ def test_resume_after_max_time_with_a_larger_cap(tmp_path, full, capsys):
     code, _, err = pdem(*command.split()[1:], "--quiet", capsys=capsys)
     assert code == 0, err
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full, stops=(stopped,))
+    assert_one_series(out, full, stopped, stops=(stopped,))
 
 
 def test_resume_a_completed_run(tmp_path, full, capsys):
@@ -196,7 +199,7 @@ def test_resume_a_completed_run(tmp_path, full, capsys):
     assert code == 0, err
     assert "nothing left to run" in stdout
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full)
+    assert_one_series(out, full, int(final_state(full)["scalars/step"]))
 
 
 def test_third_stage_with_its_own_dt_runs_and_extends_a_completed_run(tmp_path, full, capsys):
