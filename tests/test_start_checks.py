@@ -261,3 +261,12 @@ def test_stage_too_long_at_the_automatic_dt(tmp_path, capsys):
         code, err = run(args, capsys)
         assert code == 2 and "stages.drop.end.time" in err and "above the limit" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_check_deck_only_skips_the_scene(tmp_path, capsys):
+    deck = tmp_path / "deck.toml"
+    deck.write_text(FILE_DECK)
+    bad_packing("overlapping_grains", tmp_path / "pack.txt")
+    assert main(["check", str(deck), "--deck-only"]) == 0
+    assert "particles at the start" not in capsys.readouterr().out
+    assert main(["check", str(deck)]) == 2

@@ -75,3 +75,23 @@ def test_thermo_columns_are_checked(tmp_path, capsys, sets, fragment):
         err = capsys.readouterr().err
         assert code == 2 and fragment in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_progress_eta_for_a_stage_ending_on_a_quantity(tmp_path, capsys, monkeypatch):
+    """A stage that ends on a measured quantity gets an ETA from the quantity's progress toward its
+    target (here the floor's load growing toward -3e-5 N as the lattice settles)."""
+    import pdem.runner as runner
+
+    original = runner._Progress.update
+
+    def often(self, *args, **kwargs):
+        self.every = 0.0
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(runner._Progress, "update", often)
+    deck = tmp_path / "deck.toml"
+    deck.write_text(TINY.replace("steps = 20\n", 'quantity = "floor.fz"\nbelow = -3e-5\ncheck_every = 2\n'))
+    code = main([str(deck), "--output", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert any(", ETA " in ln for ln in err.splitlines() if ln.startswith("[drop]")), err
