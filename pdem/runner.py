@@ -315,6 +315,9 @@ class Runner:
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         self._output_open = False
         self._setup_done = False
+        self._contacts_on = False
+        self._contacts_last: int | None = None
+        self._contact_writer: Any = None
         self._thermo_header: str | None = None
 
     def build(self) -> Simulation:
@@ -507,6 +510,7 @@ class Runner:
         step = self.sim.step_count
         gathered = [w for w in self._gathered_writers if self._last_frame.get(id(w)) != step]
         per_rank = [w for w in self._per_rank_writers if self._last_frame.get(id(w)) != step]
+        frame = None
         # every rank decides alike: the writers' last steps are the same everywhere
         if self._gathered_output and self.comm.bcast(bool(gathered), root=0):
             frame = self.frame(stage)  # collective
@@ -518,6 +522,19 @@ class Runner:
             for w in per_rank:
                 w.write(piece)  # collective
                 self._last_frame[id(w)] = step
+        if self._contacts_on and self._contacts_last != step:
+            self._write_contacts(frame)
+
+    def _write_contacts(self, frame: Frame | None) -> None:
+        """The contact network at this step (``output.contacts``; collective, rank 0 writes)."""
+        from .io.contacts import contact_lines
+
+        sim = self.sim
+        contacts = sim.contacts()  # collective: every rank's contacts
+        particles = frame.particles if frame is not None else sim.get_particles()  # collective
+        if self._contact_writer is not None:
+            self._contact_writer.write(contact_lines(contacts, particles, sim.box), sim.time, sim.step_count)
+        self._contacts_last = sim.step_count
 
     def _checkpoint(self, stage_index: int, stage_start: tuple[float, int], started: bool = True) -> Path:
         sim = self.sim
@@ -609,6 +626,17 @@ class Runner:
             if getattr(w, "last_step", None) is not None:
                 self._last_frame[id(w)] = int(w.last_step)
         self.writers = self._gathered_writers + self._per_rank_writers
+        self._contacts_on = bool(getattr(out_cfg, "contacts", False))
+        if self._contacts_on:
+            from .io.contacts import ContactNetworkWriter
+
+            def make() -> int | None:
+                self._contact_writer = ContactNetworkWriter(
+                    self.out, append_after=(start.step, start.time) if self.append else None
+                )
+                return self._contact_writer.last_step
+
+            self._contacts_last = self._root_do(make)
 
     def _new_output(self, start: Any) -> dict[str, list]:
         out = self.out

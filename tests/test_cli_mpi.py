@@ -11,8 +11,10 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_cli_hostile import TINY
 
@@ -54,8 +56,6 @@ def test_progress_counts_every_rank(tmp_path):
 def _index_ok(out: Path) -> list[float]:
     """The times of particles.xdmf, after checking that they are unique and in order and that every
     dataset it names (XDMF) and every piece the PVD's .pvtu files name exist."""
-    import xml.etree.ElementTree as ET
-
     import h5py
 
     root = ET.parse(out / "particles.xdmf").getroot()
@@ -88,7 +88,7 @@ def test_per_rank_output_continued_on_another_rank_count(tmp_path):
     deck = tmp_path / "deck.toml"
     deck.write_text(TINY.replace("steps = 20\n", "steps = 40\n"))
     sets = ["--set", "output.parallel='per_rank'", "--set", "output.formats=['hdf5', 'vtk']"]
-    sets += ["--set", "output.checkpoint_every_steps=10"]
+    sets += ["--set", "output.checkpoint_every_steps=10", "--set", "output.contacts=true"]
 
     def pdem(ranks, *args):
         cmd = [MPIEXEC, "-n", str(ranks), sys.executable, "-m", "pdem.cli", *map(str, args), "--quiet"]
@@ -105,3 +105,17 @@ def test_per_rank_output_continued_on_another_rank_count(tmp_path):
     assert (tmp_path / "run" / "particles.r0002.h5").exists()  # the third rank's piece
     steps = sorted(int(c.name[5:15]) for c in (tmp_path / "run" / "checkpoints").glob("step_*.h5"))
     assert steps == [10, 20, 30, 40]
+    # the contact network, gathered from 2 then 3 ranks, is the serial one line for line
+    from test_contact_network import read_lines
+
+    for out in ("full", "run"):
+        times = [
+            float(d.get("timestep"))
+            for d in ET.parse(tmp_path / out / "contacts.pvd").getroot().iter("DataSet")
+        ]
+        assert times == _index_ok(tmp_path / "full")
+    a = read_lines(tmp_path / "full" / "contacts" / "contacts_000004.vtu")
+    b = read_lines(tmp_path / "run" / "contacts" / "contacts_000004.vtu")
+    assert len(a[1]) > 0 and np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    for key in ("id_i", "id_j", "force", "normal_force", "overlap"):
+        assert np.array_equal(a[2][key], b[2][key]), key

@@ -962,6 +962,11 @@ class OutputSection(_DeckModel):
     checkpoint_every_steps: Int | None = Field(
         None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints"
     )
+    contacts: Bool = Field(
+        False,
+        description="also write the contact network at every snapshot: contacts/contacts_NNNNNN.vtu (one "
+        "line per touching pair with its force, normal force and overlap) and contacts.pvd for ParaView",
+    )
     thermo_every: Int | None = Field(
         None,
         gt=0,
