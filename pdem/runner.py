@@ -551,6 +551,10 @@ class Runner:
             "stage_started": int(started),
             "boundaries": json.dumps({n: b.state() for n, b in self.boundaries.items()}),
             "output": str(self.out.resolve()),
+            # the scene box snapshots have grown to, so a resumed run draws infinite walls alike
+            "frame_bounds": json.dumps([b.tolist() for b in self._bounds])
+            if self._bounds is not None
+            else "",
         }
         state = sim.state_dict()  # collective
         path = self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5"
@@ -821,6 +825,9 @@ class Runner:
             saved = json.loads(meta.get("boundaries", "{}"))
             for name, b in self.boundaries.items():
                 b.restore(saved.get(name, {}))
+            if meta.get("frame_bounds"):
+                lo, hi = json.loads(meta["frame_bounds"])
+                self._bounds = (np.asarray(lo, dtype=float), np.asarray(hi, dtype=float))
         self._resume_dt = float(self.resume[0]["scalars/dt"]) if self.resume is not None else None
         # ---- checks that need the scene, before anything is written
         classes = self._writer_classes()

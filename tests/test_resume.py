@@ -28,6 +28,7 @@ import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -102,6 +103,11 @@ def assert_one_series(out: Path, full: Path, resumed_from: int, stops: tuple[int
     assert [f for f in frames if f[1] not in stops] == [f for f in reference if f[1] not in stops]
     walls = [float(g.get("Value")) for g in ET.parse(out / "walls.xdmf").getroot().iter("Time")]
     assert walls == sorted(walls) and len(set(walls)) == len(walls)
+    with h5py.File(out / "walls.h5", "r") as a, h5py.File(full / "walls.h5", "r") as b:
+        last_a, last_b = sorted(a["frames"])[-1], sorted(b["frames"])[-1]
+        for wall in b["frames"][last_b]:  # walls drawn alike (the scene box is kept in checkpoints)
+            pa, pb = a["frames"][last_a][wall]["points"][()], b["frames"][last_b][wall]["points"][()]
+            assert np.array_equal(pa, pb), wall
     for stage in ("fill", "discharge"):
         a, b = read_series(out / f"series_{stage}.csv"), read_series(full / f"series_{stage}.csv")
         keep = ~np.isin(a["step"], stops) | np.isin(a["step"], b["step"])
