@@ -91,8 +91,8 @@ def _common(p: argparse.ArgumentParser, resume: bool = False) -> None:
         metavar="DIR",
         help=(
             "write the continued run to DIR instead (a separate copy: its series start with the rows up "
-            "to the checkpoint, its snapshots with the checkpoint's step); default: continue the run's "
-            "own output directory"
+            "to the checkpoint, its snapshots are those after it); default: continue the run's own "
+            "output directory"
             if resume
             else "output directory (default: the deck's output.directory)"
         ),
