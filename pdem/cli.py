@@ -1,18 +1,26 @@
 """The ``pdem`` command.
 
     pdem DECK [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
-    pdem check DECK [--set KEY=VALUE ...]
-    pdem resume CHECKPOINT [--steps N] [--output DIR] [--overwrite] [--quiet]
+    pdem check DECK [--set KEY=VALUE ...] [--deck-only]
+    pdem resume CHECKPOINT [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
     pdem schema [--output FILE] [--overwrite]
 
 Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory, an
 output path that is not or cannot become a directory, a ``run.decomposition`` that does not match
-the rank count), 3 numerical failure (instability, lost particles), 1 anything else. User errors
+the rank count, a time step above the stability limit, overlapping grains, a bad packing file, a
+checkpoint that is missing or not pdem's, a change a resume does not allow), 3 numerical failure
+(instability, lost particles, a stage reaching its ``max_time``), 1 anything else. User errors
 print one message, no traceback. With ``mpirun -n N``, every rank fails together.
 
 Everything the command line alone can refuse (``--steps``, the output path, the decomposition) is
-refused before the run is built, so a refused run leaves nothing behind.
+refused before the run is built; what needs the scene (time step, overlaps, packing files) is
+refused before anything is written; a run that still fails before its first step removes what it
+created. So a refused run leaves nothing behind, and the corrected one needs no ``--overwrite``.
+
+``pdem resume`` needs only the checkpoint: the run's resolved deck is stored in it. By default it
+continues the run's own output directory (series, XDMF and PVD indexes go on from the checkpoint's
+step; what a previous run wrote after it is dropped), so ParaView opens one time series.
 """
 
 from __future__ import annotations
@@ -20,13 +28,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import stat
 import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import CheckpointError, InputError, PdemError
+from .errors import InputError, PdemError
 
 __all__ = ["main"]
 
@@ -36,43 +42,66 @@ SUBCOMMANDS = ("check", "resume", "plugins", "schema")
 def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="pdem",
-        description="Run a pdem deck (TOML). Other commands: pdem check DECK | pdem resume CHECKPOINT | "
-        "pdem plugins | pdem schema. Exit codes: 0 ok, 2 invalid input, 3 numerical failure, 1 other.",
+        description="Run a pdem deck (TOML). Other commands: pdem check DECK | pdem resume CHECKPOINT "
+        "[--set KEY=VALUE] (continues the run in its own output directory) | pdem plugins | pdem schema. "
+        "Exit codes: 0 ok, 2 invalid input, 3 numerical failure, 1 other.",
     )
     p.add_argument("deck", type=Path, help="the deck file (TOML); see docs/deck.md")
-    _common(p, sets=True)
+    _common(p)
     p.add_argument("--version", action="version", version=f"pdem {__version__}")
     return p
 
 
-def _common(p: argparse.ArgumentParser, sets: bool) -> None:
-    if sets:
-        p.add_argument(
-            "--set",
-            dest="sets",
-            action="append",
-            default=[],
-            metavar="KEY=VALUE",
-            help="override a deck key, value in TOML syntax (e.g. run.dt=1e-5, "
-            'contact.law="hertz_mindlin", stages.fill.end.time=0.2); repeatable',
-        )
+def _common(p: argparse.ArgumentParser, resume: bool = False) -> None:
+    p.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=(
+            "change a key of the checkpoint's deck, value in TOML syntax; allowed: end conditions, dt and "
+            "output of the current stage and of later ones (stages.discharge.end.max_time=12), stages "
+            "added at the end (stages.2.name=more), output.*, run.dt, run.force_dt, run.max_particles, "
+            "run.balance_threshold, run.decomposition; anything else (materials, particles, boundaries, "
+            "...) is refused with the key named; repeatable"
+            if resume
+            else "override a deck key, value in TOML syntax (e.g. run.dt=1e-5, "
+            'contact.law="hertz_mindlin", stages.fill.end.time=0.2); repeatable'
+        ),
+    )
     p.add_argument(
         "--steps",
         type=_step_count,
         default=None,
         metavar="N",
-        help="stop after N steps in total (N >= 0), writing final output and a checkpoint; "
-        "--steps 0 builds the scene, writes its initial state and a checkpoint to resume from, "
-        "and stops",
+        help=(
+            "stop at step N of the run (counted from its start, so more than the checkpoint's step), "
+            "writing final output and a checkpoint"
+            if resume
+            else "stop after N steps in total (N >= 0), writing final output and a checkpoint; "
+            "--steps 0 builds the scene, writes its initial state and a checkpoint to resume from, "
+            "and stops"
+        ),
     )
     p.add_argument(
         "--output",
         type=Path,
         default=None,
         metavar="DIR",
-        help="output directory (default: the deck's output.directory)",
+        help=(
+            "write the continued run to DIR instead (a separate copy: its series start with the rows up "
+            "to the checkpoint, its snapshots are those after it); default: continue the run's own "
+            "output directory"
+            if resume
+            else "output directory (default: the deck's output.directory)"
+        ),
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --output DIR" if resume else "replace an existing output directory",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
@@ -101,71 +130,6 @@ def _comm():
     return default_comm()
 
 
-def _describe(mode: int) -> str:
-    if stat.S_ISREG(mode):
-        return "a regular file"
-    if stat.S_ISCHR(mode):
-        return "a character device"
-    if stat.S_ISBLK(mode):
-        return "a block device"
-    if stat.S_ISFIFO(mode):
-        return "a named pipe"
-    if stat.S_ISSOCK(mode):
-        return "a socket"
-    return "not a directory"
-
-
-def _output_dir_problem(out: Path, what: str) -> str | None:
-    """Why ``out`` cannot be (or become) a run's output directory, or None.
-
-    ``what`` says where the path came from (``--output``, ``output.directory = …``), for the message.
-    Only looks, creates nothing: an existing directory (empty or not) is fine here, the Runner applies
-    the --overwrite rule to it.
-    """
-    remedy = "choose a directory path with --output DIR"
-    try:
-        st = os.stat(out)
-    except (FileNotFoundError, NotADirectoryError):  # missing, or under a file: see the ancestors
-        st = None
-    except OSError as exc:  # a loop of links, a name too long, …
-        return f"output path {out} ({what}) cannot be used: {exc.strerror}; {remedy}"
-    if st is not None:
-        if stat.S_ISDIR(st.st_mode):
-            if not os.access(out, os.W_OK | os.X_OK):
-                return f"output directory {out} ({what}) is not writable; fix its permissions or {remedy}"
-            return None
-        return (
-            f"output path {out} ({what}) exists and is {_describe(st.st_mode)}, not a directory; "
-            f"pdem writes a directory of files and never replaces a file (not even with --overwrite): "
-            f"{remedy}"
-        )
-    if out.is_symlink():
-        return f"output path {out} ({what}) is a symbolic link to a missing target; {remedy}"
-    # a new directory: its nearest existing ancestor must be a writable directory
-    parent = Path(os.path.abspath(out)).parent
-    while True:
-        try:
-            pst = os.stat(parent)
-        except (FileNotFoundError, NotADirectoryError):
-            pst = None
-        except OSError as exc:
-            return f"output directory {out} ({what}) cannot be created: {parent}: {exc.strerror}; {remedy}"
-        if pst is not None or parent.parent == parent:
-            break
-        parent = parent.parent
-    if pst is None or not stat.S_ISDIR(pst.st_mode):
-        kind = _describe(pst.st_mode) if pst is not None else "missing"
-        return (
-            f"output directory {out} ({what}) cannot be created: {parent} is {kind}, not a "
-            f"directory; {remedy}"
-        )
-    if not os.access(parent, os.W_OK | os.X_OK):
-        return (
-            f"output directory {out} ({what}) cannot be created: no permission to write in {parent}; {remedy}"
-        )
-    return None
-
-
 def _check_before_run(resolved, out: Path, what: str, comm) -> None:
     """Refuse, on every rank together, what the run would only discover after creating its output:
     an output path that cannot be a directory, and a ``run.decomposition`` whose product is not the
@@ -181,7 +145,9 @@ def _check_before_run(resolved, out: Path, what: str, comm) -> None:
             f"rank{'s' if ranks != 1 else ''}; start it with mpiexec -n {n}, give three "
             f"numbers whose product is {ranks}, or remove run.decomposition to let pdem choose the grid"
         )
-    problem = _output_dir_problem(out, what) if comm.rank == 0 else None
+    from .io.paths import output_dir_problem
+
+    problem = output_dir_problem(out, what) if comm.rank == 0 else None
     problem = comm.bcast(problem, root=0)
     if problem:
         raise InputError(problem)
@@ -212,6 +178,12 @@ def _print_summary(summary: dict, out: Path) -> None:
         )
     if not summary.get("completed", True):
         print(f"pdem: stopped early (--steps); resume with: pdem resume {out / 'checkpoints' / 'latest.h5'}")
+    elif "resumed_from_step" in summary and summary.get("steps_run", 1) == 0:
+        print(
+            "pdem: the checkpoint is at the end of the last stage: nothing left to run. To go on, add a "
+            "stage, e.g. pdem resume CHECKPOINT --set stages.N.name=more --set stages.N.end.time=0.1 "
+            "(N = the number of stages)"
+        )
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -242,52 +214,97 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_check(argv: list[str]) -> int:
     from .deck import load_deck
+    from .runner import Runner
 
-    p = argparse.ArgumentParser(prog="pdem check", description="Validate a deck without running it.")
+    p = argparse.ArgumentParser(
+        prog="pdem check",
+        description="Validate a deck without running it: the deck itself (every problem at once), then "
+        "the scene of its first stage (the particles are made, the time step is checked against the "
+        "contact law's stability estimate for every stage, initial overlaps between grains and with "
+        "walls, packing files of later stages are read). Nothing is written.",
+    )
     p.add_argument("deck", type=Path)
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument(
+        "--deck-only",
+        action="store_true",
+        help="validate the deck only, without making the first stage's particles (fast; a pluviated "
+        "packing, for one, is settled by the scene check)",
+    )
     args = p.parse_args(argv)
     resolved = load_deck(args.deck, args.sets)
     deck = resolved.deck
+    scene = "" if args.deck_only else "; " + Runner(resolved, progress=None, dry=True).check_scene()
     nb = len(resolved.boundaries)
     print(
         f"{args.deck}: valid ({len(deck.stages)} stage(s): {', '.join(s.name for s in deck.stages)}; "
-        f"law {deck.contact.law}; {nb} boundar{'y' if nb == 1 else 'ies'})"
+        f"law {deck.contact.law}; {nb} boundar{'y' if nb == 1 else 'ies'}{scene})"
     )
     return 0
 
 
+RESUME_DESCRIPTION = """\
+Continue a run from one of its checkpoints, bitwise-identically to an uninterrupted run.
+
+Only the checkpoint is needed: the run's resolved deck is stored in it (the deck file may have moved
+or changed). By default the run goes on in its own output directory, as one time series: the series
+CSVs continue from the checkpoint's step, the XDMF and PVD indexes go on with the next frames, and
+what a previous run wrote after the checkpoint (rows, snapshots, later checkpoints) is dropped;
+nothing up to the checkpoint is rewritten. --output DIR writes the continuation elsewhere instead.
+
+--set changes how the run goes on, e.g. a stage that reached its max_time:
+  pdem resume out/hopper/checkpoints/latest.h5 --set stages.discharge.end.max_time=12
+or an extra stage after the last one:
+  pdem resume out/hopper/checkpoints/latest.h5 --set stages.2.name=rest --set stages.2.end.time=0.5
+Keys that describe the scene the checkpoint holds (materials, particles, boundaries, contact law,
+gravity, ...) cannot change; the error names them."""
+
+
+def _run_directory(checkpoint: Path, meta: dict) -> Path:
+    """The output directory of the run that wrote ``checkpoint``: the directory holding its
+    ``checkpoints/`` folder (so a moved output is found), else the one recorded in it."""
+    real = Path(checkpoint).resolve()
+    if real.parent.name == "checkpoints":
+        return real.parent.parent
+    return Path(str(meta.get("output") or real.parent))
+
+
 def cmd_resume(argv: list[str]) -> int:
-    from .deck import load_deck
+    import os
+
+    from .deck.resume import ResumePoint, resume_deck
     from .io.checkpoint import read_checkpoint
     from .runner import Runner
 
     p = argparse.ArgumentParser(
-        prog="pdem resume", description="Continue a run from a checkpoint, bitwise-identically."
+        prog="pdem resume",
+        description=RESUME_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("checkpoint", type=Path, help="e.g. OUTPUT/checkpoints/latest.h5")
-    _common(p, sets=False)
+    p.add_argument("checkpoint", type=Path, help="a checkpoint, e.g. OUTPUT/checkpoints/latest.h5")
+    _common(p, resume=True)
     args = p.parse_args(argv)
     state, meta = read_checkpoint(args.checkpoint)
-    deck_path = Path(meta["deck_path"])
-    overrides = json.loads(meta.get("overrides", "[]"))
-    if not deck_path.exists():
-        raise CheckpointError(
-            f"the deck {deck_path} the checkpoint was written from no longer exists; restore it to resume"
+    point = ResumePoint.from_checkpoint(state, meta)
+    if args.steps is not None and args.steps <= point.step:
+        raise InputError(
+            f"--steps {args.steps}: the checkpoint is at step {point.step} already, and --steps counts "
+            f"steps from the start of the run; give more than {point.step} (e.g. --steps "
+            f"{point.step + 1000}), or leave --steps out to run every stage"
         )
-    resolved = load_deck(deck_path, overrides)
-    if resolved.resolved_toml() != meta["deck"]:
-        raise CheckpointError(
-            f"the deck {deck_path} changed since the checkpoint was written; resume needs "
-            "the same deck (compare with deck.resolved.toml in the run's output)"
-        )
-    if args.output is not None:
-        out, what = args.output, "--output"
+    _, resolved = resume_deck(meta, tuple(args.sets), point, args.checkpoint)
+    source = _run_directory(args.checkpoint, meta)
+    series_from = None
+    if args.output is None or (
+        os.path.lexists(args.output) and os.path.realpath(args.output) == os.path.realpath(source)
+    ):
+        out, what, append = source, "the run's own output directory, continued by pdem resume", True
     else:
-        out = Path(str(meta["output"]) + f"-resumed-{int(state['scalars/step'])}")
-        what = "the default for resume: the checkpoint's output directory + '-resumed-STEP'"
+        out, what, append = args.output, "--output", False
+        series_from = source if source.is_dir() else None
     comm = _comm()
     _check_before_run(resolved, out, what, comm)
+    overrides = tuple(json.loads(meta.get("overrides", "[]"))) + tuple(args.sets)
     runner = Runner(
         resolved,
         output=out,
@@ -296,7 +313,9 @@ def cmd_resume(argv: list[str]) -> int:
         comm=comm,
         progress=None if args.quiet else sys.stderr,
         resume=(state, meta),
-        overrides=tuple(overrides),
+        overrides=overrides,
+        append=append,
+        series_from=series_from,
     )
     summary = runner.run()
     _print_summary(summary, runner.out)

@@ -6,6 +6,22 @@ value). Snapshots (HDF5 + XDMF and/or VTK), a CSV time series per stage (energie
 boundary's measurements), periodic checkpoints and one at the end of every stage. ``max_steps``
 (the CLI's ``--steps``) stops early, writing final output and a checkpoint.
 
+Nothing is written before the run has passed the checks that can only be made once the scene exists
+(the time step against the law's stability estimate, every stage's dt, initial overlaps between
+grains and with walls, the packing files): the first stage's particles are inserted and the
+simulation prepared first, then the output directory is created. If the run still fails before its
+first step, what it created is removed (never what was there before), so the corrected run needs no
+``--overwrite``.
+
+Resuming (``resume=(state, meta)``): the simulation is rebuilt from the checkpoint. With ``append``
+the output goes on in the run's own directory as one time series: series rows, snapshots and
+checkpoints the previous run wrote after the checkpoint's step are dropped (they belong to a future
+that is being replaced), everything up to it is kept unchanged, and new rows and frames follow.
+
+Thermo lines (``output.thermo_every = N``): every N steps rank 0 prints one line on stdout with the
+columns of ``output.thermo`` (step, time, dt, particles, kinetic energies, contacts, any measured
+quantity ``<boundary>.<key>``), after a header line at the start of each stage, as LAMMPS does.
+
 Snapshots under MPI are either gathered (every rank's particles collected, ordered by id, and written
 by rank 0) or written per rank (each rank writes the particles it owns with writers constructed with
 ``comm``; rank 0 writes the index joining the pieces): ``output.parallel``, decided once when output
@@ -13,7 +29,8 @@ starts (``auto``: by the particle count then) and recorded in ``summary.json`` a
 
 Output directory layout::
 
-    deck.resolved.toml      the deck with every default filled in
+    deck.resolved.toml      the deck with every default filled in (a resume that changed keys keeps
+                            the previous one as deck.resolved.until-step-<N>.toml)
     particles.h5/.xdmf      snapshots (ParaView: open the .xdmf), walls.h5/.xdmf
     particles.rRRRR.h5      instead of particles.h5 with output.parallel = "per_rank": one file per
                             rank, joined by particles.xdmf
@@ -27,6 +44,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
+import shlex
 import shutil
 import sys
 import time as _time
@@ -40,14 +60,21 @@ from . import __version__
 from .errors import InputError, PdemError
 from .io.checkpoint import write_checkpoint
 from .io.frame import Frame, WallState
+from .io.paths import entries, first_missing, output_dir_problem, remove_created
 from .plugins import load
 from .simulation import Simulation
 
-__all__ = ["Runner", "StageLimitError", "build_particles"]
+__all__ = ["Runner", "StageLimitError", "build_particles", "MAX_STAGE_STEPS"]
+
+#: most steps a stage may take (as the deck check, with the dt known once the scene exists)
+MAX_STAGE_STEPS = 10**10
 
 
 class StageLimitError(PdemError):
-    """A stage reached its ``max_time`` safety cap without meeting its end condition."""
+    """A stage reached its ``max_time`` safety cap without meeting its end condition (exit code 3:
+    the run failed to reach its goal; a checkpoint is written first, to resume with a larger cap)."""
+
+    exit_code = 3
 
 
 # ---------------------------------------------------------------------------------------- sources
@@ -75,26 +102,63 @@ def build_particles(
 # ---------------------------------------------------------------------------------------- progress
 @dataclass
 class _Progress:
+    """Progress lines on rank 0 (stderr by default): time, step, particles over all ranks, speed, ETA.
+
+    Serial: the wall-clock timer is checked at every step. Under MPI the particle count is a
+    collective, so every rank must join it at the same steps: rank 0 decides at agreed steps whether
+    a line is due and broadcasts the decision with the number of steps until the next decision (a
+    quarter of the print interval at the measured speed), so the cost is one broadcast every few
+    hundred steps.
+    """
+
     stream: TextIO | None
+    comm: Any = None
+    enabled: bool = True
     every: float = 2.0
     _last: float = field(default_factory=_time.perf_counter)
     _last_step: int = 0
+    _next_check: int = 0
+    _check_step: int = 0
+    _check_time: float = field(default_factory=_time.perf_counter)
+    _stage_start: float = field(default_factory=_time.perf_counter)
+
+    @property
+    def _parallel(self) -> bool:
+        return self.comm is not None and self.comm.size > 1
 
     def update(self, sim: Simulation, stage: str, frac: float | None, force: bool = False) -> None:
-        if self.stream is None:
+        if not self.enabled:
             return
         now = _time.perf_counter()
-        if not force and now - self._last < self.every:
+        if not self._parallel:
+            if self.stream is None or (not force and now - self._last < self.every):
+                return
+            self._print(sim, stage, frac, sim.n_particles, now)
             return
+        if not force and sim.step_count < self._next_check:
+            return
+        decision = None
+        if self.comm.rank == 0:
+            rate = (sim.step_count - self._check_step) / max(now - self._check_time, 1e-9)
+            interval = int(min(max(rate * self.every / 4.0, 1.0), 100_000.0))
+            decision = (force or now - self._last >= self.every, interval)
+            self._check_step, self._check_time = sim.step_count, now
+        due, interval = self.comm.bcast(decision, root=0)
+        self._next_check = sim.step_count + interval
+        if not due:
+            return
+        n = sim.count_particles()  # collective: every rank is here at this step
+        if self.stream is not None:
+            self._print(sim, stage, frac, n, now)
+
+    def _print(self, sim: Simulation, stage: str, frac: float | None, n: int, now: float) -> None:
         rate = (sim.step_count - self._last_step) / max(now - self._last, 1e-9)
         eta = ""
         if frac is not None and 0 < frac < 1 and rate > 0:
-            remaining = (1 - frac) / frac * (now - self._stage_start) if hasattr(self, "_stage_start") else 0
+            remaining = (1 - frac) / frac * (now - self._stage_start)
             eta = f", ETA {remaining:.0f} s"
         line = (
-            f"[{stage}] t = {sim.time:.6g} s, step {sim.step_count}, "
-            f"{sim.n_particles} particles{' on rank 0' if sim.comm.size > 1 else ''}, "
-            f"{rate:,.0f} steps/s{eta}"
+            f"[{stage}] t = {sim.time:.6g} s, step {sim.step_count}, {n} particles, {rate:,.0f} steps/s{eta}"
         )
         tty = getattr(self.stream, "isatty", lambda: False)()
         self.stream.write(("\r" + line + "\033[K") if tty else line + "\n")
@@ -102,8 +166,9 @@ class _Progress:
         self._last, self._last_step = now, sim.step_count
 
     def stage_start(self, step: int = 0) -> None:
-        self._stage_start = self._last = _time.perf_counter()
-        self._last_step = step
+        self._stage_start = self._last = self._check_time = _time.perf_counter()
+        self._last_step = self._check_step = step
+        self._next_check = step + 10  # the first steps compile kernels: decide again soon
 
     def done(self) -> None:
         if self.stream is not None and getattr(self.stream, "isatty", lambda: False)():
@@ -115,7 +180,17 @@ class Runner:
     """Executes a :class:`pdem.deck.ResolvedDeck`.
 
     ``output`` overrides the deck's ``output.directory``; an existing non-empty directory is refused
-    unless ``overwrite``. ``resume`` is ``(state, meta)`` from :func:`pdem.io.checkpoint.read_checkpoint`.
+    unless ``overwrite`` (its content is replaced only once the run has passed its start checks),
+    and a path that is not, or cannot become, a directory is an :class:`~pdem.errors.InputError`.
+    ``resume`` is ``(state, meta)`` from :func:`pdem.io.checkpoint.read_checkpoint`; with ``append``
+    the run continues the output already in ``output`` (the checkpoint's own run), see the module
+    doc. ``series_from``: resuming into a new directory, the directory whose series (up to the
+    checkpoint) the new series continue, so that they hold the whole run. ``max_steps`` counts steps
+    from the start of the run (a resumed run included). ``stdout`` receives the thermo lines
+    (``output.thermo_every``; default ``sys.stdout``), rank 0 only. ``dry``: only
+    :meth:`check_scene` will be called (the output path is not looked at).
+
+    Nothing is created on disk before :meth:`run` has built the scene and passed its checks.
     """
 
     def __init__(
@@ -129,6 +204,10 @@ class Runner:
         progress: TextIO | None = sys.stderr,
         resume: tuple[dict, dict] | None = None,
         overrides: tuple[str, ...] = (),
+        append: bool = False,
+        series_from: Path | None = None,
+        stdout: TextIO | None = None,
+        dry: bool = False,
     ) -> None:
         from .parallel.comm import SerialComm
 
@@ -139,37 +218,60 @@ class Runner:
         self.max_steps = max_steps
         self.overrides = tuple(overrides)
         self.resume = resume
+        self.append = bool(append)
+        if self.append and resume is None:
+            raise InputError("append=True continues the output of a resumed run; pass resume=(state, meta)")
+        self.series_from = Path(series_from) if series_from is not None and not self.append else None
+        self.overwrite = bool(overwrite) and not self.append
         out = output if output is not None else Path(self.deck.output.directory)
         self.out = Path(out)
+        self.resume_step = int(resume[0]["scalars/step"]) if resume is not None else None
+        if resume is not None and max_steps is not None and max_steps <= self.resume_step:
+            raise InputError(
+                f"--steps {max_steps} would stop the run at step {max_steps}, but the checkpoint is at step "
+                f"{self.resume_step} already: --steps counts steps from the start of the run, so give more "
+                f"than {self.resume_step} (e.g. --steps {self.resume_step + 1000}), or leave it out to run "
+                "every stage"
+            )
         problem = None
-        if self.root and self.out.exists() and any(self.out.iterdir()):
-            if not overwrite:
-                problem = (
-                    f"output directory {self.out} exists and is not empty; pass --overwrite to "
-                    "replace it, or choose another with --output DIR"
-                )
-            else:
-                shutil.rmtree(self.out)
+        self._before: set[str] | None = None
+        self._created_root: Path | None = None
+        if self.root and not dry:
+            problem = output_dir_problem(self.out, "the output directory", "choose another output directory")
+            if problem is None:
+                self._before = entries(self.out)
+                self._created_root = first_missing(self.out)
+                if self._before and not self.overwrite and not self.append:
+                    problem = (
+                        f"output directory {self.out} exists and is not empty; pass --overwrite to "
+                        "replace it, or choose another with --output DIR"
+                    )
         problem = self.comm.bcast(problem, root=0)
         if problem:
             raise InputError(problem)
         self.deck_text = resolved.resolved_toml()
-        if self.root:
-            self.out.mkdir(parents=True, exist_ok=True)
-            (self.out / "checkpoints").mkdir(exist_ok=True)
-            (self.out / "deck.resolved.toml").write_text(self.deck_text)
-        self.comm.Barrier()
-        self.progress = _Progress(progress if self.root else None)
+        if resume is not None and _same_deck(resume[1].get("deck"), self.deck_text):
+            self.deck_text = resume[1]["deck"]  # unchanged: keep its text (and header) as it was
+        self.progress = _Progress(progress if self.root else None, self.comm, enabled=progress is not None)
+        self.stdout = (stdout if stdout is not None else sys.stdout) if self.root else None
         self.boundaries: dict[str, Any] = {}
         self.writers: list[Any] = []
         self._gathered_writers: list[Any] = []
         self._per_rank_writers: list[Any] = []
+        self._series_writers: dict[Any, Any] = {}
+        self._last_series_step: dict[str, int] = {}
+        self._last_frame: dict[int, int] = {}  # id(writer) -> step of its last frame
         self.output_parallel: str | None = None
         self.series: dict[str, list[dict[str, float]]] = {}
         self.stopped_early = False
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+        self._output_open = False
+        self._setup_done = False
+        self._contacts_on = False
+        self._contacts_last: int | None = None
+        self._contact_writer: Any = None
+        self._thermo_header: str | None = None
 
-    # ---------------------------------------------------------------------------- building
     def build(self) -> Simulation:
         deck = self.deck
         law_cls = load("contact_laws", deck.contact.law)
@@ -192,7 +294,10 @@ class Runner:
             sim.set_periodic(deck.domain.lo, deck.domain.hi, deck.domain.periodic)
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
-            self.boundaries[name] = sim.add_boundary(cls(name, params))
+            self.boundaries[name] = _plugin_call(
+                f"boundary '{name}' (type '{params.type}', {_where(cls)})",
+                lambda cls=cls, name=name, params=params: sim.add_boundary(cls(name, params)),
+            )
         self.sim = sim
         return sim
 
@@ -244,7 +349,7 @@ class Runner:
         return {
             "imbalance_particles": float(counts[:, 0].max() / max(mean[0], 1e-300)),
             "imbalance_work": float(counts[:, 1].max() / max(mean[1], 1e-300)),
-            "rebalances": float(sim.decomposition.n_rebalances if sim.decomposition else 0),
+            "rebalances": int(sim.decomposition.n_rebalances if sim.decomposition else 0),
         }
 
     def _solver_columns(self, stage: str) -> dict[str, float]:
@@ -260,24 +365,33 @@ class Runner:
                 from .io.series import SeriesWriter
 
                 writer = SeriesWriter(
-                    self.out / f"solver_{stage}.csv", ["step", "iterations", "residual", "contacts_rank0"]
+                    self.out / f"solver_{stage}.csv",
+                    ["step", "iterations", "residual", "contacts_rank0"],
+                    append=self._series_append,
                 )
                 self._series_writers[("solver", stage)] = writer
             for step, it, res, nc in log:
-                writer.append({"step": step, "iterations": it, "residual": res, "contacts_rank0": nc})
+                writer.append(
+                    {"step": int(step), "iterations": int(it), "residual": res, "contacts_rank0": int(nc)}
+                )
         return {
-            "solver_iterations": float(st.last_iterations),
+            "solver_iterations": int(st.last_iterations),
             "solver_residual": float(st.last_residual),
-            "solver_unconverged": float(st.n_unconverged),
+            "solver_unconverged": int(st.n_unconverged),
         }
 
     def _series_row(self, stage: str) -> None:
+        """One row of ``series_<stage>.csv`` (collective); a step already written is not repeated
+        (a stage's last step that is also on the series cadence, a resumed run's first step)."""
         sim = self.sim
+        if self._last_series_step.get(stage) == sim.step_count:
+            return
+        self._last_series_step[stage] = sim.step_count
         ke_t, ke_r = sim.kinetic_energy()
         row = {
             "time": sim.time,
-            "step": float(sim.step_count),
-            "particles": float(sim.count_particles()),
+            "step": int(sim.step_count),
+            "particles": int(sim.count_particles()),
             "ke_trans": ke_t,
             "ke_rot": ke_r,
             **self._balance_columns(),
@@ -291,7 +405,7 @@ class Runner:
         if writer is None:
             from .io.series import SeriesWriter
 
-            writer = SeriesWriter(self.out / f"series_{stage}.csv", list(row))
+            writer = SeriesWriter(self.out / f"series_{stage}.csv", list(row), append=self._series_append)
             self._series_writers[stage] = writer
         writer.append(row)
 
@@ -356,31 +470,55 @@ class Runner:
         )
 
     def _write_frame(self, stage: str) -> None:
-        if self._last_frame_step == self.sim.step_count:
-            return
-        if self._gathered_output:
+        """A snapshot for every writer that has none at this step yet (collective)."""
+        step = self.sim.step_count
+        gathered = [w for w in self._gathered_writers if self._last_frame.get(id(w)) != step]
+        per_rank = [w for w in self._per_rank_writers if self._last_frame.get(id(w)) != step]
+        frame = None
+        # every rank decides alike: the writers' last steps are the same everywhere
+        if self._gathered_output and self.comm.bcast(bool(gathered), root=0):
             frame = self.frame(stage)  # collective
-            for w in self._gathered_writers:  # rank 0 only
+            for w in gathered:  # rank 0 only
                 w.write(frame)
-        if self._per_rank_writers:
+                self._last_frame[id(w)] = step
+        if per_rank:
             piece = self.frame(stage, own=True)  # collective
-            for w in self._per_rank_writers:
+            for w in per_rank:
                 w.write(piece)  # collective
-        self._last_frame_step = self.sim.step_count
+                self._last_frame[id(w)] = step
+        if self._contacts_on and self._contacts_last != step:
+            self._write_contacts(frame)
+
+    def _write_contacts(self, frame: Frame | None) -> None:
+        """The contact network at this step (``output.contacts``; collective, rank 0 writes)."""
+        from .io.contacts import contact_lines
+
+        sim = self.sim
+        contacts = sim.contacts()  # collective: every rank's contacts
+        particles = frame.particles if frame is not None else sim.get_particles()  # collective
+        if self._contact_writer is not None:
+            self._contact_writer.write(contact_lines(contacts, particles, sim.box), sim.time, sim.step_count)
+        self._contacts_last = sim.step_count
 
     def _checkpoint(self, stage_index: int, stage_start: tuple[float, int], started: bool = True) -> Path:
         sim = self.sim
+        stages = self.deck.stages
         meta = {
             "deck": self.deck_text,
-            "deck_path": str(Path(self.resolved.path).resolve()),
+            "deck_path": str(Path(self.resolved.path).resolve()) if self.resolved.path is not None else "",
             "overrides": json.dumps(list(self.overrides)),
             "pdem_version": __version__,
             "stage_index": stage_index,
+            "stage_name": stages[stage_index].name if stage_index < len(stages) else "",
             "stage_start_time": stage_start[0],
             "stage_start_step": stage_start[1],
             "stage_started": int(started),
             "boundaries": json.dumps({n: b.state() for n, b in self.boundaries.items()}),
             "output": str(self.out.resolve()),
+            # the scene box snapshots have grown to, so a resumed run draws infinite walls alike
+            "frame_bounds": json.dumps([b.tolist() for b in self._bounds])
+            if self._bounds is not None
+            else "",
         }
         state = sim.state_dict()  # collective
         path = self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5"
@@ -389,8 +527,249 @@ class Runner:
         self.comm.Barrier()
         return path
 
+    # ---------------------------------------------------------------------------- output
+    def _root_do(self, action) -> Any:
+        """Run ``action`` on rank 0; its result, or its error raised on every rank (collective)."""
+        result, error = None, None
+        if self.root:
+            try:
+                result = action()
+            except PdemError as exc:
+                error = (type(exc), str(exc))
+            except OSError as exc:
+                error = (InputError, f"output directory {self.out}: {exc}")
+        result, error = self.comm.bcast((result, error), root=0)
+        if error is not None:
+            raise error[0](error[1])
+        return result
+
+    def _writer_classes(self) -> list[tuple[str, type]]:
+        classes = [(fmt, load("writers", fmt)) for fmt in self.deck.output.formats]
+        if self.append:
+            bad = [fmt for fmt, cls in classes if not getattr(cls, "supports_append", False)]
+            if bad:
+                raise InputError(
+                    f"output format(s) {', '.join(map(repr, bad))} cannot continue an existing output, so "
+                    f"the run cannot go on in {self.out}; resume into a new directory with --output DIR"
+                )
+        return classes
+
+    def _open_output(self, classes: list[tuple[str, type]], start: Any) -> None:
+        """Create the output directory (or continue the existing one), writers and series (collective).
+        Called once the run has passed its start checks."""
+        self._series_append = self.append or self.series_from is not None
+        self._output_open = True
+        if self.append:
+            kept = self._root_do(lambda: self._continue_output(start))
+        else:
+            kept = self._root_do(lambda: self._new_output(start))
+        for stage, rows in (kept or {}).items():
+            self.series[stage] = rows
+            if rows and "step" in rows[-1]:
+                self._last_series_step[stage] = int(rows[-1]["step"])
+        out_cfg = self.deck.output
+        self.output_parallel = out_cfg.parallel_mode(self.sim.count_particles(), self.comm.size)
+        self._gathered_output = False  # on every rank: frames are gathered collectively
+        for fmt, cls in classes:
+            kwargs: dict[str, Any] = {
+                "fields": out_cfg.fields,
+                "metadata": {"deck": self.deck_text, "pdem_version": __version__},
+            }
+            if self.append:
+                kwargs["append_after"] = (start.step, start.time)
+            if self.output_parallel == "per_rank" and getattr(cls, "supports_per_rank", False):
+                w = _plugin_call(  # on every rank
+                    f"writer '{fmt}' ({_where(cls)})",
+                    lambda cls=cls, kw=kwargs: cls(self.out, comm=self.comm, **kw),
+                )
+                self._per_rank_writers.append(w)
+            else:  # parallel = "auto" gathers frames for writers without per-rank support
+                self._gathered_output = True
+                if not self.root:
+                    continue  # rank 0 decides when a gathered frame is due
+                w = _plugin_call(
+                    f"writer '{fmt}' ({_where(cls)})", lambda cls=cls, kw=kwargs: cls(self.out, **kw)
+                )
+                self._gathered_writers.append(w)
+            if getattr(w, "last_step", None) is not None:
+                self._last_frame[id(w)] = int(w.last_step)
+        self.writers = self._gathered_writers + self._per_rank_writers
+        self._contacts_on = bool(getattr(out_cfg, "contacts", False))
+        if self._contacts_on:
+            from .io.contacts import ContactNetworkWriter
+
+            def make() -> int | None:
+                self._contact_writer = ContactNetworkWriter(
+                    self.out, append_after=(start.step, start.time) if self.append else None
+                )
+                return self._contact_writer.last_step
+
+            self._contacts_last = self._root_do(make)
+
+    def _new_output(self, start: Any) -> dict[str, list]:
+        out = self.out
+        if self._before:  # --overwrite: the old content goes only now that the run has started well
+            for name in sorted(self._before):
+                path = out / name
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+            self._before = set()
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "checkpoints").mkdir(exist_ok=True)
+        (out / "deck.resolved.toml").write_text(self.deck_text)
+        if self.series_from is None:
+            return {}
+        return self._seed_series(self.series_from, start)
+
+    def _series_files(self, directory: Path) -> list[tuple[str, Path]]:
+        """``(stage, path)`` of the series and solver CSVs in ``directory``."""
+        out = []
+        for path in sorted(directory.glob("*.csv")):
+            m = re.fullmatch(r"(series|solver)_(.+)\.csv", path.name)
+            if m:
+                out.append((m.group(2), path))
+        return out
+
+    def _stage_ran(self, stage: str, start: Any) -> bool:
+        """Did ``stage`` start before the checkpoint (so its rows up to it belong to this run)?"""
+        names = [s.name for s in self.deck.stages]
+        return stage in names and start.has_run(names.index(stage))
+
+    def _seed_series(self, source: Path, start: Any) -> dict[str, list]:
+        """Resuming into a new directory: copy the series rows up to the checkpoint from ``source``."""
+        from .io.series import series_rows, truncate_series
+
+        kept: dict[str, list] = {}
+        for stage, path in self._series_files(source):
+            if not self._stage_ran(stage, start):
+                continue
+            target = self.out / path.name
+            shutil.copyfile(path, target)
+            truncate_series(target, start.step)
+            if path.name.startswith("series_"):
+                kept[stage] = series_rows(target)
+        return kept
+
+    def _continue_output(self, start: Any) -> dict[str, list]:
+        """Appending to the checkpoint's own output: drop what the previous run wrote after the
+        checkpoint (series rows, checkpoints, temporary files; writers drop their frames), keep the
+        rest; the rows kept, by stage."""
+        from .io.base import atomic_write_text
+        from .io.series import series_rows, truncate_series
+
+        out = self.out
+        out.mkdir(parents=True, exist_ok=True)
+        ckdir = out / "checkpoints"
+        ckdir.mkdir(exist_ok=True)
+        for directory in (out, out / "particles", out / "walls", *sorted(out.glob("particles/r*"))):
+            if directory.is_dir():
+                for path in directory.iterdir():  # temporary files of writes a kill interrupted
+                    if re.fullmatch(r"\..+\.[0-9a-f]{8}(\.tmp|\.vtu)", path.name):
+                        path.unlink()
+        later = []
+        for path in ckdir.iterdir():
+            m = re.fullmatch(r"step_(\d+)\.h5", path.name)
+            if path.name.endswith(".tmp"):
+                path.unlink()
+            elif m and int(m.group(1)) > start.step:
+                later.append(path)
+        for path in later:
+            path.unlink()
+        latest = ckdir / "latest.h5"
+        if latest.is_symlink() and not latest.exists():
+            steps = sorted(p.name for p in ckdir.glob("step_*.h5"))
+            tmp = ckdir / "latest.h5.tmp"
+            if steps:
+                os.symlink(steps[-1], tmp)
+                os.replace(tmp, latest)
+            else:
+                latest.unlink()
+        kept: dict[str, list] = {}
+        for stage, path in self._series_files(out):
+            if not self._stage_ran(stage, start):
+                path.unlink()
+                continue
+            truncate_series(path, start.step)
+            if path.name.startswith("series_"):
+                kept[stage] = series_rows(path)
+        resolved = out / "deck.resolved.toml"
+        if resolved.exists() and resolved.read_text() != self.deck_text:
+            resolved.rename(out / f"deck.resolved.until-step-{start.step}.toml")
+        if not resolved.exists():
+            atomic_write_text(resolved, self.deck_text)
+        return kept
+
+    def _undo_output(self) -> None:
+        """The run failed before its first step: remove what it created (rank 0; never what was
+        there before it, never a continued output)."""
+        if not self.root or not self._output_open or self.append:
+            return
+        remove_created(self.out, self._before, self._created_root)
+
     # ---------------------------------------------------------------------------- running
+    def check_scene(self) -> str:
+        """What ``pdem check`` does beyond the deck: build the first stage's scene (its particles are
+        made) and run the start checks of :meth:`run` (every stage's dt against the law's stability
+        estimate, initial overlaps between grains and with walls, the packing files of later
+        stages), writing nothing. A one-line description of the scene."""
+        sim = self.build()
+        stages = list(self.deck.stages)
+        self._insert_particles(stages[0].name, stages[0].name)
+        self._enter_stage(0, stages[0])
+        self._check_stages(0)
+        self._check_later_files(0)
+        self._check_measured(0)
+        return (
+            f"{sim.count_particles()} particles at the start, dt = {sim.dt:.4g} s (stability estimate "
+            f"{sim.dt_critical:.4g} s)"
+        )
+
+    def _check_measured(self, start_index: int) -> None:
+        """Every quantity a stage ends on (and every thermo column) is one the boundaries measure:
+        a boundary plugin that does not declare its keys is only known once built (collective)."""
+        measured = sorted(self.measurements())
+        wanted = []
+        for index, stage in enumerate(self.deck.stages):
+            if index >= start_index and stage.end.quantity is not None:
+                wanted.append((f"stages.{stage.name}.end.quantity", stage.end.quantity))
+            out = self.resolved.output_for(stage.name)
+            for k, key in enumerate(getattr(out, "thermo", None) or ()):
+                if "." in key:
+                    wanted.append((f"output.thermo.{k}", key))
+        for where, key in wanted:
+            if key not in measured:
+                name = key.split(".", 1)[0]
+                mine = [m for m in measured if m.startswith(name + ".")]
+                raise InputError(
+                    f"{where}: '{key}' is not measured; boundary '{name}' measures "
+                    + (", ".join(f"'{m}'" for m in mine) if mine else "nothing")
+                )
+
+    def _check_later_files(self, start_index: int) -> None:
+        """Read the packing files of the sources of later stages now (they are validated as they are
+        read: non-finite values, radii ≤ 0, malformed rows), so a bad file stops the run before it
+        writes anything rather than when its stage starts."""
+        from .sources import read_spheres
+
+        names = [s.name for s in self.deck.stages]
+        for k, src in enumerate(self.deck.particles or []):
+            spec = src.model_dump()
+            if spec.get("source") != "file" or not spec.get("path"):
+                continue
+            stage = spec.get("stage") or names[0]
+            if stage in names and names.index(stage) > start_index:
+                path = Path(self.resolved.base_dir) / spec["path"]
+                if path.is_file() and path.stat().st_size < _READ_AHEAD_BELOW:
+                    try:
+                        read_spheres(path)
+                    except InputError as exc:
+                        raise InputError(f"particles.{k}.path (stage '{stage}'): {exc}") from None
+
     def run(self) -> dict[str, Any]:
+        from .deck.resume import ResumePoint
+
         deck = self.deck
         sim = self.build()
         stages = list(deck.stages)
@@ -400,52 +779,54 @@ class Runner:
         stage_start: tuple[float, int] | None = None
         if self.resume is None:
             self._insert_particles(first, first)
+            start = ResumePoint(0, False, 0, 0.0)
         else:
             state, meta = self.resume
             sim.load_state(state)
-            start_index = int(meta["stage_index"])
-            started = bool(int(meta.get("stage_started", 1)))
+            start = ResumePoint.from_checkpoint(state, meta)
+            start_index, started = start.stage_index, start.started
             stage_start = (float(meta["stage_start_time"]), int(meta["stage_start_step"]))
             saved = json.loads(meta.get("boundaries", "{}"))
             for name, b in self.boundaries.items():
                 b.restore(saved.get(name, {}))
-        self._series_writers: dict[str, Any] = {}
-        self._last_frame_step = -1
-        out_cfg = deck.output
-        self.output_parallel = out_cfg.parallel_mode(sim.count_particles(), self.comm.size)
-        self._gathered_output = False  # on every rank: frames are gathered collectively
-        for fmt in out_cfg.formats:
-            cls = load("writers", fmt)
-            kwargs: dict[str, Any] = {
-                "fields": out_cfg.fields,
-                "metadata": {"deck": self.deck_text, "pdem_version": __version__},
-            }
-            if self.output_parallel == "per_rank" and getattr(cls, "supports_per_rank", False):
-                self._per_rank_writers.append(cls(self.out, comm=self.comm, **kwargs))  # on every rank
-            else:  # parallel = "auto" gathers frames for writers without per-rank support
-                if self.root:
-                    self._gathered_writers.append(cls(self.out, **kwargs))
-                self._gathered_output = True
-        self.writers = self._gathered_writers + self._per_rank_writers
+            if meta.get("frame_bounds"):
+                lo, hi = json.loads(meta["frame_bounds"])
+                self._bounds = (np.asarray(lo, dtype=float), np.asarray(hi, dtype=float))
+        self._resume_dt = float(self.resume[0]["scalars/dt"]) if self.resume is not None else None
+        # ---- checks that need the scene, before anything is written
+        classes = self._writer_classes()
+        if start_index < len(stages):
+            stage = stages[start_index]
+            if not (self.resume is not None and started):
+                if start_index > 0:
+                    self._insert_particles(stage.name, first)
+                stage_start = (sim.time, sim.step_count)
+            self._enter_stage(start_index, stage)
+            self._check_stages(start_index)
+            self._check_later_files(start_index)
+            self._check_measured(start_index)
         t_start = _time.perf_counter()
         steps_start = sim.step_count
         try:
+            self._open_output(classes, start)
+            if start_index >= len(stages):
+                self._setup_done = True  # a finished run: nothing left to step
             for index in range(start_index, len(stages)):
                 stage = stages[index]
                 resumed_here = self.resume is not None and index == start_index and started
-                if not resumed_here:
-                    if index > 0:
-                        self._insert_particles(stage.name, first)
+                if index != start_index:
+                    self._insert_particles(stage.name, first)
                     stage_start = (sim.time, sim.step_count)
+                    self._enter_stage(index, stage)
                 if not self._run_stage(index, stage, stage_start, resumed_here):
                     self.stopped_early = True
                     break
-        finally:
-            for w in self.writers:
-                w.close()
-            for w in self._series_writers.values():
-                w.close()
-            self.progress.done()
+        except BaseException:
+            self._close()
+            if not self._setup_done:
+                self._undo_output()
+            raise
+        self._close()
         wall = _time.perf_counter() - t_start
         summary: dict[str, Any] = {
             "pdem_version": __version__,
@@ -454,11 +835,14 @@ class Runner:
             "wall_time_s": wall,
             "particles": sim.count_particles(),
             "dt": sim.dt,
+            "steps_run": sim.step_count - steps_start,
             "steps_per_second": (sim.step_count - steps_start) / max(wall, 1e-9),
             "completed": not self.stopped_early,
             "output_parallel": self.output_parallel,
             "results": {},
         }
+        if self.resume is not None:
+            summary["resumed_from_step"] = self.resume_step
         solver = sim.integrator.summary() if sim.integrator is not None else None
         if solver is not None:
             summary["solver"] = solver
@@ -471,18 +855,95 @@ class Runner:
             (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
+    def _close(self) -> None:
+        for w in self.writers:
+            w.close()
+        for w in self._series_writers.values():
+            w.close()
+        self.progress.done()
+
     def _merged_series(self) -> dict[str, np.ndarray]:
         rows = [r for stage in self.deck.stages for r in self.series.get(stage.name, [])]
         keys = sorted({k for r in rows for k in r})
         return {k: np.array([r.get(k, math.nan) for r in rows]) for k in keys}
 
-    def _run_stage(self, index: int, stage: Any, stage_start: tuple[float, int], resumed: bool) -> bool:
-        """Run one stage; False if ``max_steps`` stopped the run."""
+    def _stage_dt(self, stage: Any) -> float | None:
+        """The dt a stage runs with: its own, else ``run.dt``; None keeps the current step (the law's
+        estimate, or the dt of an earlier stage that set its own)."""
+        return stage.dt if stage.dt is not None else self.deck.run.dt
+
+    def _dt_key(self, index: int, stage: Any) -> str:
+        return f"stages.{stage.name}.dt" if stage.dt is not None else "run.dt"
+
+    def _enter_stage(self, index: int, stage: Any) -> None:
+        """Enter a stage: boundaries on or off, its dt, preparation (checks dt against the law's
+        stability estimate and initial overlaps: errors name the deck key)."""
         sim = self.sim
         sim.set_stage(stage.name)
-        if stage.dt is not None and sim.dt != stage.dt:
-            sim.dt = stage.dt  # checked against the law's stability estimate
-        sim.prepare()
+        dt = self._stage_dt(stage)
+        try:
+            if dt is not None and sim.dt != dt:
+                sim.dt = dt  # checked against the law's stability estimate once prepared
+            sim.prepare()
+        except InputError as exc:
+            if "stability estimate" in str(exc) and dt is not None:
+                raise type(exc)(f"{self._dt_key(index, stage)}: {exc}") from None
+            raise
+
+    def _check_stages(self, start_index: int) -> None:
+        """Before anything is written: every stage still to run has a dt within the law's stability
+        estimate (as known from the particles now) and a length below :data:`MAX_STAGE_STEPS`."""
+        sim = self.sim
+        crit = sim.dt_critical
+        for index, stage in enumerate(self.deck.stages):
+            if index < start_index:
+                continue
+            dt = self._stage_dt(stage)
+            if dt is not None and not self.deck.run.force_dt and math.isfinite(crit) and dt > crit:
+                raise InputError(
+                    f"{self._dt_key(index, stage)}: dt = {dt:.4g} s for stage '{stage.name}' exceeds the "
+                    f"stability estimate {crit:.4g} s of law '{sim.law.name}' for these particles; use "
+                    f"dt ≤ {crit:.4g} s (practice: 0.1–0.3 of it), or set run.force_dt = true to run anyway"
+                )
+            self._stage_target(stage, dt if dt is not None else sim.dt)
+
+    def _stage_target(self, stage: Any, dt: float, done: int = 0, elapsed: float = 0.0) -> int | None:
+        """Steps from the stage's start at which its ``steps``/``time`` end it (None: neither given).
+        ``done``, ``elapsed``: steps and time into the stage already run at another dt (a resume
+        that changed it). Refuses a stage longer than :data:`MAX_STAGE_STEPS`."""
+        end = stage.end
+        target = end.steps
+        if end.time is not None and dt:
+            steps = (end.time - elapsed) / dt
+            if not math.isfinite(steps) or steps > MAX_STAGE_STEPS:
+                raise InputError(
+                    f"stages.{stage.name}.end.time: time = {end.time!r} s at dt = {dt:.4g} s is "
+                    f"{steps:.3g} steps, above the limit of {MAX_STAGE_STEPS:.0e} steps per stage; "
+                    "shorten the stage or use larger particles (a larger dt)"
+                )
+            by_time = done + max(int(math.ceil(steps - 1e-9)), 0)
+            target = by_time if target is None else min(target, by_time)
+        return target
+
+    def _describe_end(self, stage: Any) -> str:
+        end = stage.end
+        conds = []
+        if end.time is not None:
+            conds.append(f"time = {end.time!r} s")
+        if end.steps is not None:
+            conds.append(f"steps = {end.steps}")
+        if end.kinetic_energy_below is not None:
+            ke = sum(self.sim.kinetic_energy())
+            conds.append(f"kinetic energy below {end.kinetic_energy_below!r} J (now {ke:.4g} J)")
+        if end.quantity is not None:
+            val = self.measurements()[end.quantity]
+            op, ref = (">", end.above) if end.above is not None else ("<", end.below)
+            conds.append(f"{end.quantity} {op} {ref!r} (now {val:.6g})")
+        return " or ".join(conds)
+
+    def _run_stage(self, index: int, stage: Any, stage_start: tuple[float, int], resumed: bool) -> bool:
+        """Run one (entered) stage; False if ``max_steps`` stopped the run."""
+        sim = self.sim
         end = stage.end
         out = self.resolved.output_for(stage.name)
         every_steps = out.every_steps
@@ -490,19 +951,24 @@ class Runner:
         series_every = out.series_every_steps
         ckpt_every = out.checkpoint_every_steps
         check_every = getattr(end, "check_every", None) or 100
-        target_steps = None
-        if end.steps is not None:
-            target_steps = end.steps
-        if end.time is not None:
-            by_time = int(math.ceil(end.time / sim.dt - 1e-9))
-            target_steps = by_time if target_steps is None else min(target_steps, by_time)
+        if resumed and self._resume_dt is not None and sim.dt != self._resume_dt:
+            # the resume changed dt mid-stage: count the rest of the stage's time at the new dt
+            target_steps = self._stage_target(
+                stage, sim.dt, sim.step_count - stage_start[1], sim.time - stage_start[0]
+            )
+        else:
+            target_steps = self._stage_target(stage, sim.dt)
         self.progress.stage_start(sim.step_count)
+        self._thermo_header = None  # each stage's thermo lines start with a header
         if not resumed:
             self._series_row(stage.name)
             self._write_frame(stage.name)
+        self._setup_done = True  # from here on, a failure keeps what was written
         next_snapshot_time = (
             (math.floor((sim.time + 1e-12) / every_time) + 1) * every_time if every_time else None
         )
+        quantity_start: float | None = None
+        frac_quantity: float | None = None
         while True:
             in_stage = sim.step_count - stage_start[1]
             done = target_steps is not None and in_stage >= target_steps
@@ -518,14 +984,24 @@ class Runner:
                         end.below is not None and val < end.below
                     ):
                         done = True
+                    ref = end.above if end.above is not None else end.below
+                    if quantity_start is None:
+                        quantity_start = val
+                    elif ref != quantity_start:  # progress of the quantity toward its target, for an ETA
+                        frac_quantity = min(max((val - quantity_start) / (ref - quantity_start), 0.0), 1.0)
             if done:
                 break
             if end.max_time is not None and sim.time - stage_start[0] >= end.max_time:
+                self._series_row(stage.name)
+                self._write_frame(stage.name)
                 self._checkpoint(index, stage_start)
+                latest = self.out / "checkpoints" / "latest.h5"
                 raise StageLimitError(
-                    f"stage '{stage.name}' reached max_time = {end.max_time} s without meeting its end "
-                    f"condition; raise stages.{stage.name}.end.max_time or revise the condition "
-                    f"(a checkpoint was written to {self.out / 'checkpoints'})"
+                    f"stage '{stage.name}' reached max_time = {end.max_time!r} s without meeting its end "
+                    f"condition ({self._describe_end(stage)}); a checkpoint was written, so the run can go "
+                    f"on from here with a larger cap: pdem resume {shlex.quote(str(latest))} --set "
+                    f"stages.{stage.name}.end.max_time={_larger(end.max_time)} (or revise the end "
+                    f"condition the same way, e.g. --set stages.{stage.name}.end.<key>=<value>)"
                 )
             if self.max_steps is not None and sim.step_count >= self.max_steps:
                 self._series_row(stage.name)
@@ -543,10 +1019,105 @@ class Runner:
                 next_snapshot_time += every_time
             if ckpt_every and sim.step_count % ckpt_every == 0:
                 self._checkpoint(index, stage_start)
-            frac = in_stage / target_steps if target_steps else None
+            self._thermo(stage.name, out)
+            frac = in_stage / target_steps if target_steps else frac_quantity
             self.progress.update(sim, stage.name, frac)
         self._series_row(stage.name)
         self._write_frame(stage.name)
         self._checkpoint(index + 1, (sim.time, sim.step_count), started=False)
         self.progress.update(sim, stage.name, 1.0, force=True)
         return True
+
+    def _thermo(self, stage: str, out: Any) -> None:
+        """A thermo line on stdout at every multiple of ``output.thermo_every`` steps (see the module
+        doc); the values are collective, so every rank computes them."""
+        every = getattr(out, "thermo_every", None)
+        if not every or self.sim.step_count % every:
+            return
+        from .deck.schema import THERMO_DEFAULT
+
+        keys = list(getattr(out, "thermo", None) or THERMO_DEFAULT)
+        values = self._thermo_values(keys)
+        if self.stdout is None:
+            return
+        header = "  ".join(f"{k:>14s}" for k in keys)
+        if header != self._thermo_header:  # at the first line of each stage
+            self.stdout.write(header + "\n")
+            self._thermo_header = header
+        self.stdout.write("  ".join(_thermo_cell(v) for v in values) + "\n")
+        self.stdout.flush()
+
+    def _thermo_values(self, keys: list[str]) -> list[float | int]:
+        sim = self.sim
+        needs_ke = any(k in ("ke", "ke_trans", "ke_rot") for k in keys)
+        ke_t, ke_r = sim.kinetic_energy() if needs_ke else (math.nan, math.nan)
+        meas = self.measurements() if any("." in k for k in keys) else {}
+        values: list[float | int] = []
+        for k in keys:
+            if k == "step":
+                values.append(int(sim.step_count))
+            elif k == "time":
+                values.append(sim.time)
+            elif k == "dt":
+                values.append(sim.dt)
+            elif k == "particles":
+                values.append(int(sim.count_particles()))
+            elif k == "ke":
+                values.append(ke_t + ke_r)
+            elif k == "ke_trans":
+                values.append(ke_t)
+            elif k == "ke_rot":
+                values.append(ke_r)
+            elif k == "contacts":
+                values.append(int(len(sim.contacts()["id_i"])))
+            else:
+                values.append(meas.get(k, math.nan))
+        return values
+
+
+def _where(cls: Any) -> str:
+    return f"{getattr(cls, '__module__', '?')}.{getattr(cls, '__qualname__', cls)}"
+
+
+def _plugin_call(what: str, action: Any) -> Any:
+    """Call a plugin's constructor (or build): pdem's own errors pass through; any other exception
+    is a bug of the plugin, reported as a :class:`~pdem.errors.PluginError` naming it (exit code 2)
+    rather than a traceback."""
+    from .errors import PluginError
+
+    try:
+        return action()
+    except PdemError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a third-party plugin may raise anything
+        raise PluginError(
+            f"{what} failed: {type(exc).__name__}: {exc}; the plugin has a bug or does not honour "
+            "pdem's plugin contract (docs/plugins.md): report it to its author, or remove it from the deck"
+        ) from exc
+
+
+#: packing files of later stages below this size are read (validated) when the run starts
+_READ_AHEAD_BELOW = 256 * 2**20
+
+
+def _same_deck(text: Any, other: str) -> bool:
+    """Do two resolved deck texts hold the same deck (comments, such as the header, aside)?"""
+    import tomllib
+
+    if not isinstance(text, str):
+        return False
+    try:
+        return tomllib.loads(text) == tomllib.loads(other)
+    except tomllib.TOMLDecodeError:
+        return False
+
+
+def _thermo_cell(v: float | int) -> str:
+    if isinstance(v, int):
+        return f"{v:>14d}"
+    return f"{v:>14.6g}"
+
+
+def _larger(limit: float) -> str:
+    """A max_time to suggest after ``limit`` was reached: twice it, written short."""
+    return f"{2.0 * limit:g}"

@@ -233,11 +233,21 @@ def test_resume_is_bitwise_identical(tmp_path, capsys):
             assert np.array_equal(a[key], b[key]), key
 
 
-def test_resume_refuses_changed_deck(tmp_path, capsys):
+def test_resume_needs_only_the_checkpoint(tmp_path, capsys):
+    """The deck file may change or disappear: the checkpoint holds the resolved deck. A change of
+    the scene asked for with --set is refused, naming the key (exit 2, nothing written)."""
     deck = write(tmp_path, SMALL)
     part = tmp_path / "part"
     assert run_cli([deck, "--output", part, "--quiet", "--steps", "20"], capsys)[0] == 0
     deck.write_text(SMALL.replace("friction = 0.5", "friction = 0.4"))
-    code, _, err = run_cli(["resume", part / "checkpoints" / "latest.h5", "--quiet"], capsys)
-    assert code == 1 and "changed" in err
-
+    ckpt = part / "checkpoints" / "latest.h5"
+    before = sorted(str(p) for p in tmp_path.rglob("*"))
+    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", "materials.glass.friction=0.4"], capsys)
+    assert code == 2, err
+    assert "materials.glass.friction: cannot be changed on resume" in err, err
+    assert "(from --set materials.glass.friction=0.4)" in err and "Traceback" not in err
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == before
+    deck.unlink()
+    code, _, err = run_cli(["resume", ckpt, "--quiet", "--steps", "40"], capsys)
+    assert code == 0, err
+    assert int(read_checkpoint(part / "checkpoints" / "latest.h5")[0]["scalars/step"]) == 40

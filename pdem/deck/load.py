@@ -7,7 +7,9 @@ Validation runs in full before anything else and reports every problem at once i
 2. ``--set`` overrides that cannot be parsed or applied;
 3. the schema (:mod:`pdem.deck.schema`, pydantic strict JSON mode) with its rules and cross-checks
    (materials, stages and boundaries referred to by name exist, stage names unique, …);
-4. the plugin sections: the contact law named by ``contact.law``, the particle source named by each
+4. the particle count and memory the sources need, against ``run.max_particles``
+   (:mod:`pdem.deck.capacity`);
+5. the plugin sections: the contact law named by ``contact.law``, the particle source named by each
    ``particles.N.source`` and the boundary plugin named by each ``boundaries.NAME.type`` must be
    installed (entry points), and their keys are validated by the plugin's own ``Params`` model,
    errors prefixed with the section's path; then the periodic box is checked against the sources'
@@ -33,6 +35,7 @@ from pydantic import BaseModel, ValidationError
 from .. import plugins
 from ..errors import PdemError, PluginError
 from . import toml_writer
+from .capacity import check_capacity
 from .overrides import Override, apply_overrides
 from .problems import Loc, make_deck_error, show, sort_problems, translate
 from .schema import (
@@ -200,6 +203,8 @@ def validate_deck(
         deck = Deck.model_validate(data, context=context)
     except ValidationError as exc:
         problems += translate(exc, Deck)
+
+    problems += check_capacity(data, base)
 
     law_class, law_params, law_problems = _validate_law(data)
     problems += law_problems

@@ -7,7 +7,10 @@
   ``{type = "box", lo = [0, 0, 0], hi = [1, 1, 1]}``). A value that is not valid TOML but is a single
   bare word (letters, digits, ``_ - . /``, starting with a letter) is taken as a string, so that
   ``--set contact.law=hertz_mindlin`` works without shell-quoting the quotes.
-* Missing intermediate tables are created; the override replaces whatever was there.
+* Missing intermediate tables are created; the override replaces whatever was there. In an array of
+  tables, the index one past the last entry adds a new table: ``--set stages.2.name=rest`` on a deck
+  with two stages adds a third (then ``stages.2.end.time=0.5`` or ``stages.rest.end.time=0.5``), and
+  so does a whole inline table (``--set 'particles.1={source = "lattice", …}'``).
 
 Keys are not checked here: the validation that follows reports an unknown key (with the closest valid
 key) at its path, and :mod:`pdem.deck.load` marks every problem under an overridden path with the
@@ -107,10 +110,19 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
     where = ".".join(str(p) for p in loc)
     if re.fullmatch(r"\d+", seg):
         k = int(seg)
+        tables = all(isinstance(e, dict) for e in node)
+        if k == len(node) and tables:  # one past the end: a new entry of an array of tables
+            node.append({})
+            return k
         if k >= len(node):
             raise OverrideError(
                 f"override '{text}': {where} has {len(node)} entr"
-                f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range",
+                f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range"
+                + (
+                    f" (index {len(node)} adds an entry: --set {where}.{len(node)}.KEY=VALUE)"
+                    if tables
+                    else ""
+                ),
                 loc + (k,),
             )
         return k

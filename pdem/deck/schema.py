@@ -72,6 +72,8 @@ __all__ = [
     "OutputSection",
     "KNOWN_WRITERS",
     "OUTPUT_FIELDS",
+    "THERMO_KEYS",
+    "THERMO_DEFAULT",
     "NAME_PATTERN",
     "RULE_ERROR",
     "MAX_TITLE_LENGTH",
@@ -83,6 +85,10 @@ __all__ = [
 KNOWN_WRITERS: tuple[str, ...] = ("hdf5", "vtk")
 #: per-particle fields a snapshot may hold
 OUTPUT_FIELDS: tuple[str, ...] = ("x", "v", "w", "r", "material", "f", "contacts", "id")
+#: thermo columns besides measured quantities ``<boundary>.<key>``
+THERMO_KEYS: tuple[str, ...] = ("step", "time", "dt", "particles", "ke", "ke_trans", "ke_rot", "contacts")
+#: thermo columns when ``output.thermo`` is not given
+THERMO_DEFAULT: tuple[str, ...] = ("step", "time", "particles", "ke", "contacts")
 #: stage and boundary names: a letter or ``_`` first, then letters, digits, ``_`` or ``-``
 NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_-]*$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -240,6 +246,14 @@ class RunSection(_DeckModel):
         description="MPI grid of subdomains (nx, ny, nz), each >= 1, whose product is the number of ranks "
         "(checked when the run starts; `pdem check` cannot know the rank count); default: "
         "chosen from the rank count to minimise the cut area over the particles",
+    )
+    max_particles: Int | None = Field(
+        None,
+        ge=1,
+        le=2**31 - 1,
+        description="most particles the deck's sources may create together (estimated when the deck is "
+        "validated, at about 1 kB of memory per particle); default: this machine's memory / 1 kB, at most "
+        "2^31 - 1 (particle ids)",
     )
     balance_threshold: Float | None = Field(
         1.05,
@@ -683,6 +697,17 @@ class StageEnd(_DeckModel):
                 for k in ("above", "below")
                 if _given(data, k)
             ]
+        t, cap = data.get("time"), data.get("max_time")
+        others = [k for k in ("steps", "kinetic_energy_below", "quantity") if _given(data, k)]
+        if _is_num(t) and _is_num(cap) and t > 0 and cap > 0 and cap <= t and not others:
+            out.append(
+                (
+                    ("max_time",),
+                    f"max_time = {cap!r} s is not above time = {t!r} s, the stage's only end condition: the "
+                    "stage would always stop with the max_time error before it ends; drop max_time or make "
+                    "it larger than time",
+                )
+            )
         quantity = data.get("quantity")
         if isinstance(quantity, str):
             head, _, tail = quantity.partition(".")
@@ -751,6 +776,23 @@ class OutputSection(_DeckModel):
     checkpoint_every_steps: Int | None = Field(
         None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints"
     )
+    contacts: Bool = Field(
+        False,
+        description="also write the contact network at every snapshot: contacts/contacts_NNNNNN.vtu (one "
+        "line per touching pair with its force, normal force and overlap) and contacts.pvd for ParaView",
+    )
+    thermo_every: Int | None = Field(
+        None,
+        gt=0,
+        description="print a thermo line on stdout every this many steps (a header line first, as LAMMPS "
+        "does); default: none",
+    )
+    thermo: list[Str] | None = Field(
+        None,
+        description="thermo columns: any of " + ", ".join(THERMO_KEYS) + ", or a measured quantity "
+        "'<boundary>.<key>' (e.g. 'floor.fz', 'hopper.discharged_mass'); default: "
+        + ", ".join(THERMO_DEFAULT),
+    )
     parallel: Literal["auto", "gather", "per_rank"] = Field(
         "auto",
         description="how MPI runs write snapshots: 'gather' (rank 0 writes every particle), 'per_rank' "
@@ -798,6 +840,19 @@ class OutputSection(_DeckModel):
             dup = sorted({f for f in fields if isinstance(f, str) and fields.count(f) > 1})
             if dup:
                 out.append((("fields",), f"field(s) listed more than once: {_listing(dup)}"))
+        thermo = data.get("thermo")
+        if isinstance(thermo, list):
+            for k, key in enumerate(thermo):
+                if isinstance(key, str) and key not in THERMO_KEYS and "." not in key:
+                    out.append(
+                        (
+                            ("thermo", k),
+                            f"unknown thermo column '{key}'{did_you_mean(key, THERMO_KEYS, True)}; give one "
+                            f"of {_listing(list(THERMO_KEYS))} or a measured quantity '<boundary>.<key>'",
+                        )
+                    )
+            if not _given(data, "thermo_every"):
+                out.append((("thermo",), "thermo lists the columns of thermo lines; give thermo_every too"))
         return out
 
     @model_validator(mode="after")
@@ -932,7 +987,8 @@ def periodic_source_checks(data: dict, extents: dict[int, tuple[float | None, An
 
 
 def _stage_length_checks(data: dict) -> Problems:
-    """A stage that may take more than :data:`MAX_STAGE_STEPS` steps by its end time (or max_time)
+    """A stage of more than :data:`MAX_STAGE_STEPS` ``steps``, or that may take more than that by its
+    end time (or max_time)
     at a dt given in the deck: the run would never finish (``dt = 1e-300``). The stage's bound is
     the least of ``steps``, ``time / dt`` and ``max_time / dt``, so a stage that ends by ``steps``
     (or by ``time``) first is fine whatever its max_time; with dt from the law's estimate (not in
@@ -945,6 +1001,16 @@ def _stage_length_checks(data: dict) -> Problems:
         if not isinstance(stage, dict) or not isinstance(stage.get("end"), dict):
             continue
         end = stage["end"]
+        steps = end.get("steps")
+        if isinstance(steps, int) and not isinstance(steps, bool) and steps > MAX_STAGE_STEPS:
+            name = stage.get("name") if isinstance(stage.get("name"), str) else str(k)
+            out.append(
+                (
+                    ("stages", k, "end", "steps"),
+                    f"stage '{name}': steps = {steps:,} is above the limit of {MAX_STAGE_STEPS:.0e} steps "
+                    "per stage (a run that long cannot finish); use fewer steps, or end the stage by time",
+                )
+            )
         if _is_num(stage.get("dt")):
             dt, dt_key = stage["dt"], f"stages.{k}.dt"
         elif stage.get("dt") is None and _is_num(run_dt):
@@ -1069,6 +1135,20 @@ def _cross_checks(data: dict) -> Problems:
                     check_stage(("boundaries", name, key, j), v)
             else:
                 check_stage(("boundaries", name, key), value)
+
+    output = data.get("output")
+    thermo = output.get("thermo") if isinstance(output, dict) else None
+    for k, key in enumerate(thermo if isinstance(thermo, list) else []):
+        if isinstance(key, str) and "." in key:
+            head = key.split(".", 1)[0]
+            if head not in bnd:
+                out.append(
+                    (
+                        ("output", "thermo", k),
+                        f"thermo column '{key}' names boundary '{head}', which is not defined"
+                        f"{did_you_mean(head, list(bnd), True)}; defined boundaries: {_listing(list(bnd))}",
+                    )
+                )
 
     if isinstance(stages, list):
         for k, stage in enumerate(stages):

@@ -20,6 +20,14 @@ the listed ones, plus ``id`` and ``x`` (always written) and ``r`` when the frame
 draw the particles as spheres). A name that is not a particle field
 (:data:`pdem.io.frame.PARTICLE_FIELDS`) is an :class:`~pdem.errors.OutputError` at construction; a
 requested field missing from a frame is an :class:`~pdem.errors.OutputError` at :meth:`write`.
+
+Continuing an output (``pdem resume`` into the run's own directory): a writer whose class sets
+:attr:`Writer.supports_append` accepts ``append_after=(step, time)``. Instead of refusing its
+existing files it keeps the frames written at or before that step (the checkpoint the run resumes
+from), drops those after it (written by the previous run past the checkpoint), and appends new
+frames to the same files and indexes, so the directory holds one time series.
+:attr:`Writer.last_step` is then the step of the last frame kept (None if none), so the caller does
+not write the same step twice.
 """
 
 from __future__ import annotations
@@ -138,6 +146,8 @@ class Writer:
     fields : particle fields to write (``None``: all present in each frame).
     metadata : strings stored in every output file (e.g. ``{"deck": <TOML>, "pdem_version": ...}``).
     overwrite : replace this writer's existing files in ``directory`` instead of refusing.
+    append_after : ``(step, time)``: continue the output already in ``directory`` (see the module
+        doc; only for classes with :attr:`supports_append`). ``None``: a new output.
     comm : an MPI communicator (or :class:`pdem.parallel.comm.SerialComm`) for per-rank output:
         the writer is then constructed, written and closed on every rank of ``comm`` together
         (see the module doc). ``None``: serial output of whole frames.
@@ -151,6 +161,8 @@ class Writer:
     name: ClassVar[str] = ""
     #: True when the writer can write one file per MPI rank joined by an index (``comm=``).
     supports_per_rank: ClassVar[bool] = False
+    #: True when the writer can continue an existing output (``append_after=``).
+    supports_append: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -160,9 +172,21 @@ class Writer:
         metadata: dict[str, str] | None = None,
         overwrite: bool = False,
         comm: Any = None,
+        append_after: tuple[int, float] | None = None,
     ) -> None:
         self.directory = Path(directory)
         self.overwrite = bool(overwrite)
+        if append_after is not None and not self.supports_append:
+            raise OutputError(
+                f"{type(self).__name__} ('{self.name}') cannot continue an existing output; write the "
+                f"continued run to a new directory (pdem resume ... --output DIR)"
+            )
+        #: ``(step, time)`` of the checkpoint an appended output continues from, or None
+        self.append_after = (
+            (int(append_after[0]), float(append_after[1])) if append_after is not None else None
+        )
+        #: step of the last frame on disk (kept from a previous run when appending), or None
+        self.last_step: int | None = None
         if comm is not None and not self.supports_per_rank:
             raise OutputError(
                 f"{type(self).__name__} ('{self.name}') cannot write per-rank output files; "
@@ -195,6 +219,13 @@ class Writer:
         self._collective(self._make_directory, root_only=True)
         self.n_frames = 0
         self._closed = False
+
+    def _keeps(self, step: int | None, time: float | None) -> bool:
+        """Appending: is a frame at ``step`` (or, when its step is unknown, ``time``) one to keep?"""
+        assert self.append_after is not None
+        if step is not None:
+            return step <= self.append_after[0]
+        return time is not None and time <= self.append_after[1]
 
     def _make_directory(self) -> None:
         if self.directory.exists() and not self.directory.is_dir():
@@ -253,6 +284,7 @@ class Writer:
 
             self._collective(index, root_only=True)
         self.n_frames += 1
+        self.last_step = int(frame.step)
 
     def _failed(self, frame: Frame, exc: OSError) -> str:
         return (

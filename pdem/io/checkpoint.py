@@ -14,11 +14,18 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import CheckpointError
+from ..errors import CheckpointError, InputError
 
-__all__ = ["write_checkpoint", "read_checkpoint", "CHECKPOINT_FORMAT"]
+__all__ = ["write_checkpoint", "read_checkpoint", "CHECKPOINT_FORMAT", "BadCheckpointError"]
 
 CHECKPOINT_FORMAT = 1
+
+
+class BadCheckpointError(CheckpointError, InputError):
+    """The file given as a checkpoint is missing, unreadable or not a pdem checkpoint: invalid input
+    (exit code 2), unlike a checkpoint that cannot be written."""
+
+    exit_code = 2
 
 
 def write_checkpoint(path: Path, state: dict[str, object], meta: dict[str, object]) -> Path:
@@ -50,8 +57,14 @@ def write_checkpoint(path: Path, state: dict[str, object], meta: dict[str, objec
 def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read a checkpoint back: (state arrays by key, metadata attributes)."""
     path = Path(path)
-    if not path.exists():
-        raise CheckpointError(
+    if not path.is_file():
+        if path.is_dir():
+            example = path / "checkpoints" / "latest.h5" if (path / "checkpoints").is_dir() else None
+            raise BadCheckpointError(
+                f"checkpoint {path} is a directory; give a checkpoint file written by pdem, e.g. "
+                f"{example or 'OUTPUT/checkpoints/latest.h5'}"
+            )
+        raise BadCheckpointError(
             f"checkpoint {path} does not exist; give a checkpoint file written by pdem "
             "(e.g. OUTPUT/checkpoints/latest.h5)"
         )
@@ -59,7 +72,7 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object
         with h5py.File(path, "r") as fh:
             fmt = fh.attrs.get("pdem_checkpoint_format")
             if fmt != CHECKPOINT_FORMAT:
-                raise CheckpointError(
+                raise BadCheckpointError(
                     f"{path} is not a pdem checkpoint of format {CHECKPOINT_FORMAT} (found {fmt!r})"
                 )
             meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in fh.attrs.items()}
@@ -71,5 +84,14 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object
 
             fh.visititems(visit)
     except OSError as exc:
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc}") from exc
+        raise BadCheckpointError(
+            f"cannot read checkpoint {path}: {exc}; is it a checkpoint written by pdem (not damaged)?"
+        ) from exc
+    missing = [k for k in ("deck", "stage_index", "stage_start_time", "stage_start_step") if k not in meta]
+    missing += [k for k in ("scalars/step", "scalars/time", "scalars/dt") if k not in state]
+    if missing:
+        raise BadCheckpointError(
+            f"checkpoint {path} lacks {', '.join(missing)}; it was not written by the pdem command "
+            "(Simulation.state_dict files cannot be resumed with pdem resume)"
+        )
     return state, meta

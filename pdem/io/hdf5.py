@@ -45,6 +45,12 @@ Per-rank output (``comm=``, deck ``output.parallel = "per_rank"``)
 ``walls.h5``, ``walls.xdmf``
     written by rank 0 as in gathered output.
 
+Continuing (``append_after=(step, time)``, used by ``pdem resume``): the existing files are opened,
+frames after ``step`` are deleted from every particle file (gathered and per-rank pieces, of any
+earlier rank count) and from ``walls.h5``, both XDMF files are rebuilt from the frames kept, and new
+frames are appended with the following frame numbers, so ``particles.xdmf`` lists every time once,
+in order, whichever layout or rank count wrote each frame.
+
 Robustness: every :meth:`HDF5Writer.write` opens each HDF5 file, appends the frame, flushes and
 closes it; then rewrites both XDMF files atomically (temp file + ``os.replace``). A run killed
 between frames leaves files that read back with everything written so far. In per-rank output,
@@ -53,10 +59,12 @@ rank 0 rewrites the index only after every rank has closed its piece of the fram
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
-from typing import ClassVar
+from types import SimpleNamespace
+from typing import Any, ClassVar
 
 import h5py
 import numpy as np
@@ -64,7 +72,7 @@ import numpy as np
 from ..api import KIND_NAMES
 from ..errors import OutputError
 from .base import Piece, Writer, atomic_write_text, piece_name, safe_key
-from .frame import Frame, WallState
+from .frame import PARTICLE_FIELDS, Frame, WallState
 from .wall_mesh import wall_triangles
 
 __all__ = ["HDF5Writer", "xdmf_number_type"]
@@ -122,10 +130,12 @@ class HDF5Writer(Writer):
         ``particles.xdmf``, ``walls.xdmf`` instead of raising :class:`~pdem.errors.OutputError`.
     resolution : segments around the axis of revolved walls and cylinders in the wall meshes.
     comm : write per-rank files joined by ``particles.xdmf`` (collective; see the module doc).
+    append_after : ``(step, time)``: continue the files in ``directory`` (see the module doc).
     """
 
     name: ClassVar[str] = "hdf5"
     supports_per_rank: ClassVar[bool] = True
+    supports_append: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -136,8 +146,16 @@ class HDF5Writer(Writer):
         overwrite: bool = False,
         resolution: int = 48,
         comm=None,
+        append_after: tuple[int, float] | None = None,
     ) -> None:
-        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite, comm=comm)
+        super().__init__(
+            directory,
+            fields=fields,
+            metadata=metadata,
+            overwrite=overwrite,
+            comm=comm,
+            append_after=append_after,
+        )
         self.resolution = int(resolution)
         #: the particle file this process writes: particles.h5, or its rank's piece
         self.particles_path = self.piece_path(self.rank) if self.per_rank else self.directory / "particles.h5"
@@ -147,16 +165,22 @@ class HDF5Writer(Writer):
         # serialised once per frame: rewriting the XDMF costs one string join, not a re-serialisation
         self._particle_grids: list[str] = []
         self._wall_grids: list[str] = []
+        extra = {"rank": self.rank, "n_ranks": self.n_ranks} if self.per_rank else {}
+        if self.append_after is not None:
+            n_frames, last_step, pgrids, wgrids = self._collective(self._continue, root_only=True)[0]
+            self.n_frames, self.last_step = n_frames, last_step
+            if self.rank == 0:
+                self._particle_grids, self._wall_grids = pgrids, wgrids
+            self._collective(lambda: self._create(self.particles_path, extra, missing_only=True))
+            if self.rank == 0:
+                self._create(self.walls_path, {}, missing_only=True)
+            return
         # rank 0 claims every file of either layout, so no stale piece of an earlier run lingers
         old = [self.directory / "particles.h5", self.walls_path, self.particles_xdmf, self.walls_xdmf]
         self._collective(
             lambda: self._claim(old + sorted(self.directory.glob("particles.r*.h5"))), root_only=True
         )
-        self._collective(
-            lambda: self._create(
-                self.particles_path, {"rank": self.rank, "n_ranks": self.n_ranks} if self.per_rank else {}
-            )
-        )
+        self._collective(lambda: self._create(self.particles_path, extra))
         if self.rank == 0:
             self._create(self.walls_path, {})
 
@@ -164,7 +188,9 @@ class HDF5Writer(Writer):
         """Rank ``rank``'s particle file in per-rank output: ``particles.rRRRR.h5``."""
         return self.directory / f"particles.{piece_name(rank)}.h5"
 
-    def _create(self, path: Path, extra: dict[str, int]) -> None:
+    def _create(self, path: Path, extra: dict[str, int], missing_only: bool = False) -> None:
+        if missing_only and path.exists():
+            return
         try:
             with h5py.File(path, "w-", libver=_LIBVER) as f:
                 for k, v in self.metadata.items():
@@ -176,6 +202,143 @@ class HDF5Writer(Writer):
             raise OutputError(
                 f"HDF5Writer: cannot create '{path}': {exc}; check the directory permissions and free space"
             ) from exc
+
+    # ------------------------------------------------------------------ continuing
+    def _open_existing(self, path: Path) -> h5py.File:
+        try:
+            return h5py.File(path, "a", libver=_LIBVER)
+        except OSError as exc:
+            raise OutputError(
+                f"HDF5Writer: cannot continue the output in '{self.directory}': '{path.name}' cannot be "
+                f"opened ({exc}); it may be held open by another program or damaged by a kill during a "
+                f"write. Resume into a new directory instead (pdem resume ... --output DIR)"
+            ) from exc
+
+    def _continue(self) -> tuple[int, int | None, list[str], list[str]]:
+        """Rank 0, appending: drop the frames after the checkpoint from every file, rebuild the XDMF
+        grids of the frames kept; ``(frame count, last kept step, particle grids, wall grids)``."""
+        files: list[tuple[int | None, Path]] = []
+        if (self.directory / "particles.h5").exists():
+            files.append((None, self.directory / "particles.h5"))
+        for path in sorted(self.directory.glob("particles.r*.h5")):
+            m = re.fullmatch(r"particles\.r(\d+)\.h5", path.name)
+            if m:
+                files.append((int(m.group(1)), path))
+        # frame number -> header (time, step, stage) and its particle pieces (rank, file, shapes)
+        headers: dict[int, Any] = {}
+        pieces: dict[int, list[tuple[int | None, str, dict]]] = {}
+        for rank, path in files:
+            with self._open_existing(path) as f:
+                for key, g in self._kept_frames(f, headers):
+                    if "x" not in g:
+                        continue
+                    shapes = {k: (g[k].shape, g[k].dtype) for k in _field_order(list(g.keys()))}
+                    pieces.setdefault(int(key), []).append((rank, path.name, shapes))
+                f.flush()
+        walls: dict[int, list[tuple[str, tuple, np.dtype, tuple, np.dtype, Any, Any]]] = {}
+        if self.walls_path.exists():
+            with self._open_existing(self.walls_path) as f:
+                for key, g in self._kept_frames(f, headers):
+                    rows = []
+                    for wname in g:
+                        wg = g[wname]
+                        if "points" not in wg or "cells" not in wg:
+                            continue
+                        rows.append(
+                            (
+                                int(wg.attrs.get("index", 0)),
+                                wname,
+                                wg["cells"].shape,
+                                wg["cells"].dtype,
+                                wg["points"].shape,
+                                wg["points"].dtype,
+                                np.asarray(wg.attrs.get("force", np.zeros(3)), dtype=np.float64),
+                                np.asarray(wg.attrs.get("torque", np.zeros(3)), dtype=np.float64),
+                            )
+                        )
+                    walls[int(key)] = [r[1:] for r in sorted(rows, key=lambda r: r[0])]
+                f.flush()
+        pgrids: list[str] = []
+        wgrids: list[str] = []
+        for number in sorted(headers):
+            key = f"{number:06d}"
+            hdr = headers[number]
+            parts = pieces.get(number, [])
+            gathered = [p for p in parts if p[0] is None]
+            if gathered:
+                _, h5name, shapes = gathered[0]
+                if shapes["x"][0][0] > 0:
+                    pgrids.append(_serialise(self._particle_grid(f"frame_{key}", h5name, key, shapes, hdr)))
+            elif parts:
+                coll = ET.Element(
+                    "Grid", Name=f"frame_{key}", GridType="Collection", CollectionType="Spatial"
+                )
+                self._grid_header(coll, hdr)
+                for rank, h5name, shapes in sorted(parts, key=lambda p: p[0]):
+                    if shapes["x"][0][0] > 0:
+                        coll.append(self._particle_grid(piece_name(rank), h5name, key, shapes))
+                if any(shapes["x"][0][0] > 0 for _, _, shapes in parts):
+                    pgrids.append(_serialise(coll))
+            grid = self._wall_grid_from_file(key, hdr, walls.get(number, []))
+            if grid is not None:
+                wgrids.append(_serialise(grid))
+        n_frames = max(headers) + 1 if headers else 0
+        last_step = int(headers[max(headers)].step) if headers else None
+        if headers:
+            atomic_write_text(self.particles_xdmf, self._xdmf_text("particles", pgrids))
+            atomic_write_text(self.walls_xdmf, self._xdmf_text("walls", wgrids))
+        else:  # nothing kept: no index referring to dropped frames
+            for path in (self.particles_xdmf, self.walls_xdmf):
+                if path.exists():
+                    path.unlink()
+        return n_frames, last_step, pgrids, wgrids
+
+    def _kept_frames(self, f: h5py.File, headers: dict[int, Any]):
+        """Delete the frames after the checkpoint from ``f``; yield ``(key, group)`` of the others
+        and record their headers."""
+        frames = f.get("frames")
+        if frames is None:
+            return
+        for key in sorted(frames, key=lambda k: int(k) if k.isdigit() else -1):
+            if not key.isdigit():
+                continue
+            g = frames[key]
+            step = g.attrs.get("step")
+            time = g.attrs.get("time")
+            step = int(step) if step is not None else None
+            time = float(time) if time is not None else None
+            if not self._keeps(step, time):
+                del frames[key]
+                continue
+            stage = g.attrs.get("stage", "")
+            stage = stage.decode() if isinstance(stage, bytes) else str(stage)
+            headers.setdefault(int(key), SimpleNamespace(time=time or 0.0, step=step or 0, stage=stage))
+            yield key, g
+
+    def _wall_grid_from_file(self, key: str, hdr: Any, walls: list) -> ET.Element | None:
+        h5 = self.walls_path.name
+        coll = ET.Element("Grid", Name=f"frame_{key}", GridType="Collection", CollectionType="Spatial")
+        self._grid_header(coll, hdr)
+        drawn = 0
+        for wname, cshape, cdtype, pshape, pdtype, force, torque in walls:
+            if cshape[0] == 0:
+                continue
+            base = f"/frames/{key}/{wname}"
+            grid = ET.SubElement(coll, "Grid", Name=wname, GridType="Uniform")
+            topo = ET.SubElement(
+                grid,
+                "Topology",
+                TopologyType="Triangle",
+                NumberOfElements=str(cshape[0]),
+                NodesPerElement="3",
+            )
+            _hdf_item(topo, h5, f"{base}/cells", cshape, cdtype)
+            geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
+            _hdf_item(geo, h5, f"{base}/points", pshape, pdtype)
+            _xml_vector_attribute(grid, "force", force)
+            _xml_vector_attribute(grid, "torque", torque)
+            drawn += 1
+        return coll if drawn else None
 
     # ------------------------------------------------------------------ writing
     def _write(self, frame: Frame, particles: dict[str, np.ndarray], walls: list[WallState]) -> None:
@@ -352,6 +515,11 @@ class HDF5Writer(Writer):
             + "".join(grids)
             + "    </Grid>\n  </Domain>\n</Xdmf>\n"
         )
+
+
+def _field_order(names: list[str]) -> list[str]:
+    """Dataset names in the order frames write them: known particle fields first, then the others."""
+    return [k for k in PARTICLE_FIELDS if k in names] + sorted(k for k in names if k not in PARTICLE_FIELDS)
 
 
 def _shapes(particles: dict[str, np.ndarray]) -> dict[str, tuple[tuple[int, ...], np.dtype]]:

@@ -9,11 +9,17 @@ missing from a row is left empty. In a *count* column (:func:`is_count_column`: 
 written as an integer (``100``, not ``100.0``): callers often carry every value as a float.
 :func:`read_series` reads the file back into one array per column: int64 when every value is an
 integer, float64 when every value is a number (empty cells → NaN), str otherwise.
+
+Continuing a run (``pdem resume``): :func:`truncate_series` drops the rows after a step (those a
+previous run wrote after the checkpoint it is resumed from), and ``SeriesWriter(..., append=True)``
+appends to an existing file; a column the file lacks is added to its header (the rows already there
+get empty cells), a column the new rows lack stays empty in them.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 import numbers
 from collections.abc import Sequence
@@ -25,7 +31,7 @@ import numpy as np
 
 from ..errors import OutputError
 
-__all__ = ["SeriesWriter", "is_count_column", "read_series"]
+__all__ = ["SeriesWriter", "is_count_column", "read_series", "truncate_series", "series_rows"]
 
 #: last name components (after the last ".") of columns that hold counts
 COUNT_NAMES = frozenset(
@@ -79,9 +85,14 @@ class SeriesWriter:
     path : CSV file to create (parent directories are created).
     columns : column names, in order (unique, non-empty).
     overwrite : replace an existing file instead of raising :class:`~pdem.errors.OutputError`.
+    append : continue an existing file (written by a SeriesWriter) instead: rows are added after
+        its last row; columns it lacks are added to its header (see the module doc). A missing
+        file is created as usual.
     """
 
-    def __init__(self, path: Path | str, columns: Sequence[str], *, overwrite: bool = False) -> None:
+    def __init__(
+        self, path: Path | str, columns: Sequence[str], *, overwrite: bool = False, append: bool = False
+    ) -> None:
         self.path = Path(path)
         cols = [columns] if isinstance(columns, str) else list(columns)
         if not cols or any(not isinstance(c, str) or not c for c in cols):
@@ -89,8 +100,18 @@ class SeriesWriter:
         dup = sorted({c for c in cols if cols.count(c) > 1})
         if dup:
             raise OutputError(f"series '{self.path}': duplicate column(s) {', '.join(dup)}; give each once")
+        if append and self.path.exists():
+            cols = self._widen(cols)
         self.columns: tuple[str, ...] = tuple(cols)
         self._index = {c: i for i, c in enumerate(cols)}
+        self.n_rows = 0
+        if append and self.path.exists():
+            try:
+                self._fh: IO[str] | None = open(self.path, "a", newline="", encoding="utf-8")
+            except OSError as exc:
+                raise OutputError(f"series '{self.path}': cannot append to it: {exc}") from exc
+            self._csv = csv.writer(self._fh, lineterminator="\n")
+            return
         if self.path.exists() and not overwrite:
             raise OutputError(
                 f"series '{self.path}' already exists; remove it, choose another path or pass "
@@ -98,14 +119,29 @@ class SeriesWriter:
             )
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh: IO[str] | None = open(self.path, "w", newline="", encoding="utf-8")
+            self._fh = open(self.path, "w", newline="", encoding="utf-8")
         except OSError as exc:
             raise OutputError(
                 f"series '{self.path}': cannot create it: {exc}; check the path and permissions"
             ) from exc
         self._csv = csv.writer(self._fh, lineterminator="\n")
         self._row(list(self.columns))
-        self.n_rows = 0
+
+    def _widen(self, cols: list[str]) -> list[str]:
+        """Append mode: the existing header, plus ``cols`` it lacks (the file is rewritten with the
+        wider header and empty cells in its rows, atomically)."""
+        header, body = _read_rows(self.path)
+        if not header:
+            raise OutputError(f"series '{self.path}' has no header row; it was not written by SeriesWriter")
+        extra = [c for c in cols if c not in header]
+        if extra:
+            from .base import atomic_write_text
+
+            width = len(header) + len(extra)
+            atomic_write_text(
+                self.path, _csv_text([header + extra] + [r + [""] * (width - len(r)) for r in body])
+            )
+        return header + extra
 
     def _row(self, cells: list[str]) -> None:
         assert self._fh is not None
@@ -159,6 +195,69 @@ def _convert(cells: list[str]) -> np.ndarray:
         return np.array([float(c) if c != "" else math.nan for c in cells], dtype=np.float64)
     except ValueError:
         return np.array(cells, dtype=str)
+
+
+def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise OutputError(f"cannot read series '{path}': {exc}; check the path") from exc
+    if not rows:
+        return [], []
+    return rows[0], rows[1:]
+
+
+def _csv_text(rows: list[list[str]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    for r in rows:
+        w.writerow(r)
+    return buf.getvalue()
+
+
+def _step_of(row: list[str], col: int) -> float:
+    try:
+        return float(row[col])
+    except (IndexError, ValueError):
+        return math.inf  # a damaged row (a kill mid-write): dropped with the later rows
+
+
+def truncate_series(path: Path | str, last_step: int, *, inclusive: bool = True) -> int:
+    """Keep the header and the rows of ``path`` whose ``step`` is at most ``last_step`` (below it
+    if not ``inclusive``), in order, dropping the others and a damaged last line; rewritten
+    atomically only if something is dropped. Returns the number of rows kept. A file without a
+    ``step`` column is left alone (all rows kept)."""
+    path = Path(path)
+    header, body = _read_rows(path)
+    if "step" not in header:
+        return len(body)
+    col = header.index("step")
+    limit = last_step if inclusive else last_step - 0.5
+    keep = [r for r in body if len(r) == len(header) and _step_of(r, col) <= limit]
+    if len(keep) != len(body):
+        from .base import atomic_write_text
+
+        atomic_write_text(path, _csv_text([header] + keep))
+    return len(keep)
+
+
+def series_rows(path: Path | str) -> list[dict[str, float]]:
+    """The rows of a series CSV as ``{column: float}`` (empty cells left out), e.g. to continue the
+    in-memory series of a resumed run. Non-numeric cells are left out."""
+    header, body = _read_rows(Path(path))
+    out = []
+    for r in body:
+        row: dict[str, float] = {}
+        for name, cell in zip(header, r, strict=False):
+            if cell == "":
+                continue
+            try:
+                row[name] = float(cell)
+            except ValueError:
+                continue
+        out.append(row)
+    return out
 
 
 def read_series(path: Path | str) -> dict[str, np.ndarray]:

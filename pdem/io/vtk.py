@@ -34,6 +34,11 @@ Per-rank output (``comm=``, deck ``output.parallel = "per_rank"``)
 ``walls/…``, ``walls.pvd``, ``metadata.json``
     written by rank 0 as in gathered output.
 
+Continuing (``append_after=(step, time)``, used by ``pdem resume``): the entries of both ``.pvd`` files
+after ``step`` (by their ``step`` attribute, which ParaView ignores, or by time for files written
+before it existed) are dropped with their ``.vtu``/``.pvtu`` files, and new frames are appended with
+the following frame numbers.
+
 Every ``.vtu`` is written to a temporary file and moved into place, so a run killed at any point
 leaves only complete files, all listed in the ``.pvd`` files. In per-rank output, rank 0 writes the
 ``.pvtu`` (atomically) only after every rank has written its piece, then the ``.pvd``.
@@ -42,6 +47,7 @@ leaves only complete files, all listed in the ``.pvd`` files. In per-rank output
 from __future__ import annotations
 
 import os
+import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
@@ -89,10 +95,12 @@ class VTKWriter(Writer):
         :class:`~pdem.errors.OutputError` (other files are left alone).
     resolution : segments around the axis of revolved walls and cylinders in the wall meshes.
     comm : write per-rank pieces joined by ``.pvtu`` files (collective; see the module doc).
+    append_after : ``(step, time)``: continue the files in ``directory`` (see the module doc).
     """
 
     name: ClassVar[str] = "vtk"
     supports_per_rank: ClassVar[bool] = True
+    supports_append: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -103,8 +111,16 @@ class VTKWriter(Writer):
         overwrite: bool = False,
         resolution: int = 48,
         comm=None,
+        append_after: tuple[int, float] | None = None,
     ) -> None:
-        super().__init__(directory, fields=fields, metadata=metadata, overwrite=overwrite, comm=comm)
+        super().__init__(
+            directory,
+            fields=fields,
+            metadata=metadata,
+            overwrite=overwrite,
+            comm=comm,
+            append_after=append_after,
+        )
         self.resolution = int(resolution)
         self.particles_dir = self.directory / "particles"
         self.walls_dir = self.directory / "walls"
@@ -115,7 +131,13 @@ class VTKWriter(Writer):
         self.piece_dir = self.particles_dir / piece_name(self.rank)
         self._particle_entries: list[dict[str, str]] = []
         self._wall_entries: list[dict[str, str]] = []
-        self._collective(self._set_up, root_only=True)
+        if self.append_after is not None:
+            n_frames, last_step, pentries, wentries = self._collective(self._continue, root_only=True)[0]
+            self.n_frames, self.last_step = n_frames, last_step
+            if self.rank == 0:
+                self._particle_entries, self._wall_entries = pentries, wentries
+        else:
+            self._collective(self._set_up, root_only=True)
         if self.per_rank:
             self._collective(self._make_piece_dir)
 
@@ -136,6 +158,40 @@ class VTKWriter(Writer):
                 f"VTKWriter: cannot set up the output in '{self.directory}' ({exc}); check that "
                 f"'particles' and 'walls' there are directories (or absent), the permissions and free space"
             ) from exc
+
+    def _continue(self) -> tuple[int, int | None, list[dict[str, str]], list[dict[str, str]]]:
+        """Rank 0, appending: keep the .pvd entries up to the checkpoint, delete the files of later
+        frames; ``(frame count, last kept step, particle entries, wall entries)``."""
+        kept_p = [
+            e
+            for e in _read_pvd(self.particles_pvd)
+            if self._keeps(_int(e.get("step")), _float(e.get("timestep")))
+        ]
+        numbers = [n for n in (_frame_number(e.get("file", "")) for e in kept_p) if n is not None]
+        n_frames = max(numbers) + 1 if numbers else 0
+        kept_w = [e for e in _read_pvd(self.walls_pvd) if (_frame_number(e.get("file", "")) or 0) < n_frames]
+        stale = [p for p in self.particles_dir.glob("particles_*.vtu")]
+        stale += list(self.particles_dir.glob("particles_*.pvtu"))
+        stale += list(self.particles_dir.glob("r*/particles_*.vtu"))
+        stale += list(self.walls_dir.glob("walls_*.vtu"))
+        for path in stale:
+            number = _frame_number(path.name)
+            if number is not None and number >= n_frames:
+                path.unlink()
+        try:
+            self.particles_dir.mkdir(exist_ok=True)
+            self.walls_dir.mkdir(exist_ok=True)
+            write_metadata_json(self.metadata_path, self.metadata)
+            atomic_write_text(self.particles_pvd, _pvd_text(kept_p))
+            atomic_write_text(self.walls_pvd, _pvd_text(kept_w))
+        except OSError as exc:
+            raise OutputError(f"VTKWriter: cannot continue the output in '{self.directory}': {exc}") from exc
+        last_step = _int(kept_p[-1].get("step")) if kept_p else None
+        if kept_p and last_step is None:  # written before entries carried the step: only the time is known
+            last_step = (
+                self.append_after[0] if _float(kept_p[-1].get("timestep")) == self.append_after[1] else None
+            )
+        return n_frames, last_step, kept_p, kept_w
 
     def _make_piece_dir(self) -> None:
         try:
@@ -182,6 +238,7 @@ class VTKWriter(Writer):
             "group": "",
             "part": "0",
             "file": f"{self.particles_dir.name}/{pfile.name}",
+            "step": str(int(frame.step)),
         }
         wall_entry = None
         if wall_mesh is not None:
@@ -193,6 +250,7 @@ class VTKWriter(Writer):
                 "part": "0",
                 "file": f"{self.walls_dir.name}/{wfile.name}",
                 "walls": ";".join(w.name for w in walls),
+                "step": str(int(frame.step)),
             }
         self._particle_entries.append(particle_entry)
         if wall_entry is not None:
@@ -287,6 +345,39 @@ def _pvtu_text(fields: dict[str, tuple[tuple[int, ...], str]], sources: list[str
         ET.SubElement(grid, "Piece", Source=src)
     ET.indent(root, space="  ")
     return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _read_pvd(path: Path) -> list[dict[str, str]]:
+    """The ``DataSet`` entries of a ``.pvd`` file (none if it is missing)."""
+    if not path.exists():
+        return []
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise OutputError(
+            f"VTKWriter: cannot continue '{path}': {exc}; resume into a new directory instead "
+            f"(pdem resume ... --output DIR)"
+        ) from exc
+    return [dict(e.attrib) for e in root.iter("DataSet")]
+
+
+def _frame_number(name: str) -> int | None:
+    m = re.search(r"_(\d+)\.p?vtu$", name)
+    return int(m.group(1)) if m else None
+
+
+def _int(text: str | None) -> int | None:
+    try:
+        return int(text) if text is not None else None
+    except ValueError:
+        return None
+
+
+def _float(text: str | None) -> float | None:
+    try:
+        return float(text) if text is not None else None
+    except ValueError:
+        return None
 
 
 def _pvd_text(entries: list[dict[str, str]]) -> str:
