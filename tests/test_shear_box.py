@@ -110,8 +110,9 @@ def test_friction_orders_the_strength(tmp_path, dem_p):
     r0 = smooth["results"]["box"]["peak_ratio"]
     r18 = dem_p[0]["results"]["box"]["peak_ratio"]
     r5 = rough["results"]["box"]["peak_ratio"]
-    assert r0 < 0.35
+    assert r0 < 0.4  # measured 0.34 (4 mm), residual 0.16
     assert r0 < r18 < r5
+    assert smooth["results"]["box"]["residual_ratio"] < rough["results"]["box"]["residual_ratio"]
 
 
 def _params(**kw) -> ShearBoxParams:
