@@ -39,7 +39,7 @@ from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
 from .contact.law import ContactLaw
 from .contact.store import ContactStore
 from .domain import PeriodicBox
-from .errors import GeometryError, InputError, InstabilityError
+from .errors import GeometryError, InputError, InstabilityError, PdemError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor import _kernels as nk
@@ -199,7 +199,18 @@ class Simulation:
     def _run_hooks(self, hook: str) -> None:
         for b in self._hooks[hook]:
             if b.active:
-                getattr(b, hook)(self)
+                try:
+                    getattr(b, hook)(self)
+                except PdemError:
+                    raise
+                except Exception as exc:  # a plugin's bug: say whose, not a bare traceback
+                    from .errors import PluginError
+
+                    raise PluginError(
+                        f"boundary '{b.name}' ({type(b).__module__}.{type(b).__name__}) failed in "
+                        f"{hook} at step {self.step_count}: {type(exc).__name__}: {exc}. This is a "
+                        "fault of the boundary plugin; fix or update it"
+                    ) from exc
 
     # ------------------------------------------------------------------ per-particle fields
     def register_field(self, name: str, dtype: str = "float64", width: int = 0, **flags: Any) -> Field:

@@ -223,3 +223,19 @@ def test_one_gravity_rule_for_decks_and_python():
 
     assert tuple(RunSection().gravity) == (0.0, 0.0, 0.0)
     assert tuple(pdem.Simulation().gravity) == (0.0, 0.0, 0.0)
+
+
+def test_a_failing_boundary_hook_is_a_plugin_error_naming_it():
+    from pdem.errors import PluginError
+
+    class Broken(Boundary):
+        def after_step(self, sim):
+            raise ZeroDivisionError("oops")
+
+    sim = _sim("hertz_mindlin", gravity=(0, 0, 0))
+    sim.add_particles([[0, 0, 0]], R)
+    sim.add_boundary(Broken("probe", BoundaryParams(type="broken")))
+    sim.dt = 1e-6
+    with pytest.raises(PluginError, match=r"boundary 'probe' .*Broken\) failed in after_step at step 1: "
+                                          r"ZeroDivisionError: oops"):
+        sim.run(steps=2)
