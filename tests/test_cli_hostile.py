@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 TINY = """\
 title = "tiny lattice"
 [run]
+gravity = [0.0, 0.0, -9.81]
 dt = 2e-6
 [materials.glass]
 density = 2500.0

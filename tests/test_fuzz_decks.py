@@ -28,6 +28,7 @@ from pdem.cli import main
 BASE = """\
 title = "fuzz base"
 [run]
+gravity = [0.0, 0.0, -9.81]
 dt = 2e-6
 [materials.glass]
 density = 2500.0

@@ -157,6 +157,7 @@ def test_deck_parallel_key(monkeypatch):
 DECK = """\
 title = "per-rank output"
 [run]
+gravity = [0.0, 0.0, -9.81]
 dt = 2e-6
 seed = 3
 [contact]

@@ -20,6 +20,7 @@ TOOLS = Path(__file__).resolve().parents[1] / "tools"
 DECK = """\
 title = "render test: spheres falling in a box"
 [run]
+gravity = [0.0, 0.0, -9.81]
 dt = 2e-6
 seed = 5
 [contact]

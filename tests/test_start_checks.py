@@ -20,6 +20,7 @@ from pdem.sources import write_spheres_text
 # spheres from a packing file above a floor, 20 steps
 FILE_DECK = """\
 [run]
+gravity = [0.0, 0.0, -9.81]
 dt = 2e-6
 [materials.glass]
 youngs_modulus = 5e7
