@@ -86,7 +86,11 @@ MALFORMED = [
     ("duplicate stage names", ('name = "rest"', 'name = "drop"'), ["drop"]),
     ("restitution above one", ("restitution = 0.5", "restitution = 1.5"), ["restitution"]),
     ("Poisson ratio 0.5", ("poisson_ratio = 0.3", "poisson_ratio = 0.5"), ["poisson_ratio"]),
-    ("gravity with two components", ("gravity = [0.0, 0.0, -9.81]", "gravity = [0.0, -9.81]"), ["run.gravity"]),
+    (
+        "gravity with two components",
+        ("gravity = [0.0, 0.0, -9.81]", "gravity = [0.0, -9.81]"),
+        ["run.gravity"],
+    ),
     ("unknown output format", ('formats = ["hdf5"]', 'formats = ["netcdf"]'), ["netcdf"]),
     (
         "unknown output field",
