@@ -16,32 +16,31 @@ from .._jit import njit
 FLAG_NONFINITE = 2
 
 
-@njit(inline="always")
-def _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h):
-    """Half kick of component c of particle i; a locked component (``dof`` bits) is skipped."""
-    if lock == 0:
-        v[i, c] += h * f[i, c] * inv_m[i]
-        w[i, c] += h * t[i, c] * inv_i[i]
-    else:
-        if (lock >> c) & 1 == 0:
-            v[i, c] += h * f[i, c] * inv_m[i]
-        if (lock >> (c + 3)) & 1 == 0:
-            w[i, c] += h * t[i, c] * inv_i[i]
-
-
 @njit
 def initial_integrate(x, v, w, f, t, inv_m, inv_i, motion, dof, dt, n, snap):
     """``snap[c]`` > 0 rounds the displacement along axis c to the periodic position grid:
     (d + C) − C with C = 1.5·2⁵²·q is d rounded to a multiple of q (see :mod:`pdem.domain`);
     0 leaves the axis alone. ``dof`` bits lock velocity components (bit c: v_c, bit 3 + c: ω_c):
-    a locked component is not kicked (it stays zero)."""
+    a locked component is not kicked (it stays zero).
+
+    The lock test is made once per particle, outside the component loops: a per-component test
+    through an inlined helper made this kernel 8× slower (1.37 against 0.17 ms for 20k particles)."""
     h = 0.5 * dt
     for i in range(n):
         mo = motion[i]
         if mo == 0:
             lock = dof[i]
+            if lock == 0:
+                for c in range(3):
+                    v[i, c] += h * f[i, c] * inv_m[i]
+                    w[i, c] += h * t[i, c] * inv_i[i]
+            else:
+                for c in range(3):
+                    if (lock >> c) & 1 == 0:
+                        v[i, c] += h * f[i, c] * inv_m[i]
+                    if (lock >> (c + 3)) & 1 == 0:
+                        w[i, c] += h * t[i, c] * inv_i[i]
             for c in range(3):
-                _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h)
                 d = dt * v[i, c]
                 if snap[c] != 0.0:
                     d = (d + snap[c]) - snap[c]
@@ -65,10 +64,19 @@ def add_body_force_and_final_integrate(v, w, f, t, mass, inv_m, inv_i, motion, d
             f[i, 0] += mass[i] * gx
             f[i, 1] += mass[i] * gy
             f[i, 2] += mass[i] * gz
-            s = 0.0
             lock = dof[i]
+            if lock == 0:
+                for c in range(3):
+                    v[i, c] += h * f[i, c] * inv_m[i]
+                    w[i, c] += h * t[i, c] * inv_i[i]
+            else:
+                for c in range(3):
+                    if (lock >> c) & 1 == 0:
+                        v[i, c] += h * f[i, c] * inv_m[i]
+                    if (lock >> (c + 3)) & 1 == 0:
+                        w[i, c] += h * t[i, c] * inv_i[i]
+            s = 0.0
             for c in range(3):
-                _kick(v, w, f, t, inv_m, inv_i, lock, i, c, h)
                 s += v[i, c] + w[i, c]
             if not math.isfinite(s):
                 flags |= FLAG_NONFINITE
