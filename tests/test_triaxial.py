@@ -115,3 +115,28 @@ def test_dem_c_consolidates_under_load_control(packing):
     sim.run(until=0.04, callback=lambda s: s1.append(cell.measurements(s)["sigma1"]), every=10)
     assert isinstance(sim.walls["cell.top"].motion, pdem.api.RigidBody)
     assert np.mean(s1) == pytest.approx(SIGMA3, rel=0.1)
+
+
+def test_resume_at_every_stage_is_bitwise(tmp_path):
+    """Kill points in each stage (settle, consolidation with its pressure ramp, shear with its
+    strain references): `pdem resume` continues bit for bit as the uninterrupted run."""
+    import sys
+    from pathlib import Path
+
+    from pdem.cli import main
+    from pdem.io.checkpoint import read_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tools"))
+    from determinism import compare
+
+    deck = root / "tests" / "data" / "triaxial_small.toml"
+    assert main([str(deck), "--output", str(tmp_path / "full"), "--quiet"]) == 0
+    ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
+    for stop in (150, 600, 1300):  # settle, consolidate (ramp), shear
+        out = tmp_path / f"stop{stop}"
+        assert main([str(deck), "--output", str(out), "--quiet", "--steps", str(stop)]) == 0
+        assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]) == 0
+        got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+        assert int(got["scalars/step"]) == 1600
+        assert compare(ref, got) is None, stop

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
+from ..parallel.comm import all_max
 from . import shapes
 from .api import Boundary, BoundaryParams, Vec3
 from .walls import Controlled, RigidBody
@@ -131,6 +132,10 @@ class TriaxialCell(Boundary):
 
     def on_stage(self, sim: Any, stage: str) -> None:
         p = self.params
+        resumed = getattr(self, "_restored", None)
+        self._restored = None
+        if resumed is not None and resumed.get("stage") != stage:
+            resumed = None  # the checkpoint was taken at the end of an earlier stage
         self._size = None
         stages = getattr(p, "stages", None)
         self.active = stages is None or stage in stages
@@ -150,6 +155,9 @@ class TriaxialCell(Boundary):
                 area = math.pi * p.radius**2
                 body = RigidBody(mass=p.sigma3 * area / 10.0, force=(0.0, 0.0, -p.sigma3 * area),
                                  fixed_translation="xy")  # fmt: skip
+                if resumed is not None and "body_velocity" in resumed:
+                    body.restore({"velocity": np.array(resumed["body_velocity"]),
+                                  "angular_velocity": np.zeros(3)})  # fmt: skip
                 sim.set_wall_motion(self.top.name, body)
             else:
                 self.motion = Controlled()
@@ -164,6 +172,22 @@ class TriaxialCell(Boundary):
             self.motion = Controlled()
             sim.set_wall_motion(self.top.name, self.motion)
         self._stage_t0 = sim.time
+        if resumed is not None:  # continue the stage where the checkpoint left it
+            self._stage_t0 = resumed["stage_t0"]
+            self.h0, self.v0 = resumed["h0"], resumed["v0"]
+        self._stage = stage
+
+    def state(self) -> dict[str, Any]:
+        """What a resumed stage needs: the stage, its start time (pressure ramp), the height and
+        volume at the start of shearing (strain references), a load-controlled plate's velocity."""
+        out = {"stage": getattr(self, "_stage", None), "stage_t0": self._stage_t0, "h0": self.h0,
+               "v0": self.v0}  # fmt: skip
+        if isinstance(self.top.motion, RigidBody):
+            out["body_velocity"] = self.top.motion.velocity_now.tolist()
+        return out
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self._restored = dict(state) if state else None
 
     # ------------------------------------------------------------------ geometry
     def height(self) -> float:
@@ -209,8 +233,9 @@ class TriaxialCell(Boundary):
             return
         self._membrane(sim, apply=True)
 
-    def _membrane(self, sim: Any, apply: bool) -> None:
-        """Find the outermost grain of every (θ, z) cell (globally) and load it (owned grains)."""
+    def _membrane(self, sim: Any, apply: bool) -> tuple[float, float, float]:
+        """Find the outermost grain of every (θ, z) cell (globally) and, with ``apply``, load it
+        (owned grains). Returns the (volume, lateral area, mean radius) of the cells."""
         p, n, live = self._own(sim)
         x, r, ids = p.x[:n][live], p.r[:n][live], p.id[:n][live]
         rows = np.flatnonzero(live)
@@ -220,12 +245,14 @@ class TriaxialCell(Boundary):
             if self._size is None:
                 self._size = 2.0 * sim.exact_sum(r) / max(sim.count(r.size), 1)
             size = self._size
-        radius_guess = self.params.radius if self._radius != self._radius else self._radius
-        nz = max(int(round(h / size)), 1)
-        nt = max(int(round(2 * math.pi * radius_guess / size)), 6)
         dx = x[:, 0] - self.axis_xy[0]
         dy = x[:, 1] - self.axis_xy[1]
         rho = np.hypot(dx, dy)
+        # the grid is a function of the current state only (not of earlier evaluations): cells of
+        # about one `size` around the outermost radius, an exact global max
+        r_out = all_max(sim.comm, float(np.max(rho + r)) if r.size else 0.0)
+        nz = max(int(round(h / size)), 1)
+        nt = max(int(round(2 * math.pi * r_out / size)), 6)
         theta = np.arctan2(dy, dx)
         zrel = x[:, 2] - self.bottom.reference_point[2]
         kt = np.minimum(((theta + math.pi) / (2 * math.pi) * nt).astype(np.int64), nt - 1)
@@ -255,12 +282,15 @@ class TriaxialCell(Boundary):
         dz = h / nz
         dth = 2 * math.pi / nt
         filled = np.isfinite(R)
-        self._volume = float(0.5 * np.sum(R[filled] ** 2) * dth * dz)
-        self._lateral_area = float(np.sum(R[filled]) * dth * dz)
-        self._radius = float(np.mean(R[filled])) if filled.any() else math.nan
+        geometry = (
+            float(0.5 * np.sum(R[filled] ** 2) * dth * dz),  # enclosed volume
+            float(np.sum(R[filled]) * dth * dz),  # lateral area
+            float(np.mean(R[filled])) if filled.any() else math.nan,  # mean radius
+        )
+        if not apply:  # measuring: leave the state the dynamics read untouched
+            return geometry
+        self._volume, self._lateral_area, self._radius = geometry
         self._cells = (nz, nt, int(filled.sum()))
-        if not apply:
-            return
         # the global winners this rank owns, loaded with σ3 × their patch along the inward normal
         owner = np.full(nz * nt, -1, dtype=np.int64)
         owner[gcell] = gid
@@ -272,13 +302,15 @@ class TriaxialCell(Boundary):
         # kept for the measurements: the load and the lever r ρ̂ of each loaded grain, and the area
         self._applied = (f, r[w][:, None] * rhat, rhat)
         self._applied_area = self._lateral_area
+        return geometry
 
     # ------------------------------------------------------------------ measuring
     def measurements(self, sim: Any) -> dict[str, float]:
         if self.phase in ("consolidate", "shear"):
-            self._membrane(sim, apply=False)
+            vol, _area, radius = self._membrane(sim, apply=False)
+        else:
+            vol, radius = self._volume, self._radius
         h = self.height()
-        vol = self._volume
         area = vol / h if vol == vol and h > 0 else math.pi * self.params.radius**2
         sigma1 = float(self.top.force[2]) / area
         # realised σ3: the membrane's radial load over its lateral area (exact sum over ranks)
@@ -291,7 +323,7 @@ class TriaxialCell(Boundary):
             "q": sigma1 - sigma3,
             "p": (sigma1 + 2 * sigma3) / 3,
             "height": h,
-            "radius": self._radius,
+            "radius": radius,
             "volume": vol,
             "eps_a": (self.h0 - h) / self.h0 if self.h0 else 0.0,
             "eps_v": (self.v0 - vol) / self.v0 if self.v0 else 0.0,
