@@ -140,3 +140,14 @@ def test_resume_at_every_stage_is_bitwise(tmp_path):
         got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
         assert int(got["scalars/step"]) == 1600
         assert compare(ref, got) is None, stop
+
+
+def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):
+    from pathlib import Path
+
+    from pdem.cli import main
+
+    text = (Path(__file__).resolve().parent / "data" / "triaxial_small.toml").read_text()
+    deck = tmp_path / "deck.toml"
+    deck.write_text(text.replace('mould_stages = ["settle"]', 'mould_stages = ["setle"]'))
+    assert main(["check", str(deck), "--deck-only"]) == 2

@@ -885,8 +885,8 @@ def _material_keys(table: dict) -> list[str]:
 
 
 def _stage_keys(table: dict) -> list[str]:
-    """Keys of a plugin table that name stages: ``stage``, ``stages`` and ``*_stage``."""
-    return [k for k in table if k in ("stage", "stages") or k.endswith("_stage")]
+    """Keys of a plugin table that name stages: ``stage``, ``stages``, ``*_stage`` and ``*_stages``."""
+    return [k for k in table if k in ("stage", "stages") or k.endswith(("_stage", "_stages"))]
 
 
 class Deck(_DeckModel):
