@@ -205,24 +205,23 @@ class TriaxialCell(Boundary):
         vol = self._volume
         return vol / self.height() if vol == vol else math.pi * self.params.radius**2
 
+    def _servo(self, target: float, area: float) -> None:
+        """Top platen velocity from the axial stress (grains push it up): proportional, full speed
+        while nothing touches it."""
+        sigma1 = float(self.top.force[2]) / area
+        vmax = self.params.max_speed
+        v = float(np.clip(vmax / max(target, 1e-300) * (target - sigma1), -vmax, vmax))
+        self.motion.velocity = np.array([0.0, 0.0, -v])
+
     def before_step(self, sim: Any) -> None:
         if self.phase == "consolidate" and isinstance(self.top.motion, RigidBody):
             self.top.motion.force = (0.0, 0.0, -self.params.sigma3 * self._area())
         elif self.phase == "prepare" and self.mould is not None and self.mould.active:
-            target = self.params.seating_stress
-            target = 0.05 * self.params.sigma3 if target is None else target
-            sigma1 = float(self.top.force[2]) / (math.pi * self.params.radius**2)
-            vmax = self.params.max_speed
-            gain = vmax / max(target, 1e-300)
-            v = float(np.clip(gain * (target - sigma1), -vmax, vmax))
-            self.motion.velocity = np.array([0.0, 0.0, -v])
+            seat = self.params.seating_stress
+            seat = 0.05 * self.params.sigma3 if seat is None else seat
+            self._servo(seat, math.pi * self.params.radius**2)
         elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
-            area = self._area()
-            sigma1 = float(self.top.force[2]) / area  # grains push the top platen up
-            gain = self.params.max_speed / self.params.sigma3
-            vmax = self.params.max_speed
-            v = float(np.clip(gain * (self.params.sigma3 - sigma1), -vmax, vmax))
-            self.motion.velocity = np.array([0.0, 0.0, -v])
+            self._servo(self.params.sigma3, self._area())
         elif self.phase == "shear":
             if self.h0 is None:
                 self.h0, self.v0 = self.height(), self._volume
