@@ -880,6 +880,7 @@ class Runner:
         stability estimate and initial overlaps: errors name the deck key)."""
         sim = self.sim
         sim.set_stage(stage.name)
+        self._stage_materials(stage)
         dt = self._stage_dt(stage)
         try:
             if dt is not None and sim.dt != dt:
@@ -889,6 +890,17 @@ class Runner:
             if "stability estimate" in str(exc) and dt is not None:
                 raise type(exc)(f"{self._dt_key(index, stage)}: {exc}") from None
             raise
+
+    def _stage_materials(self, stage: Any) -> None:
+        """The materials' contact properties for this stage: ``[stages.materials.NAME]`` where given,
+        else ``[materials.NAME]`` (a stage's values hold for that stage only). Also on a resume."""
+        keys = self.sim.MUTABLE_MATERIAL_KEYS
+        for name, spec in self.deck.materials.items():
+            base = spec.to_material(name)
+            values = {k: getattr(base, k) for k in keys}
+            if name in stage.materials:
+                values.update(stage.materials[name].values())
+            self.sim.set_material(name, **values)
 
     def _check_stages(self, start_index: int) -> None:
         """Before anything is written: every stage still to run has a dt within the law's stability

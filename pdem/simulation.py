@@ -27,6 +27,7 @@ The DEM-P time step (velocity Verlet, architecture §3)::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time as _time
 from collections.abc import Callable
@@ -271,6 +272,32 @@ class Simulation:
         mat = material if isinstance(material, Material) else Material(material, **props)
         self._prepared = False
         return self.materials.add(mat)
+
+    #: material properties :meth:`set_material` may change during a run (no mass, stiffness or step change)
+    MUTABLE_MATERIAL_KEYS = ("friction", "restitution", "rolling_friction")
+
+    def set_material(self, name: str, **values: float) -> bool:
+        """Change the ``friction``, ``restitution`` or ``rolling_friction`` of material ``name`` from
+        the next force evaluation on (e.g. frictionless grains while a sample is prepared, then the
+        real friction for the test). Density and stiffness cannot change: they set masses and the
+        time step. The law's coefficient table is rebuilt in place; contact histories are kept (a
+        tangential spring above the new Coulomb cap is cut back at its next evaluation). Every rank
+        must make the same call. Returns True if anything changed."""
+        k = self.materials.index(name)
+        old = self.materials[k]
+        bad = sorted(set(values) - set(self.MUTABLE_MATERIAL_KEYS))
+        if bad:
+            raise InputError(
+                f"set_material('{name}'): cannot change {', '.join(bad)} during a run; changeable: "
+                f"{', '.join(self.MUTABLE_MATERIAL_KEYS)}"
+            )
+        new = dataclasses.replace(old, **values)  # validates the ranges
+        if new == old:
+            return False
+        self.materials.materials[k] = new
+        if self._prepared:
+            self.coefficients = self.law.coefficients(self.materials)
+        return True
 
     def add_particles(
         self,

@@ -737,6 +737,30 @@ class OutputCadence(_DeckModel):
         return []
 
 
+class StageMaterial(_DeckModel):
+    """``[stages.materials.NAME]``: a material's contact properties during one stage only."""
+
+    friction: Float | None = Field(None, ge=0, description="sliding friction μ during this stage [-]")
+    restitution: Float | None = Field(None, ge=0, le=1, description="restitution e during this stage [-]")
+    rolling_friction: Float | None = Field(
+        None, ge=0, description="rolling friction μ_r during this stage [-]"
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if not any(_given(data, k) for k in ("friction", "restitution", "rolling_friction")):
+            return [((), "give at least one of friction, restitution, rolling_friction")]
+        return []
+
+    def values(self) -> dict[str, float]:
+        """The values that are set."""
+        return {
+            k: v
+            for k in ("friction", "restitution", "rolling_friction")
+            if (v := getattr(self, k)) is not None
+        }
+
+
 class Stage(_DeckModel):
     """``[[stages]]``: one phase of the run, run in deck order."""
 
@@ -748,6 +772,12 @@ class Stage(_DeckModel):
     end: StageEnd = Field(description="end conditions (table [stages.end]); the stage ends when ANY holds")
     output: OutputCadence | None = Field(
         None, description="per-stage override of the output cadence keys (table [stages.output])"
+    )
+    materials: dict[Str, StageMaterial] = Field(
+        {},
+        description="contact properties of materials during this stage only (tables "
+        "[stages.materials.NAME]: friction, restitution, rolling_friction), e.g. frictionless grains "
+        "while a dense sample is prepared; the other stages use [materials]",
     )
 
 
@@ -1152,6 +1182,9 @@ def _cross_checks(data: dict) -> Problems:
 
     if isinstance(stages, list):
         for k, stage in enumerate(stages):
+            smats = stage.get("materials") if isinstance(stage, dict) else None
+            for name in smats if isinstance(smats, dict) else ():
+                check_material(("stages", k, "materials", name), name)
             end = stage.get("end") if isinstance(stage, dict) else None
             quantity = end.get("quantity") if isinstance(end, dict) else None
             if isinstance(quantity, str) and "." in quantity:

@@ -8,6 +8,7 @@ keys, defaults, rules and messages of the deck's ``[[particles]]`` tables (docs/
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Literal
 
@@ -235,6 +236,12 @@ class PluviateParams(SourceParams):
         gt=0,
         description="settled when the fastest sphere is slower than this [m/s]; default 0.01 sqrt(g d_mean)",
     )
+    friction: Float | None = Field(
+        None,
+        ge=0,
+        description="friction μ between the spheres (and with the container) while they are poured [-]; "
+        "default the material's. Low friction pours a dense packing, high friction a loose one",
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
@@ -316,6 +323,8 @@ class PluviateSource(Source):
         from . import pluviate
 
         p = self.params
+        if p.friction is not None:
+            material = dataclasses.replace(material, friction=p.friction)
         x, r = pluviate(
             p.region.build(),
             p.sizes.build(),
