@@ -317,6 +317,17 @@ class ShearBox(Boundary):
         n_force = self.normal_force()
         sigma = n_force / self.area
         h = self.height()
+        inertial = math.nan
+        if self.shearing and sigma > 0:
+            # I = γ̇ d sqrt(ρ/σ_n) with the shear band taken as 10 grain diameters thick (γ̇ = v / 10 d),
+            # so I = (v / 10) sqrt(ρ/σ_n); grain density from their mass and volume (collective)
+            prt = sim.particles
+            n = prt.n_owned
+            live = prt.inv_m[:n] > 0
+            vol = sim.exact_sum(4.0 / 3.0 * math.pi * prt.r[:n][live] ** 3)
+            if vol > 0:
+                rho = sim.exact_sum(prt.mass[:n][live]) / vol
+                inertial = 0.1 * p.shear_speed * math.sqrt(rho / sigma)
         return {
             "displacement": u,
             "shear_force": shear,
@@ -331,6 +342,7 @@ class ShearBox(Boundary):
             "dilation": h - self.height0 if self.height0 is not None else 0.0,
             "outside": float(self._outside(sim)),
             "plate_contacts": float(self.plate.n_contacts),
+            "inertial": inertial,
         }
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
@@ -358,6 +370,9 @@ class ShearBox(Boundary):
             "mean_abs_error": float(np.nanmean(err)),
             "p95_abs_error": float(np.nanpercentile(err, 95)),
             "max_outside": float(np.nanmax(series[key + "outside"][sel])),
+            **({"inertial_number_max": float(np.nanmax(inert[sel]))}
+               if (inert := series.get(key + "inertial")) is not None and np.any(np.isfinite(inert[sel]))
+               else {}),  # fmt: skip
         }
 
     # ------------------------------------------------------------------ checkpoints

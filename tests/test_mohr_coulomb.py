@@ -1,0 +1,86 @@
+"""tools/mohr_coulomb.py: the fits recover a known envelope (closed form), and the tool reads run
+outputs of both tests (summary.json + series CSVs as pdem writes them)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pdem.io.series import SeriesWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+import mohr_coulomb as mc  # noqa: E402
+
+
+def _sigma1(s3: float, phi_deg: float, c: float) -> float:
+    """Major stress at failure on the envelope τ = c + σ tan φ (closed form)."""
+    sp, cp = math.sin(math.radians(phi_deg)), math.cos(math.radians(phi_deg))
+    return s3 * (1 + sp) / (1 - sp) + 2 * c * cp / (1 - sp)
+
+
+@pytest.mark.parametrize("phi, c", [(22.0, 0.0), (31.5, 1500.0)])
+def test_triaxial_envelope_recovers_phi_and_c(phi, c):
+    pairs = [(_sigma1(s3, phi, c), s3) for s3 in (5e4, 1e5, 2e5)]
+    fit = mc.fit_triaxial(pairs)
+    assert fit["phi_deg"] == pytest.approx(phi, abs=1e-9)
+    assert fit["cohesion_pa"] == pytest.approx(c, abs=1e-6)
+    assert fit["r2"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_shear_envelope_and_r2_of_noisy_points():
+    sigma = np.array([3100.0, 6400.0, 12500.0, 24200.0])
+    tau = 0.45 * sigma + 100.0
+    fit = mc.fit_shear(sigma, tau)
+    assert fit["phi_deg"] == pytest.approx(math.degrees(math.atan(0.45)), abs=1e-9)
+    assert fit["cohesion_pa"] == pytest.approx(100.0, abs=1e-6)
+    noisy = mc.fit_shear(sigma, tau * np.array([1.1, 0.9, 1.1, 0.9]))
+    assert noisy["r2"] < 0.999  # the R² does fall when the points leave the line
+
+
+def _write_series(path: Path, rows: list[dict]) -> None:
+    w = SeriesWriter(path, list(rows[0]))
+    for r in rows:
+        w.append(r)
+    w.close()
+
+
+def test_reads_triaxial_and_shear_outputs(tmp_path):
+    phi = 24.0
+    outs = []
+    for s3 in (5e4, 1e5, 2e5):
+        out = tmp_path / f"tx{int(s3)}"
+        out.mkdir()
+        ea = np.linspace(0.001, 0.2, 50)
+        q_peak = _sigma1(s3, phi, 0.0) - s3
+        q = q_peak * np.minimum(ea / 0.02, 1.0) * np.where(ea > 0.1, 1 - 0.5 * (ea - 0.1), 1.0)
+        _write_series(out / "series_shear.csv", [
+            {"time": k, "step": k, "cell.eps_a": e, "cell.q": qq, "cell.sigma3": s3, "cell.eps_v": -e / 10}
+            for k, (e, qq) in enumerate(zip(ea, q, strict=True))
+        ])  # fmt: skip
+        (out / "summary.json").write_text(json.dumps({"results": {"cell": {"q_peak": float(q.max())}}}))
+        outs.append(out)
+    for sn in (3100.0, 6400.0):
+        out = tmp_path / f"ds{int(sn)}"
+        out.mkdir()
+        u = np.linspace(1e-4, 0.01, 20)
+        _write_series(out / "series_shear.csv", [
+            {"time": k, "step": k, "box.displacement": x, "box.ratio": 0.5, "box.normal_stress": sn,
+             "box.dilation": 1e-4} for k, x in enumerate(u)
+        ])  # fmt: skip
+        res = {"peak_ratio": 0.55, "residual_ratio": 0.45, "peak_displacement": 0.004, "max_dilation": 2e-4}
+        (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
+        outs.append(out)
+    prefix = tmp_path / "mc"
+    assert mc.main([*map(str, outs), "--out", str(prefix)]) == 0
+    data = json.loads(Path(f"{prefix}.json").read_text())
+    assert data["fits"]["triaxial"]["peak"]["phi_deg"] == pytest.approx(phi, abs=1e-6)
+    assert data["fits"]["direct_shear"]["peak"]["phi_deg"] == pytest.approx(math.degrees(math.atan(0.55)))
+    assert data["fits"]["direct_shear"]["residual"]["cohesion_pa"] == pytest.approx(0.0, abs=1e-6)
+    assert Path(f"{prefix}.png").stat().st_size > 10_000
+    assert len(Path(f"{prefix}.csv").read_text().splitlines()) == 6
