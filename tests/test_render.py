@@ -124,6 +124,14 @@ def test_plot_discharge_with_fit(run_dir, tmp_path):
     _check_png(path)
 
 
+def test_displacement_matches_grains_by_id():
+    render = _tool("render")
+    ref = {"id": np.array([5, 1, 3]), "x": np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])}
+    now = {"id": np.array([3, 5, 7]), "x": np.array([[2.0, 0, 3], [0.0, 4, 0], [9.0, 9, 9]])}
+    d = render.displacement(now, ref)
+    assert d[:2].tolist() == [3.0, 4.0] and np.isnan(d[2])
+
+
 def test_render_png(run_dir, tmp_path):
     render = _tool("render")
     ok, reason = render.offscreen_works()
@@ -141,6 +149,11 @@ def test_render_png(run_dir, tmp_path):
     pngs = sorted(run_dir.glob("render_contacts_*.png"))
     assert pngs, "the CLI wrote no render_contacts_<frame>.png"
     _check_png(pngs[-1], (240, 180))
+    # displacement since the stage's first frame (by id), and from a chosen frame
+    path = render.render_frame(run_dir, frame=-1, field="displacement", path=tmp_path / "d.png", size=size)
+    _check_png(path, size)
+    args = [str(run_dir), "--field", "displacement", "--reference", "0", "--size", "240x180"]
+    assert render.main(args) == 0
     # a field that does not exist is a clear error
     with pytest.raises(KeyError, match="speed"):
         render.render_frame(run_dir, field="nonexistent", path=tmp_path / "x.png", size=size)

@@ -244,6 +244,40 @@ def field_values(particles: dict[str, np.ndarray], name: str) -> tuple[np.ndarra
 
 
 # ------------------------------------------------------------------------------------ rendering
+def displacement(particles: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> np.ndarray:
+    """|x − x_ref| of each grain of ``particles`` (matched by id; nan for grains not in the reference)."""
+    if "id" not in particles or "id" not in reference or "x" not in reference:
+        raise KeyError("field 'displacement' needs 'x' and 'id' in the output (output.fields)")
+    ids, rid = np.asarray(particles["id"]), np.asarray(reference["id"])
+    order = np.argsort(rid, kind="stable")
+    k = np.clip(np.searchsorted(rid, ids, sorter=order), 0, max(len(rid) - 1, 0))
+    out = np.full(len(ids), np.nan)
+    if len(rid):
+        j = order[k]
+        found = rid[j] == ids
+        x, x_ref = np.asarray(particles["x"], dtype=np.float64), np.asarray(reference["x"], dtype=np.float64)
+        out[found] = np.linalg.norm(x[found] - x_ref[j[found]], axis=1)
+    return out
+
+
+def _stage_start(output_dir: Path, snap: Snapshot) -> int:
+    """Index of the stored frame at the start of ``snap``'s stage: the frame nearest the first row of
+    ``series_<stage>.csv`` (the stage's first state may be stored as the previous stage's last
+    frame), else the stage's first frame."""
+    with h5py.File(_particle_files(output_dir)[0], "r", locking=False) as f:
+        keys = sorted(f["frames"])
+        times = np.array([float(f["frames"][k].attrs.get("time", np.nan)) for k in keys])
+        stages = [str(f["frames"][k].attrs.get("stage", "")) for k in keys]
+    series = output_dir / f"series_{snap.stage}.csv"
+    if series.is_file():
+        from pdem.io.series import read_series
+
+        t = read_series(series).get("time")
+        if t is not None and len(t):
+            return int(np.nanargmin(np.abs(times - float(t[0]))))
+    return stages.index(snap.stage) if snap.stage in stages else 0
+
+
 def _up_vector(deck: dict) -> np.ndarray:
     g = np.asarray(deck.get("run", {}).get("gravity", (0.0, 0.0, -9.81)), dtype=np.float64)
     n = float(np.linalg.norm(g))
@@ -276,8 +310,12 @@ def render_frame(
     size: tuple[int, int] = (1200, 900),
     clip_y: bool = False,
     log_scale: bool = False,
+    reference: int | None = None,
 ) -> Path:
     """Render frame ``frame`` of ``output_dir`` coloured by ``field`` to a PNG; returns its path.
+
+    ``field = "displacement"``: each grain's displacement since frame ``reference`` (default: the
+    first frame of the rendered frame's stage, e.g. since the start of the shear), matched by id.
 
     ``log_scale``: logarithmic colour scale over three decades below the maximum (values below
     are drawn in the lowest colour); useful for speeds in a hopper, slow inside, fast below.
@@ -297,7 +335,12 @@ def render_frame(
     p = snap.particles
     x = np.asarray(p.get("x", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     r = np.asarray(p.get("r", np.zeros(len(x))), dtype=np.float64)
-    values, bar_title, fmt = field_values(p, field) if len(x) else (np.zeros(0), field, "%.3g")
+    if field == "displacement":
+        ref = read_frame(output_dir, _stage_start(output_dir, snap) if reference is None else reference)
+        values = 1e3 * displacement(p, ref.particles)
+        bar_title, fmt = f"displacement since t = {ref.time:.4g} s [mm]", "%.3g"
+    else:
+        values, bar_title, fmt = field_values(p, field) if len(x) else (np.zeros(0), field, "%.3g")
     keep = x[:, 1] >= 0.0 if clip_y else np.ones(len(x), dtype=bool)
 
     pv.OFF_SCREEN = True
@@ -433,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("output_dir", type=Path, help="pdem output directory (with particles.h5, walls.h5)")
     ap.add_argument("--frame", type=int, default=-1, help="frame index (0 first, -1 last; default -1)")
     ap.add_argument(
-        "--field", default="speed", help="colour field: speed (|v|), v, w, f, r, contacts, material…"
+        "--field", default="speed",
+        help="colour field: speed (|v|), displacement, v, w, f, r, contacts, material…"
     )
     ap.add_argument(
         "--out", type=Path, default=None, help="PNG to write (default OUTPUT_DIR/render_<field>_<frame>.png)"
@@ -443,13 +487,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--clip-y", action="store_true", help="keep y >= 0 only and look from -y (see inside)")
     ap.add_argument(
+        "--reference", type=int, default=None,
+        help="with --field displacement: the frame displacements are measured from (default: the first "
+        "frame of the rendered frame's stage)",
+    )  # fmt: skip
+    ap.add_argument(
         "--log", action="store_true", help="logarithmic colour scale (3 decades below the maximum)"
     )
     args = ap.parse_args(argv)
     try:
         out = render_frame(
-            args.output_dir, args.frame, args.field, args.out, args.size, args.clip_y, args.log
-        )
+            args.output_dir, args.frame, args.field, args.out, args.size, args.clip_y, args.log,
+            reference=args.reference,
+        )  # fmt: skip
     except (FileNotFoundError, ValueError, KeyError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"render: {msg}", file=sys.stderr)
