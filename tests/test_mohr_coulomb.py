@@ -84,3 +84,30 @@ def test_reads_triaxial_and_shear_outputs(tmp_path):
     assert data["fits"]["direct_shear"]["residual"]["cohesion_pa"] == pytest.approx(0.0, abs=1e-6)
     assert Path(f"{prefix}.png").stat().st_size > 10_000
     assert len(Path(f"{prefix}.csv").read_text().splitlines()) == 6
+
+
+def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
+    import friction_study as fs
+
+    deck = ROOT / "inputs" / "examples" / "direct_shear_small.toml"
+    assert fs.main(["direct_shear", str(deck), "--dry-run", "--stress", "3100", "6400", "--ranks", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and "-n 2" in lines[0]
+    assert "boundaries.box.normal_stress=3100.0" in lines[0]
+    assert "boundaries.box.normal_stress=6400.0" in lines[1]
+    # finished runs (their summary.json exists) are kept, not run again; then the fit is made
+    for sn, ratio in ((3100.0, 0.5), (6400.0, 0.5)):
+        out = tmp_path / f"{sn:g}"
+        out.mkdir()
+        _write_series(out / "series_shear.csv", [
+            {"time": k, "step": k, "box.displacement": 1e-3 * (k + 1), "box.ratio": ratio,
+             "box.normal_stress": sn, "box.dilation": 0.0} for k in range(5)
+        ])  # fmt: skip
+        res = {"peak_ratio": ratio, "residual_ratio": ratio, "peak_displacement": 0.004, "max_dilation": 0.0}
+        (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
+    code = fs.main(["direct_shear", str(deck), "--stress", "3100", "6400", "--out", str(tmp_path)])
+    assert code == 0
+    fit = json.loads((tmp_path / "mohr_coulomb.json").read_text())["fits"]["direct_shear"]["peak"]
+    assert fit["phi_deg"] == pytest.approx(math.degrees(math.atan(0.5)))
+    with pytest.raises(SystemExit, match="shear_box"):
+        fs.main(["direct_shear", str(ROOT / "inputs" / "triaxial.toml"), "--dry-run"])

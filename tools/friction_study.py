@@ -1,0 +1,102 @@
+#!/usr/bin/env python
+"""Run a triaxial or direct shear deck at several stresses and fit the Mohr–Coulomb envelope.
+
+    python tools/friction_study.py triaxial     [DECK] [--stress 5e4 1e5 2e5]            [options]
+    python tools/friction_study.py direct_shear [DECK] [--stress 3100 6400 12500 24200]  [options]
+
+    options: --ranks N (mpiexec -n N; default 1) --out DIR --set KEY=VALUE ... --dry-run
+
+Each run is ``pdem DECK --set boundaries.NAME.KEY=S`` (``sigma3`` of the deck's ``triaxial``
+boundary, or ``normal_stress`` of its ``shear_box``) plus the extra ``--set``s, into
+``OUT/<stress>``, one after the other. A run whose ``summary.json`` exists is kept and skipped
+(the study can be stopped and started again); a failed run stops the study with its exit code.
+Then ``tools/mohr_coulomb.py`` fits and plots all runs into ``OUT/mohr_coulomb.{json,csv,png}``.
+The decks default to ``inputs/triaxial.toml`` and ``inputs/direct_shear.toml`` (full size: tens of
+minutes per run on 2 cores; the results are in docs/experiments/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+import mohr_coulomb  # noqa: E402
+
+TESTS = {
+    # test: (boundary type, stress key, default deck, default stresses [Pa])
+    "triaxial": ("triaxial", "sigma3", "inputs/triaxial.toml", [5e4, 1e5, 2e5]),
+    "direct_shear": ("shear_box", "normal_stress", "inputs/direct_shear.toml",
+                     [3100.0, 6400.0, 12500.0, 24200.0]),
+}
+
+
+def boundary_of(deck: Path, kind: str) -> str:
+    """The name of the deck's boundary of type ``kind``."""
+    data = tomllib.loads(deck.read_text())
+    tables = data.get("boundaries", {}).items()
+    names = [n for n, b in tables if isinstance(b, dict) and b.get("type") == kind]
+    if len(names) != 1:
+        raise SystemExit(f"{deck}: expected one boundary of type '{kind}', found {names or 'none'}")
+    return names[0]
+
+
+def command(deck: Path, out: Path, sets: list[str], ranks: int) -> list[str]:
+    pdem = [sys.executable, "-m", "pdem"]
+    if ranks > 1:
+        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+        if mpiexec is None:
+            raise SystemExit("--ranks > 1 needs mpiexec (pip install mpich)")
+        pdem = [mpiexec, "-n", str(ranks), *pdem]
+    cmd = [*pdem, str(deck), "--output", str(out), "--overwrite", "--quiet"]
+    for s in sets:
+        cmd += ["--set", s]
+    return cmd
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("test", choices=sorted(TESTS))
+    ap.add_argument("deck", nargs="?", type=Path, default=None)
+    ap.add_argument("--stress", type=float, nargs="+", default=None, help="stresses [Pa]")
+    ap.add_argument("--ranks", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=None, help="default out/<test>_study")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    args = ap.parse_args(argv)
+    kind, key, default_deck, default_stress = TESTS[args.test]
+    deck = args.deck or ROOT / default_deck
+    out = args.out or Path("out") / f"{args.test}_study"
+    name = boundary_of(deck, kind)
+    outputs = []
+    stresses = args.stress or default_stress
+    for k, s in enumerate(stresses):
+        run_dir = out / f"{s:g}"
+        outputs.append(run_dir)
+        cmd = command(deck, run_dir, [f"boundaries.{name}.{key}={s!r}", *args.overrides], args.ranks)
+        if args.dry_run:
+            print(" ".join(cmd))
+            continue
+        if (run_dir / "summary.json").is_file():
+            print(f"[{k + 1}/{len(stresses)}] {run_dir}: done before, kept", file=sys.stderr)
+            continue
+        print(f"[{k + 1}/{len(stresses)}] {' '.join(cmd)}", file=sys.stderr)
+        t0 = time.perf_counter()
+        code = subprocess.call(cmd)
+        if code != 0:
+            print(f"run at {s:g} Pa failed (exit {code}); its output is {run_dir}", file=sys.stderr)
+            return code
+        print(f"[{k + 1}/{len(stresses)}] {run_dir}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    if args.dry_run:
+        return 0
+    return mohr_coulomb.main([*map(str, outputs), "--out", str(out / "mohr_coulomb")])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
