@@ -205,23 +205,24 @@ class TriaxialCell(Boundary):
         vol = self._volume
         return vol / self.height() if vol == vol else math.pi * self.params.radius**2
 
-    def _servo(self, target: float, area: float) -> None:
-        """Top platen velocity from the axial stress (grains push it up): proportional, full speed
-        while nothing touches it."""
+    def _servo(self, target: float, area: float, scale: float) -> None:
+        """Top platen velocity from the axial stress (grains push it up): proportional, with the
+        gain max_speed / ``scale`` (full speed while nothing touches it)."""
         sigma1 = float(self.top.force[2]) / area
         vmax = self.params.max_speed
-        v = float(np.clip(vmax / max(target, 1e-300) * (target - sigma1), -vmax, vmax))
+        v = float(np.clip(vmax / max(scale, 1e-300) * (target - sigma1), -vmax, vmax))
         self.motion.velocity = np.array([0.0, 0.0, -v])
 
     def before_step(self, sim: Any) -> None:
+        # consolidation is isotropic: the platen's target follows the membrane's pressure ramp (a
+        # platen driven to the full σ₃ at once overloads the few chains that first carry it)
         if self.phase == "consolidate" and isinstance(self.top.motion, RigidBody):
-            self.top.motion.force = (0.0, 0.0, -self.params.sigma3 * self._area())
+            self.top.motion.force = (0.0, 0.0, -self.pressure(sim) * self._area())
         elif self.phase == "prepare" and self.mould is not None and self.mould.active:
-            seat = self.params.seating_stress
-            seat = 0.05 * self.params.sigma3 if seat is None else seat
-            self._servo(seat, math.pi * self.params.radius**2)
+            seat = self._seat_stress()
+            self._servo(seat, math.pi * self.params.radius**2, seat)
         elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
-            self._servo(self.params.sigma3, self._area())
+            self._servo(max(self.pressure(sim), self._seat_stress()), self._area(), self.params.sigma3)
         elif self.phase == "shear":
             if self.h0 is None:
                 self.h0, self.v0 = self.height(), self._volume
@@ -370,6 +371,10 @@ class TriaxialCell(Boundary):
         if before.any():
             out["sigma1_end_of_consolidation"] = float(s1[before][-1])
         return out
+
+    def _seat_stress(self) -> float:
+        seat = self.params.seating_stress
+        return 0.05 * self.params.sigma3 if seat is None else seat
 
     def pressure(self, sim: Any) -> float:
         """The membrane pressure now: σ₃, ramped over ``ramp_time`` at the start of consolidation."""
