@@ -89,6 +89,19 @@ def test_shear_force_builds_up_and_levels_off(dem_p):
     assert 0.2 < ratio[u > 2e-3].mean() < 1.0  # a friction angle between 11° and 45°
 
 
+def test_normal_force_on_the_shear_plane(dem_p):
+    """The normal force across the plane (from the lower grains' equilibrium) is the plate's load
+    plus the weight of the grains above the plane, less what the upper walls carry by friction:
+    between the plate's load and the plate's load plus the weight of every grain."""
+    summary, s = dem_p
+    sheared = s["box.displacement"] > 1e-3
+    n_plate, n_plane = s["box.normal_force"][sheared].mean(), s["box.plane_normal_force"][sheared].mean()
+    weight = summary["particles"] * 2550.0 * 4.0 / 3.0 * np.pi * 0.003**3 * 9.81
+    assert n_plate < n_plane < n_plate + weight
+    res = summary["results"]["box"]
+    assert res["residual_plane_ratio"] < res["residual_ratio"]
+
+
 def test_dilation_measured_and_no_grain_escapes(dem_p):
     summary, s = dem_p
     res = summary["results"]["box"]

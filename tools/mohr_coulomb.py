@@ -14,9 +14,11 @@ s = (σ₁ + σ₃)/2 and t = (σ₁ − σ₃)/2 (least squares, R² of that li
 Each run's own angle is sin φ = (σ₁ − σ₃)/(σ₁ + σ₃).
 
 **Direct shear**: τ/σ at the peak and its mean over the last ``--residual-fraction`` of the
-displacement (the summary's ``peak_ratio`` and ``residual_ratio``: F/N, free of the area), times the
-realised normal stress; fitted as τ = c + σ tan φ (R²), and through the origin, τ = σ tan φ (the
-study's form).
+displacement, times the mean normal stress. σ is the normal stress on the shear plane where the run
+measured it (``plane_*`` of the shear box: the plate's load plus the weight of the grains above the
+plane, less what the upper walls carry by friction), else the plate's; fitted as τ = c + σ tan φ
+(R²), and through the origin, τ = σ tan φ (the study's form). The fits on the plate's stress alone
+(the lab convention) are given too, as ``peak_applied`` and ``residual_applied``.
 
 Writes ``PREFIX.json`` (every run and fit), ``PREFIX.csv`` (one row per run) and ``PREFIX.png``
 (curves: q and ε_v against ε_a, τ and dilation against u; Mohr circles or τ–σ points with the
@@ -81,15 +83,24 @@ def read_run(out: Path, residual_fraction: float) -> dict:
             s = _series(out, f"{name}.displacement")
             keys = ("displacement", "ratio", "normal_stress", "dilation")
             u, ratio, sn, dil = (s[f"{name}.{k}"] for k in keys)
-            sigma = float(sn.mean())
+            applied = float(sn.mean())
             peak, residual = float(res["peak_ratio"]), float(res["residual_ratio"])
+            # on the shear plane where measured (the plate's load + the upper grains' weight − wall
+            # friction), else the applied stress
+            on_plane = "peak_plane_ratio" in res
+            sigma = float(res["plane_normal_stress_mean"]) if on_plane else applied
+            ppeak = float(res["peak_plane_ratio"]) if on_plane else peak
+            pres = float(res["residual_plane_ratio"]) if on_plane else residual
             return {
                 "kind": "direct_shear", "output": str(out), "boundary": name, "sigma": sigma,
-                "peak_ratio": peak, "residual_ratio": residual,
-                "tau_peak": peak * sigma, "tau_residual": residual * sigma,
+                "sigma_applied": applied, "on_plane": on_plane,
+                "peak_ratio": ppeak, "residual_ratio": pres,
+                "peak_ratio_applied": peak, "residual_ratio_applied": residual,
+                "tau_peak": ppeak * sigma, "tau_residual": pres * sigma,
+                "tau_peak_applied": peak * applied, "tau_residual_applied": residual * applied,
                 "u_peak": float(res["peak_displacement"]), "dilation_max": float(res["max_dilation"]),
-                "phi_peak_deg": math.degrees(math.atan(res["peak_ratio"])),
-                "phi_residual_deg": math.degrees(math.atan(res["residual_ratio"])),
+                "phi_peak_deg": math.degrees(math.atan(ppeak)),
+                "phi_residual_deg": math.degrees(math.atan(pres)),
                 "wall_time_s": summary.get("wall_time_s"), "dt": summary.get("dt"),
                 "curves": {"x": u, "y": ratio * sn, "v": dil},
             }  # fmt: skip
@@ -137,8 +148,12 @@ def analyse(runs: list[dict]) -> dict:
     ds = sorted((r for r in runs if r["kind"] == "direct_shear"), key=lambda r: r["sigma"])
     if len(ds) >= 2:
         sigma = np.array([r["sigma"] for r in ds])
+        applied = np.array([r["sigma_applied"] for r in ds])
         out["direct_shear"] = {
             name: fit_shear(sigma, np.array([r[key] for r in ds]))
+            for name, key in (("peak", "tau_peak"), ("residual", "tau_residual"))
+        } | {  # the lab convention: the stress the plate applies
+            f"{name}_applied": fit_shear(applied, np.array([r[f"{key}_applied"] for r in ds]))
             for name, key in (("peak", "tau_peak"), ("residual", "tau_residual"))
         }
     return out

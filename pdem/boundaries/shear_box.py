@@ -204,7 +204,7 @@ class ShearBox(Boundary):
         upper(R((x0 + L, yc, zu), -_X, _Y, (0.5 * W, 0.5 * h2)), "upper_xhi")
         self.sides.append(upper(R((xc, y0, zu), _Y, _X, (0.5 * L, 0.5 * h2)), "upper_ylo"))
         self.sides.append(upper(R((xc, y0 + W, zu), -_Y, _X, (0.5 * L, 0.5 * h2)), "upper_yhi"))
-        upper(R((x0 - 0.5 * flange, yc, z2), -_Z, _X, (0.5 * flange, 0.5 * W)), "upper_flange")
+        self.lid = upper(R((x0 - 0.5 * flange, yc, z2), -_Z, _X, (0.5 * flange, 0.5 * W)), "upper_flange")
 
         control = p.control
         if control == "auto":
@@ -317,6 +317,7 @@ class ShearBox(Boundary):
         n_force = self.normal_force()
         sigma = n_force / self.area
         h = self.height()
+        n_plane = self.plane_normal_force(sim)
         inertial = math.nan
         if self.shearing and sigma > 0:
             # I = γ̇ d sqrt(ρ/σ_n) with the shear band taken as 10 grain diameters thick (γ̇ = v / 10 d),
@@ -343,7 +344,26 @@ class ShearBox(Boundary):
             "outside": float(self._outside(sim)),
             "plate_contacts": float(self.plate.n_contacts),
             "inertial": inertial,
+            "plane_normal_force": n_plane,
+            "plane_normal_stress": n_plane / ((p.length - u) * p.width),
+            "plane_ratio": shear / n_plane if n_plane > 0 else math.nan,
         }
+
+    def plane_normal_force(self, sim: Any) -> float:
+        """The normal force across the shear plane, from the equilibrium of the lower grains (centre
+        below the lower rim): the floor's and lower walls' vertical load, less the lower grains'
+        weight and the upper flange's push down on them. It adds to the plate's load the weight of
+        the upper grains and takes off what the upper walls carry by friction (collective)."""
+        load = -math.fsum(float(w.force[2]) for w in self.lower[:5])  # floor and lower walls, not the flange
+        load -= float(self.lid.force[2])
+        gz = float(sim.gravity[2])
+        if gz != 0.0:
+            prt = sim.particles
+            n = prt.n_owned
+            x = prt.x[:n]
+            below = (prt.inv_m[:n] > 0) & (x[:, 2] < self.z1)
+            load += gz * sim.exact_sum(prt.mass[:n][below])
+        return load
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
         key = f"{self.name}."
@@ -358,6 +378,15 @@ class ShearBox(Boundary):
         dil, err = series[key + "dilation"][sel], np.abs(series[key + "error"][sel])
         i = int(np.nanargmax(ratio))
         late = u >= u[-1] - 0.2 * (u[-1] - u[0])
+        plane = series.get(key + "plane_ratio")
+        plane_out = {}
+        if plane is not None and np.any(np.isfinite(plane[sel])):
+            pr, ps = plane[sel], series[key + "plane_normal_stress"][sel]
+            plane_out = {
+                "peak_plane_ratio": float(np.nanmax(pr)),
+                "residual_plane_ratio": float(np.nanmean(pr[late])),
+                "plane_normal_stress_mean": float(np.nanmean(ps)),
+            }
         return {
             "peak_ratio": float(ratio[i]),
             "peak_tau": float(np.nanmax(tau)),
@@ -370,6 +399,7 @@ class ShearBox(Boundary):
             "mean_abs_error": float(np.nanmean(err)),
             "p95_abs_error": float(np.nanpercentile(err, 95)),
             "max_outside": float(np.nanmax(series[key + "outside"][sel])),
+            **plane_out,
             **({"inertial_number_max": float(np.nanmax(inert[sel]))}
                if (inert := series.get(key + "inertial")) is not None and np.any(np.isfinite(inert[sel]))
                else {}),  # fmt: skip
