@@ -11,7 +11,9 @@ pdem's own entry point like any contact law. One time step h:
    the same id pair (of the same wall and particle);
 3. walls advance (their velocity over the step enters the constraints: moving and servo walls);
 4. v_free = v + h g; solve the CCP for the impulses γ ∈ K (friction cones), u = Dᵀv⁺ + b,
-   −u ∈ K°, γ ⊥ u, with the chosen solver;
+   −u ∈ K°, γ ⊥ u, with the chosen solver; with ``cone = "corrected"`` (default) u_n is replaced by
+   u_n + μ|u_t| (b_n raised by the slip speed of the current iterate, a fixed point), which makes
+   the problem Coulomb's law: sliding contacts stay closed;
 5. v⁺ = v_free + M⁻¹ D γ, ω likewise; x⁺ = x + h v⁺ (semi-implicit Euler).
 
 Reported forces are impulses / h (particles: contact force + weight; walls: the DEM-P layout, force
@@ -29,14 +31,16 @@ Solvers (``solver``):
 * ``"gauss_seidel"``: projected Gauss–Seidel / SOR in contact order (pairs by id, then walls);
   serial.
 
-The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s]; iterations stop when it is
-below ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
+The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (with the corrected u_n when
+``cone = "corrected"``: then it measures Coulomb's law); iterations stop when it is below
+``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
 (``Simulation.solver_log``); steps that hit the cap unconverged are counted.
 
 Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions are
-inelastic (no restitution at the velocity level), sliding contacts separate by ~μ|v_t|h (the cone
-relaxation of Coulomb's law), Jacobi needs iterations growing with the number of grains a load must
-cross, and information moves at most one contact per iteration.
+inelastic (no restitution at the velocity level), with ``cone = "relaxed"`` sliding contacts
+separate at a normal speed μ|u_t| (the cone relaxation of Coulomb's law: a sliding sphere hops),
+Jacobi needs iterations growing with the number of grains a load must cross, and information moves
+at most one contact per iteration.
 """
 
 from __future__ import annotations
@@ -60,6 +64,15 @@ class ComplementarityParams(LawParams):
 
     solver: Literal["jacobi", "apgd", "gauss_seidel"] = Field(
         "jacobi", description="CCP solver: 'jacobi' (MPI, deterministic), 'apgd' or 'gauss_seidel' (serial)"
+    )
+    cone: Literal["corrected", "relaxed"] = Field(
+        "corrected",
+        description="friction law solved: 'corrected' (default) is Coulomb's law: each contact's "
+        "normal right-hand side is raised by μ|u_t| (its slip speed, from the current iterate; APGD: "
+        "from the previous pass) and iterated to a fixed point, so a sliding contact stays closed "
+        "(u_n = 0); 'relaxed' is the convex Anitescu–Tasora cone problem, in which a sliding contact "
+        "separates at u_n = μ|u_t| (a sphere sliding at 5 m/s on a floor with μ = 0.5 leaves it at "
+        "1.3 m/s): pdem's behaviour before this option, kept for comparison",
     )
     tolerance: float = Field(
         1e-5, gt=0, description="stop when the projected-gradient residual (a velocity) is below this [m/s]"
@@ -146,6 +159,7 @@ class Stepper(Integrator):
         self._cap = 0
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
         self._bodies: list = []
+        self.corrected = self.p.cone == "corrected"
 
     def prepare(self) -> None:
         """The reported forces before the first step: weights only (plus boundary forces)."""
@@ -372,6 +386,7 @@ class Stepper(Integrator):
         return {
             "method": "complementarity",
             "solver": p.solver,
+            "cone": p.cone,
             "tolerance": p.tolerance,
             "max_iterations": p.max_iterations,
             "relaxation": p.relaxation,
@@ -401,7 +416,7 @@ class Stepper(Integrator):
         while it < pr.max_iterations:
             local = ck.jacobi_update(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
-                self.W, nc, pr.relaxation,
+                self.W, nc, pr.relaxation, self.corrected,
             )  # fmt: skip
             it += 1
             self._sync_velocities(nc, v_free, w_free, P, L)
@@ -414,8 +429,14 @@ class Stepper(Integrator):
         return it, res
 
     def _residual(self, nc) -> float:
+        """The residual of the current impulses and velocities: of Coulomb's law (ũ) for the corrected
+        cone, of the relaxed cone problem (u) otherwise."""
         u = np.empty((nc, 4))
         ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
+        if self.corrected:
+            shift = np.empty(nc)
+            ck.coulomb_shift(u, self.cmu, nc, shift)
+            ck.shift_normal(u, shift, nc)
         return ck.residual_max(self.gam, u, self.cmu, self.cscale, nc)
 
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
@@ -426,7 +447,7 @@ class Stepper(Integrator):
         while it < pr.max_iterations:
             res = ck.gauss_seidel_sweep(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
-                self.W, self.IM, self.II, self.DOF, nc, pr.relaxation,
+                self.W, self.IM, self.II, self.DOF, nc, pr.relaxation, self.corrected,
             )  # fmt: skip
             it += 1
             if res <= pr.tolerance:
@@ -435,12 +456,38 @@ class Stepper(Integrator):
         return it, self._residual(nc)
 
     def _apgd(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
-        """Accelerated projected gradient descent with adaptive step size and restart (Mazhar et al.,
-        ACM TOG 34(3), 2015, Algorithm 1), on f(γ) = ½ γᵀNγ + rᵀγ over the cones, ∇f = u(γ)."""
+        """APGD (see :meth:`_apgd_pass`). Relaxed cone: one pass. Corrected cone: passes on the
+        convex problem whose normal right-hand side is raised by a shift s = μ|u_t| held fixed during
+        the pass, taken from the velocities of the warm start and then of each pass's result. A pass
+        ends when the impulses satisfy Coulomb's law within the tolerance (the residual with the
+        shift of their own velocities: the solve is done), when its own problem is solved twice as
+        well as Coulomb's law (the shift is then the larger error: refresh it), or at the cap on
+        iterations, which counts all passes."""
         pr = self.p
         if nc == 0:
             self._sync_velocities(nc, v_free, w_free, P, L)
             return 0, 0.0
+        if not self.corrected:
+            return self._apgd_pass(nc, v_free, w_free, P, L, None, pr.max_iterations)
+        shift = np.empty(nc)
+        u = np.empty((nc, 4))
+        self._sync_velocities(nc, v_free, w_free, P, L)  # of the warm start
+        total = 0
+        while True:
+            ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
+            ck.coulomb_shift(u, self.cmu, nc, shift)
+            it, res = self._apgd_pass(nc, v_free, w_free, P, L, shift, pr.max_iterations - total)
+            total += it
+            if res <= pr.tolerance or total >= pr.max_iterations:
+                return total, self._residual(nc)  # the pass left the velocities of its impulses
+
+    def _apgd_pass(self, nc, v_free, w_free, P, L, shift, budget) -> tuple[int, float]:
+        """Accelerated projected gradient descent with adaptive step size and restart (Mazhar et al.,
+        ACM TOG 34(3), 2015, Algorithm 1), on f(γ) = ½ γᵀNγ + rᵀγ over the cones, ∇f = u(γ); with
+        ``shift`` s, r_n is raised by s (∇f = u(γ) + s e_n) and iterates are judged by the
+        corrected cone's residual. At most ``budget`` iterations; leaves the best impulses found and
+        their velocities. Returns (iterations, best residual)."""
+        pr = self.p
         cmu = self.cmu[:nc]
         cscale = self.cscale[:nc]
         gam = self.gam[:nc]
@@ -450,6 +497,8 @@ class Stepper(Integrator):
             self._sync_velocities(nc, v_free, w_free, P, L)
             u = np.empty((nc, 4))
             ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
+            if shift is not None:
+                ck.shift_normal(u, shift, nc)
             return u
 
         r_vec = grad(np.zeros((nc, 4)))  # u(0) = r
@@ -477,17 +526,23 @@ class Stepper(Integrator):
         best_res = math.inf
         res = math.inf
         it = 0
-        while it < pr.max_iterations:
+        while it < budget:
             it += 1
             gy = grad(y)
-            fy = objective(y, gy)
+            fy = objective(y, gy) if shift is None else 0.0
             while True:
                 g_new = ck.project_cone_array(y - t * gy, cmu)
                 u_new = grad(g_new)
                 step = g_new - y
-                if objective(g_new, u_new) <= fy + float(np.sum(gy * step)) + 0.5 * lip * float(
-                    np.sum(step * step)
-                ):
+                if shift is None:
+                    if objective(g_new, u_new) <= fy + float(np.sum(gy * step)) + 0.5 * lip * float(
+                        np.sum(step * step)
+                    ):
+                        break
+                # the same sufficient-decrease test without the cancellation of f's large terms
+                # (the shift makes r_n ≈ μ|u_t| large), f(γ) − f(y) − ∇f(y)·(γ − y) = ½ (γ − y)·N(γ − y)
+                # with N(γ − y) = u(γ) − u(y): exact for the quadratic f
+                elif float(np.sum(step * (u_new - gy))) <= lip * float(np.sum(step * step)):
                     break
                 lip *= 2.0
                 t = 1.0 / lip
@@ -497,11 +552,16 @@ class Stepper(Integrator):
             beta = theta * (1.0 - theta) / (theta * theta + theta_new)
             y_new = g_new + beta * (g_new - gam_k)
             res = ck.residual_max(g_new, u_new, cmu, cscale, nc)
+            res_pass = res
+            if shift is not None:
+                res = ck.coulomb_residual_max(g_new, u_new, shift, cmu, cscale, nc)
             if res < best_res:
                 best_res = res
                 best = g_new.copy()
             if res <= pr.tolerance:
                 break
+            if shift is not None and res_pass <= 0.5 * res:
+                break  # the shift is now the larger error
             if float(np.sum(gy * (g_new - gam_k))) > 0.0:  # restart
                 y_new = g_new.copy()
                 theta_new = 1.0
