@@ -172,3 +172,67 @@ def test_block_on_a_moving_floor_is_carried_without_lifting(solver):
         assert p.v[0, 0] == pytest.approx(vw, abs=1e-9)
         x_catch = vw**2 / (2 * MU * G)
         assert p.x[0, 0] == pytest.approx(x_catch + vw * (sim.time - t_catch), rel=0.01)
+
+
+# ----------------------------------------------------------------------------------- a sheared layer
+def dragged_layer(law, cone=None, solver=None, v_s=0.5, mu_plate=0.2, load=0.05):
+    """A layer of 4 free grains seated in the pockets of a 3 × 3 layer of touching grains that moves
+    along x at ``v_s`` (prescribed), under a plate that is a free rigid body (along z only) pressed
+    down by ``load`` [N] and held in x: the layer is carried along and slides under the plate
+    (μ_plate · 1.707 < μ = 0.5, so the grains neither climb out of their pockets nor roll out)."""
+    kw = {} if law != "complementarity" else {"solver": solver, "cone": cone, "max_iterations": 5000,
+                                               "tolerance": 1e-8 if solver == "apgd" else 1e-9}  # fmt: skip
+    sim = pdem.Simulation(law=law, **kw)
+    for name, mu in (("glass", MU), ("plate", mu_plate)):
+        sim.add_material(name, density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.5,
+                         friction=mu)  # fmt: skip
+    sim.gravity = (0.0, 0.0, -G)
+    g = np.stack(np.meshgrid(np.arange(3), np.arange(3), indexing="ij"), -1).reshape(-1, 2)
+    sim.add_particles(np.column_stack([g * 2 * R, np.full(9, R)]), R, material="glass", motion="prescribed",
+                      velocities=np.tile([v_s, 0.0, 0.0], (9, 1)))  # fmt: skip
+    g = np.stack(np.meshgrid(np.arange(2), np.arange(2), indexing="ij"), -1).reshape(-1, 2)
+    z = R + np.sqrt(2.0) * R  # seated on four grains
+    sim.add_particles(np.column_stack([(g + 0.5) * 2 * R, np.full(4, z)]), R, material="glass",
+                      velocities=np.tile([v_s, 0.0, 0.0], (4, 1)))  # fmt: skip
+    mass = 2500.0 * 4.0 / 3.0 * np.pi * R**3
+    plate = RigidBody(mass=5 * mass, force=(0.0, 0.0, -load), fixed_translation="xy")
+    sim.add_wall(shapes.Plane((0.0, 0.0, z + R), (0.0, 0.0, -1.0)), material="plate", name="plate",
+                 motion=plate)  # fmt: skip
+    if law == "complementarity":
+        sim.dt = 2e-4
+    return sim
+
+
+def plate_rise(sim, duration):
+    plate = sim.walls["plate"]
+    z0 = plate.reference_point[2]
+    rise = []
+    while sim.time < duration - 1e-12:
+        sim.step()
+        rise.append(plate.reference_point[2] - z0)
+    return np.array(rise)
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_layer_sliding_under_a_loaded_plate_does_not_lift_it(solver):
+    """Grains carried along at 0.5 m/s slide under a plate that carries a constant load (a free rigid
+    body, solved with the grains). Coulomb: the plate stays where it is (< 1e-6 r), the layer moves
+    with its carrier, the plate's load is the applied one and its friction μ_plate × load. The relaxed
+    cone holds every sliding contact open by μ_plate |u_t| h (0.02 r at h = 2e-4 s), the gap the
+    confined lift-off leaves; DEM-P (Hertz) only lets the plate settle into the grains."""
+    v_s, mu_p, load, duration = 0.5, 0.2, 0.05, 0.012
+    sim = dragged_layer("complementarity", "corrected", solver, v_s, mu_p, load)
+    rise = plate_rise(sim, duration)
+    assert np.max(np.abs(rise)) < 1e-6 * R
+    p = sim.get_particles()
+    assert np.allclose(p["v"][:, 0], v_s, atol=1e-6)
+    assert np.allclose(p["v"][:, 1:], 0.0, atol=1e-6)
+    assert sim.walls["plate"].force[2] == pytest.approx(load, rel=1e-5)
+    assert sim.walls["plate"].force[0] == pytest.approx(mu_p * load, rel=1e-5)
+    relaxed = dragged_layer("complementarity", "relaxed", solver, v_s, mu_p, load)
+    rise_relaxed = plate_rise(relaxed, duration)
+    assert rise_relaxed[-1] == pytest.approx(mu_p * v_s * relaxed.dt, rel=1e-3)
+    assert rise_relaxed[-1] > 1e4 * np.max(np.abs(rise))
+    if solver == "jacobi":
+        dem_p = dragged_layer("hertz_mindlin", v_s=v_s, mu_plate=mu_p, load=load)
+        assert np.max(plate_rise(dem_p, duration)) <= 0.0
