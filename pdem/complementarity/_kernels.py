@@ -22,8 +22,9 @@ v_rel = (v_j + ω_j × (−a_j n)) − (v_i + ω_i × (a_i n)) (physics referenc
 instead of u (De Saxcé's change of variable). γ ∈ K, ũ ∈ K*, γ ⊥ ũ is then Coulomb's law itself:
 u_n ≥ 0, γ_n u_n = 0, and a sliding contact's friction is μ γ_n against the slip, so a sliding
 contact keeps u_n = 0 instead of separating at μ|u_t| (the relaxed cone, ``corrected`` false).
-Jacobi and Gauss–Seidel take μ|u_t| from the velocities of the current iterate at every update (a
-fixed-point iteration on the shift); APGD holds a shift per pass (:func:`shift_normal`).
+Every solver takes μ|u_t| from the velocities of the current iterate (Jacobi and Gauss–Seidel at
+each update, APGD at each evaluation of ũ: :func:`correct_normal`): the shift and the impulses
+converge together to the fixed point.
 """
 
 from __future__ import annotations
@@ -286,17 +287,10 @@ def contact_velocities(cb, cn, ca, cvw, cbias, v, w, nc, u):
 
 
 @njit
-def shift_normal(u, shift, nc):
-    """u_n += s_c for every contact (APGD's fixed shift of one pass; ``u`` in place)."""
+def correct_normal(u, cmu, nc):
+    """u_n += μ_c |u_t|: the corrected cone's velocities ũ (``u`` in place)."""
     for c in range(nc):
-        u[c, 0] += shift[c]
-
-
-@njit
-def coulomb_shift(u, cmu, nc, out):
-    """out[c] = μ_c |u_t,c|: the normal shift that turns the relaxed cone problem into Coulomb's law."""
-    for c in range(nc):
-        out[c] = cmu[c] * math.sqrt(u[c, 1] * u[c, 1] + u[c, 2] * u[c, 2] + u[c, 3] * u[c, 3])
+        u[c, 0] += cmu[c] * math.sqrt(u[c, 1] * u[c, 1] + u[c, 2] * u[c, 2] + u[c, 3] * u[c, 3])
 
 
 @njit(inline="always")
@@ -398,21 +392,6 @@ def residual_max(gam, u, cmu, cscale, nc):
     for c in range(nc):
         rc = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
                        cscale[c], cmu[c])  # fmt: skip
-        if rc > res or rc != rc:
-            res = rc
-    return res
-
-
-@njit
-def coulomb_residual_max(gam, u, shift, cmu, cscale, nc):
-    """The corrected cone's residual, max over contacts of |γ − Π(γ − B ũ)| / B with
-    ũ_n = u_n − s_c + μ|u_t|, from velocities ``u`` that carry a fixed shift s (APGD's passes)."""
-    res = 0.0
-    for c in range(nc):
-        mu = cmu[c]
-        un = u[c, 0] - shift[c] + mu * math.sqrt(u[c, 1] * u[c, 1] + u[c, 2] * u[c, 2] + u[c, 3] * u[c, 3])
-        rc = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], un, u[c, 1], u[c, 2], u[c, 3],
-                       cscale[c], mu)  # fmt: skip
         if rc > res or rc != rc:
             res = rc
     return res
