@@ -124,8 +124,8 @@ def test_column_at_rest_on_floor(solver):
 
 # ----------------------------------------------------------------------------------- friction
 def test_block_slides_to_rest_after_v2_over_2_mu_g():
-    """A non-rotating sphere launched at v0 along a floor stops after v0²/(2 μ g) (within 2 %:
-    the cone relaxation lifts a sliding contact by ~μ v_t h per step, and time is discrete)."""
+    """A non-rotating sphere launched at v0 along a floor stops after v0²/(2 μ g) (within 1 %; the
+    semi-implicit step stops it v0 h/2 short, 0.2 % here)."""
     mu, v0 = 0.4, 0.2
     sim = make_sim("apgd", mu=mu, dt=1e-4, tolerance=1e-9, max_iterations=500)
     sim.add_particles([[0.0, 0.0, R]], R, material="glass", velocities=[[v0, 0.0, 0.0]])
@@ -137,7 +137,7 @@ def test_block_slides_to_rest_after_v2_over_2_mu_g():
             break
     assert abs(sim.particles.v[0, 0]) < 1e-9
     distance = sim.particles.x[0, 0]
-    assert distance == pytest.approx(v0**2 / (2 * mu * G), rel=0.02)
+    assert distance == pytest.approx(v0**2 / (2 * mu * G), rel=0.01)
 
 
 def test_sphere_slides_then_rolls():

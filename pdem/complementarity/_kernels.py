@@ -328,8 +328,9 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
 
 
 @njit
-def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax, corrected):
-    """One projected Jacobi sweep: every contact from the same velocities. Returns the largest
+def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax, corrected=True):
+    """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
+    corrected cone's ũ, as the law's default; false: the relaxed cone). Returns the largest
     residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
@@ -341,10 +342,10 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_rela
 
 @njit
 def gauss_seidel_sweep(
-    cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax, corrected
+    cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax, corrected=True
 ):  # fmt: skip
-    """One projected Gauss–Seidel sweep in row order, velocities updated after each contact.
-    Returns the largest residual met during the sweep."""
+    """One projected Gauss–Seidel sweep in row order, velocities updated after each contact
+    (``corrected`` as in :func:`jacobi_update`). Returns the largest residual met during the sweep."""
     res = 0.0
     for c in range(nc):
         rc, g0, g1, g2, g3, n0, n1, n2, n3 = _update(

@@ -68,8 +68,8 @@ class ComplementarityParams(LawParams):
     cone: Literal["corrected", "relaxed"] = Field(
         "corrected",
         description="friction law solved: 'corrected' (default) is Coulomb's law: each contact's "
-        "normal right-hand side is raised by μ|u_t| (its slip speed, from the current iterate; APGD: "
-        "from the previous pass) and iterated to a fixed point, so a sliding contact stays closed "
+        "normal right-hand side is raised by μ|u_t| (its slip speed, from the current iterate) and "
+        "iterated to a fixed point, so a sliding contact stays closed "
         "(u_n = 0); 'relaxed' is the convex Anitescu–Tasora cone problem, in which a sliding contact "
         "separates at u_n = μ|u_t| (a sphere sliding at 5 m/s on a floor with μ = 0.5 leaves it at "
         "1.3 m/s): pdem's behaviour before this option, kept for comparison",
@@ -458,12 +458,12 @@ class Stepper(Integrator):
         ACM TOG 34(3), 2015, Algorithm 1), on f(γ) = ½ γᵀNγ + rᵀγ over the cones, ∇f = u(γ).
 
         Corrected cone: the same iteration on the corrected velocities ũ(γ) = u(γ) + μ|u_t(γ)| e_n
-        (the shift of the current iterate, as Jacobi and Gauss–Seidel use it). ũ is no longer the
-        gradient of a function, so the step's acceptance test is written without f: the condition
-        f(γ) ≤ f(y) + ∇f(y)·(γ − y) + L/2 |γ − y|² of the quadratic f is (γ − y)·(u(γ) − u(y)) ≤ L |γ − y|²,
-        and this local Lipschitz test on ũ is used. (Holding the shift fixed through whole APGD
-        passes and refreshing it between them, a fixed point of convex problems, needed 10–40 times
-        the iterations of this on a sheared packing.)"""
+        (the shift of the current iterate, as Jacobi and Gauss–Seidel use it). ũ is not the gradient
+        of a function, so the step's acceptance test is written without f: for the quadratic f,
+        f(γ) ≤ f(y) + ∇f(y)·(γ − y) + L/2 |γ − y|² is (γ − y)·(u(γ) − u(y)) ≤ L |γ − y|², and that
+        local Lipschitz test is applied to ũ. (It also avoids the cancellation of f's large terms.
+        Holding the shift fixed through whole APGD solves and refreshing it between them, a fixed
+        point of convex problems, needed 10–40 times the iterations on a sheared packing.)"""
         pr = self.p
         if nc == 0:
             self._sync_velocities(nc, v_free, w_free, P, L)
