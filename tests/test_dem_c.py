@@ -124,8 +124,8 @@ def test_column_at_rest_on_floor(solver):
 
 # ----------------------------------------------------------------------------------- friction
 def test_block_slides_to_rest_after_v2_over_2_mu_g():
-    """A non-rotating sphere launched at v0 along a floor stops after v0²/(2 μ g) (within 2 %:
-    the cone relaxation lifts a sliding contact by ~μ v_t h per step, and time is discrete)."""
+    """A non-rotating sphere launched at v0 along a floor stops after v0²/(2 μ g) (within 1 %; the
+    semi-implicit step stops it v0 h/2 short, 0.2 % here)."""
     mu, v0 = 0.4, 0.2
     sim = make_sim("apgd", mu=mu, dt=1e-4, tolerance=1e-9, max_iterations=500)
     sim.add_particles([[0.0, 0.0, R]], R, material="glass", velocities=[[v0, 0.0, 0.0]])
@@ -137,7 +137,7 @@ def test_block_slides_to_rest_after_v2_over_2_mu_g():
             break
     assert abs(sim.particles.v[0, 0]) < 1e-9
     distance = sim.particles.x[0, 0]
-    assert distance == pytest.approx(v0**2 / (2 * mu * G), rel=0.02)
+    assert distance == pytest.approx(v0**2 / (2 * mu * G), rel=0.01)
 
 
 def test_sphere_slides_then_rolls():
@@ -208,14 +208,18 @@ def test_head_on_impact_removes_normal_velocity():
     assert np.linalg.norm(p.x[0] - p.x[1]) >= 2 * R - 1e-12
 
 
-def test_oblique_impact_on_floor():
+@pytest.mark.parametrize("cone", ["corrected", "relaxed"])
+def test_oblique_impact_on_floor(cone):
     """A sphere hitting the floor obliquely. Frictionless, its normal velocity is removed exactly.
     With friction it slides through the step: the tangential impulse equals μ × the normal impulse
-    (the bound of the cone), and the contact separates at u_n = μ |u_t| — the cone relaxation of
-    Coulomb's law (maximum dissipation) that physics reference §3 documents."""
+    (the bound of the cone). Coulomb's law (the corrected cone) keeps the contact closed (u_n = 0);
+    the relaxed cone problem of physics reference §3 separates it at u_n = μ |u_t| (maximum
+    dissipation's artificial lift-off)."""
     vx, vz = 1.0, -0.5
     for mu in (0.0, 0.2):
-        sim = make_sim("apgd", mu=mu, gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000)
+        sim = make_sim(
+            "apgd", mu=mu, gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000, cone=cone
+        )
         sim.add_particles([[0.0, 0.0, R]], R, material="glass", velocities=[[vx, 0.0, vz]])
         floor(sim)
         m = float(sim.particles.mass[0])
@@ -231,7 +235,12 @@ def test_oblique_impact_on_floor():
             continue
         assert u_t > 0  # still sliding forward: gross sliding through the step
         assert -jt == pytest.approx(mu * jn, rel=1e-6)
-        assert p.v[0, 2] == pytest.approx(mu * u_t, rel=1e-6)
+        if cone == "corrected":
+            assert abs(p.v[0, 2]) < 1e-11  # the tolerance, 1e-12 m/s, at the scale of the step
+            # closed form: jn = m |vz| exactly, jt = −μ jn, I Δω = R |jt|
+            assert jn == pytest.approx(-m * vz, rel=1e-9)
+        else:
+            assert p.v[0, 2] == pytest.approx(mu * u_t, rel=1e-6)
         # spin from the friction impulse about the centre: I Δω_y = R |jt|
         inertia = 0.4 * m * R * R
         assert p.w[0, 1] == pytest.approx(-R * jt / inertia, rel=1e-9)

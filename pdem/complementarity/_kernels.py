@@ -17,6 +17,14 @@ Per contact c:
 
 The contact velocity u = Dᵀv + b has u_n = n·v_rel + b and u_t = v_rel − (n·v_rel) n with
 v_rel = (v_j + ω_j × (−a_j n)) − (v_i + ω_i × (a_i n)) (physics reference §3).
+
+``corrected`` (the law's ``cone = "corrected"``): the solver works with ũ = (u_n + μ|u_t|, u_t)
+instead of u (De Saxcé's change of variable). γ ∈ K, ũ ∈ K*, γ ⊥ ũ is then Coulomb's law itself:
+u_n ≥ 0, γ_n u_n = 0, and a sliding contact's friction is μ γ_n against the slip, so a sliding
+contact keeps u_n = 0 instead of separating at μ|u_t| (the relaxed cone, ``corrected`` false).
+Every solver takes μ|u_t| from the velocities of the current iterate (Jacobi and Gauss–Seidel at
+each update, APGD at each evaluation of ũ: :func:`correct_normal`): the shift and the impulses
+converge together to the fixed point.
 """
 
 from __future__ import annotations
@@ -278,6 +286,13 @@ def contact_velocities(cb, cn, ca, cvw, cbias, v, w, nc, u):
         u[c, 0], u[c, 1], u[c, 2], u[c, 3] = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
 
 
+@njit
+def correct_normal(u, cmu, nc):
+    """u_n += μ_c |u_t|: the corrected cone's velocities ũ (``u`` in place)."""
+    for c in range(nc):
+        u[c, 0] += cmu[c] * math.sqrt(u[c, 1] * u[c, 1] + u[c, 2] * u[c, 2] + u[c, 3] * u[c, 3])
+
+
 @njit(inline="always")
 def _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu):
     """|γ − Π(γ − B u)| / B: the projected-gradient residual [m/s]."""
@@ -290,12 +305,14 @@ def _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu):
 
 
 @njit(inline="always")
-def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax):
-    """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities; returns the residual of the old γ_c
-    and the old and new impulses."""
+def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected):
+    """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``); returns the
+    residual of the old γ_c and the old and new impulses."""
     u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
     b = cscale[c]
     mu = cmu[c]
+    if corrected:
+        u0 += mu * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
     g0 = gam[c, 0]
     g1 = gam[c, 1]
     g2 = gam[c, 2]
@@ -311,25 +328,28 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax):
 
 
 @njit
-def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax):
-    """One projected Jacobi sweep: every contact from the same velocities. Returns the largest
+def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax, corrected=True):
+    """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
+    corrected cone's ũ, as the law's default; false: the relaxed cone). Returns the largest
     residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        rc = _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax)[0]
+        rc = _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected)[0]
         if rc > res or rc != rc:
             res = rc
     return res
 
 
 @njit
-def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax):
-    """One projected Gauss–Seidel sweep in row order, velocities updated after each contact.
-    Returns the largest residual met during the sweep."""
+def gauss_seidel_sweep(
+    cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax, corrected=True
+):  # fmt: skip
+    """One projected Gauss–Seidel sweep in row order, velocities updated after each contact
+    (``corrected`` as in :func:`jacobi_update`). Returns the largest residual met during the sweep."""
     res = 0.0
     for c in range(nc):
         rc, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
         )
         if rc > res or rc != rc:
             res = rc
@@ -368,7 +388,7 @@ def gauss_seidel_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, in
 
 @njit
 def residual_max(gam, u, cmu, cscale, nc):
-    """max over contacts of |γ − Π(γ − B u)| / B."""
+    """max over contacts of |γ − Π(γ − B u)| / B (pass ũ for the corrected cone's residual)."""
     res = 0.0
     for c in range(nc):
         rc = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
