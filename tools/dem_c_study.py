@@ -118,13 +118,14 @@ def cost_per_contact(repeat: int = 5) -> dict[str, float]:
     hm.add_material("glass", **MAT)
     hm.add_particles(x, R, material="glass")
     hm.dt = 1e-7
-    hm._prepare()
-    touching = int(np.count_nonzero(np.any(hm._fpair != 0.0, axis=1)))
+    hm.prepare()
+    cs = hm.contact_store
+    touching = int(np.count_nonzero(np.any(cs.force[: len(cs.pi)] != 0.0, axis=1)))
     times_p = []
     for _ in range(repeat):
         t0 = time.perf_counter()
         for _ in range(20):
-            hm._compute_forces_inner()
+            hm.compute_forces()
         times_p.append((time.perf_counter() - t0) / 20 / max(touching, 1))
     return {
         "contacts_dem_c": nc,
