@@ -1139,13 +1139,21 @@ class Simulation:
         if flags & FLAG_COINCIDENT:
             causes.append("two particle centres coincide")
         if self.law.kind == "complementarity":
+            # DEM-C finds overlaps when it assembles a step's contacts; the same step's solve pushes
+            # them apart, so the state now may show less than what was found
+            now = (
+                f"largest overlap {worst:.3g} of the radius, {who}"
+                if worst > self.max_overlap or not flags & FLAG_OVERLAP
+                else f"found when the step's contacts were assembled (after the step's solve the largest "
+                f"is {worst:.3g} of the radius, {who})"
+            )
             raise InstabilityError(
                 f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
-                f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "
+                f"{' and '.join(causes)}; {now}. "
                 f"dt = {self.dt:.4g} s, complementarity solver '{self.law.params.solver}' with "
                 f"max_iterations = {self.law.params.max_iterations}: the contact problem was not solved "
-                "well enough; reduce dt, raise contact.max_iterations or lower contact.tolerance, or "
-                "check the initial overlaps and prescribed velocities"
+                "well enough; reduce dt, raise contact.complementarity.max_iterations or lower "
+                "contact.complementarity.tolerance, or check the initial overlaps and prescribed velocities"
             )
         raise InstabilityError(
             f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "

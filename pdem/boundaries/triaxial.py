@@ -77,8 +77,9 @@ class TriaxialParams(BoundaryParams):
     )
     control: str = Field(
         "auto", pattern="^(auto|velocity|force)$",
-        description="top platen during consolidation: 'velocity' servo (soft grains), 'force' (a free "
-        "plate under σ₃ A; rigid grains); 'auto': by the contact law",
+        description="top platen while seating and consolidating: 'velocity' servo (soft grains), "
+        "'force' (a free plate under the seating stress, then σ₃ A, solved with the grains; rigid "
+        "grains, on which a velocity servo reads impulses and overloads them); 'auto': by the contact law",
     )
     max_speed: float = Field(0.05, gt=0, description="largest platen speed of the velocity servo [m/s]")
     seating_stress: float | None = Field(
@@ -108,6 +109,8 @@ class TriaxialCell(Boundary):
         super().__init__(name, params)
         self.phase = "off"
         self._stage_t0 = 0.0
+        self.force_control = False  # set per stage by on_stage
+        self._seated = False
         self._size = None
         self.h0 = self.v0 = None
         self._cells: tuple | None = None
@@ -146,12 +149,14 @@ class TriaxialCell(Boundary):
         if not self.active:
             self.phase = "off"
             return
+        control = p.control
+        if control == "auto":
+            control = "force" if sim.law.kind == "complementarity" else "velocity"
+        self.force_control = control == "force"
+        self._seated = bool(resumed.get("seated", False)) if resumed is not None else False
         if stage == p.consolidation_stage:
             self.phase = "consolidate"
-            control = p.control
-            if control == "auto":
-                control = "force" if sim.law.kind == "complementarity" else "velocity"
-            if control == "force":
+            if self.force_control:
                 area = math.pi * p.radius**2
                 body = RigidBody(mass=p.sigma3 * area / 10.0, force=(0.0, 0.0, -p.sigma3 * area),
                                  fixed_translation="xy")  # fmt: skip
@@ -169,19 +174,40 @@ class TriaxialCell(Boundary):
             self.h0 = None  # taken at the first step of shearing
         else:
             self.phase = "prepare"
-            self.motion = Controlled()
-            sim.set_wall_motion(self.top.name, self.motion)
+            if self.force_control and self._seated:  # resumed after the plate came down
+                self._seat_body(sim, resumed)
+            else:
+                self.motion = Controlled()
+                sim.set_wall_motion(self.top.name, self.motion)
         self._stage_t0 = sim.time
         if resumed is not None:  # continue the stage where the checkpoint left it
             self._stage_t0 = resumed["stage_t0"]
             self.h0, self.v0 = resumed["h0"], resumed["v0"]
         self._stage = stage
 
+    def _seat_body(self, sim: Any, resumed: dict | None = None) -> None:
+        """Force control while seating: the top platen becomes a free plate (mass: its load / 10
+        m/s²) pressed down by the seating stress over the mould's cross-section, at rest unless
+        resumed."""
+        load = self._seat_stress() * math.pi * self.params.radius**2
+        body = RigidBody(mass=max(load, 1e-300) / 10.0, force=(0.0, 0.0, -load), fixed_translation="xy")
+        if resumed is not None and "body_velocity" in resumed:
+            body.restore({"velocity": np.array(resumed["body_velocity"]), "angular_velocity": np.zeros(3)})
+        sim.set_wall_motion(self.top.name, body)
+
+    def after_step(self, sim: Any) -> None:
+        # force control while seating: the platen comes down at max_speed until the grains push it,
+        # then it is a free plate under the seating load (from the next step on)
+        if self.phase == "prepare" and self.force_control and not self._seated and self.mould is not None:
+            if self.mould.active and float(self.top.force[2]) > 0.0:  # collective
+                self._seated = True
+                self._seat_body(sim)
+
     def state(self) -> dict[str, Any]:
         """What a resumed stage needs: the stage, its start time (pressure ramp), the height and
         volume at the start of shearing (strain references), a load-controlled plate's velocity."""
         out = {"stage": getattr(self, "_stage", None), "stage_t0": self._stage_t0, "h0": self.h0,
-               "v0": self.v0}  # fmt: skip
+               "v0": self.v0, "seated": self._seated}  # fmt: skip
         if isinstance(self.top.motion, RigidBody):
             out["body_velocity"] = self.top.motion.velocity_now.tolist()
         return out
@@ -220,7 +246,10 @@ class TriaxialCell(Boundary):
             self.top.motion.force = (0.0, 0.0, -self.pressure(sim) * self._area())
         elif self.phase == "prepare" and self.mould is not None and self.mould.active:
             seat = self._seat_stress()
-            self._servo(seat, math.pi * self.params.radius**2, seat)
+            if not self.force_control:
+                self._servo(seat, math.pi * self.params.radius**2, seat)
+            elif not self._seated:  # force control: come down at full speed until the grains are met
+                self.motion.velocity = np.array([0.0, 0.0, -self.params.max_speed])
         elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
             self._servo(max(self.pressure(sim), self._seat_stress()), self._area(), self.params.sigma3)
         elif self.phase == "shear":
