@@ -117,6 +117,32 @@ def test_dem_c_consolidates_under_load_control(packing):
     assert np.mean(s1) == pytest.approx(SIGMA3, rel=0.1)
 
 
+def test_dem_c_seats_the_platen_as_a_free_plate(packing):
+    """Force control in the mould stage (DEM-C): the platen comes down at max_speed from above the
+    grains, becomes a free plate at the first contact, and then carries the seating load (the
+    grains stay un-overloaded: a velocity servo reading impulses drove them past 0.25 r)."""
+    x, r = packing
+    sim = pdem.Simulation(law="complementarity")
+    sim.set_law("complementarity", solver="apgd", max_iterations=300)
+    sim.add_material("glass", **MAT)
+    sim.add_particles(x, r)
+    top = float((x[:, 2] + r).max())
+    seat = 2e3
+    cell = TriaxialCell("cell", TriaxialParams(
+        type="triaxial", material="glass", base_center=(0, 0, 0), radius=R0, height=top + 1e-3,
+        sigma3=SIGMA3, strain_rate=2.0, max_speed=0.1, seating_stress=seat, mould_stages=["settle"],
+        consolidation_stage="consolidate", shear_stage="shear"))  # fmt: skip
+    sim.add_boundary(cell)
+    sim.dt = 1e-4
+    sim.set_stage("settle")
+    sim.run(until=0.012)  # 1 mm at 0.1 m/s: touching
+    assert isinstance(sim.walls["cell.top"].motion, pdem.api.RigidBody)
+    assert cell.state()["seated"] is True
+    s1 = []
+    sim.run(until=0.03, callback=lambda s: s1.append(float(cell.top.force[2]) / (math.pi * R0**2)), every=5)
+    assert np.mean(s1[len(s1) // 2 :]) == pytest.approx(seat, rel=0.15)
+
+
 def test_resume_at_every_stage_is_bitwise(tmp_path):
     """Kill points in each stage (settle, consolidation with its pressure ramp, shear with its
     strain references): `pdem resume` continues bit for bit as the uninterrupted run."""
