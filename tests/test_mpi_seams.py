@@ -143,3 +143,27 @@ def test_triaxial_identical_on_1_2_3_ranks(tmp_path):
     for ranks in (2, 3):
         for key in res[1]:
             assert np.array_equal(res[1][key], res[ranks][key]), (ranks, key)
+
+
+def test_triaxial_deck_identical_on_1_and_4_ranks(tmp_path):
+    """The whole small triaxial deck through the CLI (pluviation, a mould stage at its own friction,
+    seating, consolidation with the pressure ramp, shear): the final checkpoint on 4 ranks is
+    bitwise the serial one."""
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tools"))
+    from determinism import compare
+
+    from pdem.io.checkpoint import read_checkpoint
+
+    deck = root / "tests" / "data" / "triaxial_small.toml"
+    states = {}
+    for ranks in (1, 4):
+        out = tmp_path / f"r{ranks}"
+        cmd = [sys.executable, "-m", "pdem", str(deck), "--output", str(out), "--quiet"]
+        if ranks > 1:
+            cmd = [MPIEXEC, "-n", str(ranks), *cmd]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        states[ranks], _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+    assert int(states[1]["scalars/step"]) == 1600
+    assert compare(states[1], states[4]) is None
