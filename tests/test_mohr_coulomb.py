@@ -109,5 +109,13 @@ def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
     assert code == 0
     fit = json.loads((tmp_path / "mohr_coulomb.json").read_text())["fits"]["direct_shear"]["peak"]
     assert fit["phi_deg"] == pytest.approx(math.degrees(math.atan(0.5)))
+    # constant stiffness number: E scales with the stress (the deck's E at the deck's stress)
+    tri = ROOT / "inputs" / "triaxial.toml"
+    args = ["triaxial", str(tri), "--dry-run", "--stress", "5e4", "2e5", "--constant-stiffness", "glass"]
+    capsys.readouterr()
+    assert fs.main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "materials.glass.youngs_modulus=50000000.0" in lines[0]
+    assert "materials.glass.youngs_modulus=200000000.0" in lines[1]
     with pytest.raises(SystemExit, match="shear_box"):
         fs.main(["direct_shear", str(ROOT / "inputs" / "triaxial.toml"), "--dry-run"])

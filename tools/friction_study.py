@@ -5,12 +5,17 @@
     python tools/friction_study.py direct_shear [DECK] [--stress 3100 6400 12500 24200]  [options]
 
     options: --ranks N (mpiexec -n N; default 1) --out DIR --set KEY=VALUE ... --dry-run
+             --constant-stiffness MATERIAL
 
 Each run is ``pdem DECK --set boundaries.NAME.KEY=S`` (``sigma3`` of the deck's ``triaxial``
 boundary, or ``normal_stress`` of its ``shear_box``) plus the extra ``--set``s, into
 ``OUT/<stress>``, one after the other. A run whose ``summary.json`` exists is kept and skipped
 (the study can be stopped and started again); a failed run stops the study with its exit code.
-Then ``tools/mohr_coulomb.py`` fits and plots all runs into ``OUT/mohr_coulomb.{json,csv,png}``.
+``--constant-stiffness MATERIAL`` scales that material's Young's modulus with the stress (E × S /
+S_deck): soft grains are characterised by κ = (E/p)^(2/3) (overlaps ~ d/κ), and at a fixed E a
+friction angle can fall as the stress rises only because κ falls (docs/experiments/triaxial.md); at
+a constant κ every run has the same relative overlaps. Then ``tools/mohr_coulomb.py`` fits and
+plots all runs into ``OUT/mohr_coulomb.{json,csv,png}``.
 The decks default to ``inputs/triaxial.toml`` and ``inputs/direct_shear.toml`` (full size: tens of
 minutes per run on 2 cores; the results are in docs/experiments/).
 """
@@ -69,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="default out/<test>_study")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    ap.add_argument("--constant-stiffness", metavar="MATERIAL", default=None,
+                    help="scale this material's Young's modulus with the stress (constant κ)")  # fmt: skip
     args = ap.parse_args(argv)
     kind, key, default_deck, default_stress = TESTS[args.test]
     deck = args.deck or ROOT / default_deck
@@ -76,10 +83,19 @@ def main(argv: list[str] | None = None) -> int:
     name = boundary_of(deck, kind)
     outputs = []
     stresses = args.stress or default_stress
+    data = tomllib.loads(deck.read_text())
     for k, s in enumerate(stresses):
         run_dir = out / f"{s:g}"
         outputs.append(run_dir)
-        cmd = command(deck, run_dir, [f"boundaries.{name}.{key}={s!r}", *args.overrides], args.ranks)
+        sets = [f"boundaries.{name}.{key}={s!r}"]
+        if args.constant_stiffness:
+            mat = data.get("materials", {}).get(args.constant_stiffness)
+            if not isinstance(mat, dict) or "youngs_modulus" not in mat:
+                raise SystemExit(f"{deck}: no materials.{args.constant_stiffness}.youngs_modulus to scale")
+            ref = float(data["boundaries"][name][key])
+            modulus = float(mat["youngs_modulus"]) * s / ref
+            sets.append(f"materials.{args.constant_stiffness}.youngs_modulus={modulus!r}")
+        cmd = command(deck, run_dir, [*sets, *args.overrides], args.ranks)
         if args.dry_run:
             print(" ".join(cmd))
             continue
