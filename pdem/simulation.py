@@ -1214,14 +1214,19 @@ class Simulation:
         pi, pj = cs.pi, cs.pj
         d = p.x[pj] - p.x[pi]
         dist = np.linalg.norm(d, axis=1)
-        overlap = p.r[pi] + p.r[pj] - dist
-        touching = (overlap > 0) & np.any(cs.force != 0, axis=1)
+        touching = np.any(cs.force != 0, axis=1)
+        if self.law.kind != "complementarity":
+            # DEM-P: a force with a gap is stale (the pair parted after the evaluation); rigid grains
+            # (DEM-C) carry impulses at a zero or slightly positive gap: the impulse decides
+            touching &= p.r[pi] + p.r[pj] - dist > 0
         touching &= (p.motion[pi] != REMOVED) & (p.motion[pj] != REMOVED)
         return pi, pj, d, dist, touching
 
     def contacts(self) -> dict[str, np.ndarray]:
         """Touching particle pairs of the last force evaluation: ``id_i < id_j``, overlap [m],
-        normal force [N] (positive = repulsive) and force on j [N] (on i: its negative)."""
+        normal force [N] (positive = repulsive) and force on j [N] (on i: its negative). With DEM-C,
+        every pair that carried an impulse (impulse / h), whatever its gap (rigid grains touch at a
+        zero or small positive gap: the overlap is then ≤ 0)."""
         if not self._prepared:
             self._prepare()
         p = self.particles
