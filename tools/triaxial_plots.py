@@ -105,6 +105,9 @@ def bulge_at(out: Path, boundary: str, eps: float) -> dict | None:
         "mid": float(np.mean(rad[mid])),
         "ends": float(0.5 * (rad[0] + rad[-1])),
         "bulge": (float(np.mean(rad[mid])) - 0.5 * float(rad[0] + rad[-1])) / r0,
+        "growth": (float(np.mean(rad)) - r0) / r0,
+        "spread": float(np.ptp(rad)) / r0,
+        "spread0": float(np.ptp(rad0)) / r0,
     }
 
 
@@ -152,7 +155,9 @@ def main(argv=None) -> int:
             print(f"{out}: radius at ε_a = {100 * f1['eps_a']:.1f} %: middle third "
                   f"{1e3 * prof['mid']:.2f} mm, "
                   f"ends {1e3 * prof['ends']:.2f} mm, at the start of the shear {1e3 * prof['r0']:.2f} mm "
-                  f"(mean); bulge (middle − ends) / r0 = {100 * prof['bulge']:.1f} %")  # fmt: skip
+                  f"(mean); bulge (middle − ends) / r0 = {100 * prof['bulge']:.1f} %; mean radius "
+                  f"+{100 * prof['growth']:.1f} %, max − min over the height {100 * prof['spread']:.1f} % "
+                  f"of r0 (at the start {100 * prof['spread0']:.1f} %)")  # fmt: skip
     ax[0].set(xlabel="axial strain ε_a [%]", ylabel="q / p", title="stress ratio")
     ax[1].set(xlabel="axial strain ε_a [%]", ylabel="volumetric strain ε_v [%] (contraction > 0)",
               title="volume change")  # fmt: skip
