@@ -74,6 +74,40 @@ def test_membrane_loads_the_outermost_grain_of_each_cell(packing):
     assert loaded.size >= len(expected)
 
 
+def test_membrane_band_shares_each_cells_load(packing):
+    """With ``membrane_band`` the grains near a cell's outermost share its load (weights linear in
+    their distance below it, brute force here): the total load is the same as with the outermost
+    grain alone, more grains carry it, and each cell's shares sum to its patch load."""
+    x, r = packing
+    totals = {}
+    for band in (0.0, 0.5):
+        sim, cell = _cell(packing)
+        cell.params = cell.params.model_copy(update={"membrane_band": band})
+        sim.set_stage("consolidate")
+        sim.prepare()
+        sim.compute_forces()
+        f, _lever, rhat = cell._applied
+        totals[band] = (-np.einsum("ij,ij->i", f, rhat).sum(), len(f))
+    nz, nt, filled = cell._cells
+    assert totals[0.5][0] == pytest.approx(totals[0.0][0], rel=1e-12)
+    assert totals[0.5][1] > totals[0.0][1] == filled
+    # brute force of the weights: cell by cell, from the grains' own positions
+    h, size = cell.height(), cell._size
+    rho = np.hypot(x[:, 0], x[:, 1])
+    val = rho + r
+    kt = np.minimum(((np.arctan2(x[:, 1], x[:, 0]) + math.pi) / (2 * math.pi) * nt).astype(int), nt - 1)
+    kz = np.clip((x[:, 2] / h * nz).astype(int), 0, nz - 1)
+    cells = kz * nt + kt
+    band = 0.5 * 0.5 * size
+    expected = 0.0
+    for c in np.unique(cells):
+        v = val[cells == c]
+        wt = (v[v > v.max() - band] - (v.max() - band)) / band
+        assert wt.max() == pytest.approx(1.0)
+        expected += SIGMA3 * v.max() * (2 * math.pi / nt) * (h / nz) * (wt / wt.sum()).sum()
+    assert totals[0.5][0] == pytest.approx(expected, rel=1e-12)
+
+
 def test_boundary_stresses_agree_with_the_grains_own_stress(packing):
     sim, cell = _cell(packing)
     sim.set_stage("consolidate")

@@ -75,6 +75,14 @@ class TriaxialParams(BoundaryParams):
         default=None, gt=0,
         description="membrane cell size [m] along z and around; default one mean diameter",
     )
+    membrane_band: float = Field(
+        0.0, ge=0,
+        description="share of a cell's membrane load [fraction of half the cell size, i.e. of the mean "
+        "radius by default]: 0 loads the "
+        "outermost grain only; b > 0 shares it among the grains whose outer surface lies within b r "
+        "of the outermost, weighted linearly from 0 at the band's inner edge to 1 at the outermost, "
+        "so that the load moves continuously from grain to grain",
+    )
     control: str = Field(
         "auto", pattern="^(auto|velocity|force)$",
         description="top platen while seating and consolidating: 'velocity' servo (soft grains), "
@@ -320,13 +328,35 @@ class TriaxialCell(Boundary):
             return geometry
         self._volume, self._lateral_area, self._radius = geometry
         self._cells = (nz, nt, int(filled.sum()))
-        # the global winners this rank owns, loaded with σ3 × their patch along the inward normal
-        owner = np.full(nz * nt, -1, dtype=np.int64)
-        owner[gcell] = gid
-        w = win[owner[cell[win]] == ids[win]]
+        band = self.params.membrane_band * 0.5 * size
+        if band > 0.0:
+            # the grains within `band` of their cell's outermost share its load, weighted linearly
+            # (continuous in the positions); the weights of a cell are summed in id order over the
+            # gathered candidates, so every rank gets the same sums on any rank count
+            near = np.flatnonzero(val > R[cell] - band)
+            wt = (val[near] - (R[cell[near]] - band)) / band
+            cand = (cell[near], ids[near], wt)
+            if sim.comm.size > 1:
+                parts = sim.comm.allgather(cand)
+                cc = np.concatenate([q[0] for q in parts])
+                ci = np.concatenate([q[1] for q in parts])
+                cw = np.concatenate([q[2] for q in parts])
+            else:
+                cc, ci, cw = cand
+            o = np.lexsort((ci, cc))
+            total = np.zeros(nz * nt)
+            np.add.at(total, cc[o], cw[o])
+            w = near
+            share = wt / total[cell[w]]
+        else:
+            # the global winners this rank owns, loaded with σ3 × their patch along the inward normal
+            owner = np.full(nz * nt, -1, dtype=np.int64)
+            owner[gcell] = gid
+            w = win[owner[cell[win]] == ids[win]]
+            share = np.ones(w.size)
         k = cell[w]
         rhat = np.stack([dx[w], dy[w], np.zeros(w.size)], axis=1) / np.maximum(rho[w], 1e-300)[:, None]
-        f = -self.pressure(sim) * (R[k] * dth * dz)[:, None] * rhat
+        f = -self.pressure(sim) * (share * R[k] * dth * dz)[:, None] * rhat
         p.f[rows[w]] += f
         # kept for the measurements: the load and the lever r ρ̂ of each loaded grain, and the area
         self._applied = (f, r[w][:, None] * rhat, rhat)
