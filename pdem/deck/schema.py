@@ -407,7 +407,26 @@ class MaterialSpec(_DeckModel):
         return Material(name=name, **self.model_dump())
 
 
-class MaterialPair(_DeckModel):
+class _ContactValues(_DeckModel):
+    """Optional restitution / friction / rolling friction, at least one given (a material pair's,
+    or a material's during one stage)."""
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if not any(_given(data, k) for k in ("restitution", "friction", "rolling_friction")):
+            return [((), "give at least one of restitution, friction, rolling_friction")]
+        return []
+
+    def values(self) -> dict[str, float]:
+        """The values that are set."""
+        return {
+            k: v
+            for k in ("restitution", "friction", "rolling_friction")
+            if (v := getattr(self, k)) is not None
+        }
+
+
+class MaterialPair(_ContactValues):
     """``[[material_pairs]]``: explicit values for one pair of materials (default: the minimum)."""
 
     materials: tuple[Str, Str] = Field(
@@ -416,20 +435,6 @@ class MaterialPair(_DeckModel):
     restitution: Float | None = Field(None, ge=0, le=1, description="restitution of the pair [-], in [0, 1]")
     friction: Float | None = Field(None, ge=0, description="sliding friction of the pair [-]")
     rolling_friction: Float | None = Field(None, ge=0, description="rolling friction of the pair [-]")
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        if not any(_given(data, k) for k in ("restitution", "friction", "rolling_friction")):
-            return [((), "a material pair needs at least one of restitution, friction, rolling_friction")]
-        return []
-
-    def values(self) -> dict[str, float]:
-        """The pair values that are set."""
-        return {
-            k: v
-            for k in ("restitution", "friction", "rolling_friction")
-            if (v := getattr(self, k)) is not None
-        }
 
 
 # -------------------------------------------------------------------------------------------------
@@ -737,28 +742,14 @@ class OutputCadence(_DeckModel):
         return []
 
 
-class StageMaterial(_DeckModel):
+class StageMaterial(_ContactValues):
     """``[stages.materials.NAME]``: a material's contact properties during one stage only."""
 
-    friction: Float | None = Field(None, ge=0, description="sliding friction μ during this stage [-]")
     restitution: Float | None = Field(None, ge=0, le=1, description="restitution e during this stage [-]")
+    friction: Float | None = Field(None, ge=0, description="sliding friction μ during this stage [-]")
     rolling_friction: Float | None = Field(
         None, ge=0, description="rolling friction μ_r during this stage [-]"
     )
-
-    @classmethod
-    def rules(cls, data: dict, context: dict) -> Problems:
-        if not any(_given(data, k) for k in ("friction", "restitution", "rolling_friction")):
-            return [((), "give at least one of friction, restitution, rolling_friction")]
-        return []
-
-    def values(self) -> dict[str, float]:
-        """The values that are set."""
-        return {
-            k: v
-            for k in ("friction", "restitution", "rolling_friction")
-            if (v := getattr(self, k)) is not None
-        }
 
 
 class Stage(_DeckModel):
