@@ -50,8 +50,11 @@ def test_plate_holds_target_stress(law, control, dt, settle, hold):
     sim.run(until=settle + hold, callback=lambda s: stresses.append(plate.stress()))
     s = np.array(stresses)
     assert abs(s.mean() / TARGET - 1) < 0.02
-    # rigid grains: the load jitters at the solver's residual (APGD, tolerance 1e-5 m/s)
-    assert np.percentile(np.abs(s / TARGET - 1), 95) < (0.05 if law == "hertz_mindlin" else 0.1)
+    # rigid grains: the load jitters at the solver's residual (APGD, tolerance 1e-5 m/s). Measured
+    # 95th percentiles: 3.8 % with the relaxed cone, 10.1 % with the Coulomb (corrected) cone, the
+    # default since the lift-off fix, whose fixed point APGD converges less well (16.5 % at 500
+    # iterations: more iterations do not help; docs/dem_c.md)
+    assert np.percentile(np.abs(s / TARGET - 1), 95) < (0.05 if law == "hertz_mindlin" else 0.15)
     assert plate.plate.offset[2] < -1e-4  # it moved down onto the grains
 
 
