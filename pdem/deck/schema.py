@@ -1103,19 +1103,23 @@ def _cross_checks(data: dict) -> Problems:
             hint = did_you_mean(value, stage_names, True)
             out.append((loc, f"unknown stage '{value}'{hint}; defined stages: {_listing(stage_names)}"))
 
+    def check_names(loc: Loc, table: dict) -> None:
+        """A plugin's table: keys naming a material, and keys naming a stage or a list of stages."""
+        for key in _material_keys(table):
+            check_material((*loc, key), table[key])
+        for key in _stage_keys(table):
+            value = table[key]
+            if isinstance(value, list):
+                for j, v in enumerate(value):
+                    check_stage((*loc, key, j), v)
+            else:
+                check_stage((*loc, key), value)
+
     particles = data.get("particles")
-    if isinstance(particles, list):  # any source plugin: keys naming materials and stages, as below
+    if isinstance(particles, list):  # any source plugin, like any boundary plugin below
         for k, src in enumerate(particles):
             if isinstance(src, dict):
-                for key in _material_keys(src):
-                    check_material(("particles", k, key), src[key])
-                for key in _stage_keys(src):
-                    value = src[key]
-                    if isinstance(value, list):
-                        for j, v in enumerate(value):
-                            check_stage(("particles", k, key, j), v)
-                    else:
-                        check_stage(("particles", k, key), value)
+                check_names(("particles", k), src)
 
     pairs = data.get("material_pairs")
     if isinstance(pairs, list):
@@ -1145,17 +1149,8 @@ def _cross_checks(data: dict) -> Problems:
                     "contain only letters, digits, '_' or '-'",
                 )
             )
-        if not isinstance(table, dict):
-            continue
-        for key in _material_keys(table):
-            check_material(("boundaries", name, key), table[key])
-        for key in _stage_keys(table):
-            value = table[key]
-            if isinstance(value, list):
-                for j, v in enumerate(value):
-                    check_stage(("boundaries", name, key, j), v)
-            else:
-                check_stage(("boundaries", name, key), value)
+        if isinstance(table, dict):
+            check_names(("boundaries", name), table)
 
     output = data.get("output")
     thermo = output.get("thermo") if isinstance(output, dict) else None
