@@ -28,28 +28,37 @@ def packing():
     return x, r
 
 
-def _cell(packing, law="hertz_mindlin", rate=2.0):
+def _cell(packing, law="hertz_mindlin", rate=2.0, smoothing=0.1, mat=MAT):
     x, r = packing
     sim = pdem.Simulation(law=law)
-    sim.add_material("glass", **MAT)
+    sim.add_material("glass", **mat)
     sim.add_particles(x, r)
     top = float((x[:, 2] + r).max())
     cell = TriaxialCell("cell", TriaxialParams(
         type="triaxial", material="glass", base_center=(0, 0, 0), radius=R0, height=top + 1e-5,
-        sigma3=SIGMA3, strain_rate=rate, consolidation_stage="consolidate", shear_stage="shear"))  # fmt: skip
+        sigma3=SIGMA3, strain_rate=rate, consolidation_stage="consolidate", shear_stage="shear",
+        membrane_smoothing=smoothing))  # fmt: skip
     sim.add_boundary(cell)
     sim.dt = 2e-6 if law == "hertz_mindlin" else 1e-4
     return sim, cell
 
 
+def _membrane_only(sim, cell):
+    """The membrane's forces alone, at the current positions."""
+    sim.particles.f[:] = 0.0
+    cell._membrane(sim, apply=True)
+    return sim.particles.f[: sim.particles.n_owned].copy()
+
+
 def test_membrane_loads_the_outermost_grain_of_each_cell(packing):
-    sim, cell = _cell(packing)
+    """``membrane_smoothing = 0``: the outermost grain of each (θ, z) cell, found here by brute
+    force, carries −σ3 R Δθ Δz ρ̂ (R = ρ + r) and no other grain is loaded."""
+    sim, cell = _cell(packing, smoothing=0.0)
     sim.set_stage("consolidate")
     sim.prepare()
-    sim.compute_forces()  # contacts + the membrane (apply_forces)
-    f, _lever, rhat = cell._applied
+    sim.compute_forces()
+    f = _membrane_only(sim, cell)
     x, r = packing
-    # brute force: the grain of largest ρ + r in every occupied cell
     nz, nt, filled = cell._cells
     h = cell.height()
     rho = np.hypot(x[:, 0], x[:, 1])
@@ -59,66 +68,121 @@ def test_membrane_loads_the_outermost_grain_of_each_cell(packing):
     best = {}
     for i in np.lexsort((np.arange(len(x)), -(rho + r))):
         best.setdefault(int(cells[i]), i)
-    assert len(best) == filled == len(f)
-    loaded = np.flatnonzero(np.any(sim.particles.f[: len(x)] != 0.0, axis=1))  # no contacts yet? use forces
-    expected = sorted(best.values())
-    # every winner got a force −σ3 R Δθ Δz ρ̂ (horizontal, inward), and nobody else did
-    got = np.array(sorted(np.flatnonzero(np.isin(np.arange(len(x)), expected))))
-    assert np.array_equal(got, expected)
-    assert np.all(f[:, 2] == 0.0)
-    assert np.all(np.einsum("ij,ij->i", f, rhat) < 0)
+    assert len(best) == filled
+    expected = np.array(sorted(best.values()))
+    rows = np.searchsorted(sim.particles.id[: len(x)], expected)  # ids are 0..n-1 in input order
+    loaded = np.flatnonzero(np.any(f != 0.0, axis=1))
+    assert np.array_equal(np.sort(sim.particles.id[loaded]), expected)
     dth, dz = 2 * math.pi / nt, h / nz
-    total = -np.einsum("ij,ij->i", f, rhat).sum()
-    radii = np.array([rho[i] + r[i] for i in expected])
-    assert total == pytest.approx(SIGMA3 * radii.sum() * dth * dz, rel=1e-12)
-    assert loaded.size >= len(expected)
+    rhat = np.stack([x[expected, 0], x[expected, 1], np.zeros(len(expected))], axis=1) / rho[expected, None]
+    want = -SIGMA3 * ((rho + r)[expected] * dth * dz)[:, None] * rhat
+    order = np.argsort(sim.particles.id[: len(x)])
+    np.testing.assert_allclose(f[order][expected], want, rtol=1e-12, atol=1e-300)
+    assert rows.size == len(expected)
 
 
-def test_membrane_band_shares_each_cells_load(packing):
-    """With ``membrane_band`` the grains near a cell's outermost share its load (weights linear in
-    their distance below it, brute force here): the total load is the same as with the outermost
-    grain alone, more grains carry it, and each cell's shares sum to its patch load."""
-    x, r = packing
-    totals = {}
-    for band in (0.0, 0.5):
-        sim, cell = _cell(packing)
-        cell.params = cell.params.model_copy(update={"membrane_band": band})
-        sim.set_stage("consolidate")
-        sim.prepare()
-        sim.compute_forces()
-        f, _lever, rhat = cell._applied
-        totals[band] = (-np.einsum("ij,ij->i", f, rhat).sum(), len(f))
-    nz, nt, filled = cell._cells
-    assert totals[0.5][0] == pytest.approx(totals[0.0][0], rel=1e-12)
-    assert totals[0.5][1] > totals[0.0][1] == filled
-    # brute force of the weights: cell by cell, from the grains' own positions
-    h, size = cell.height(), cell._size
-    rho = np.hypot(x[:, 0], x[:, 1])
-    val = rho + r
-    kt = np.minimum(((np.arctan2(x[:, 1], x[:, 0]) + math.pi) / (2 * math.pi) * nt).astype(int), nt - 1)
-    kz = np.clip((x[:, 2] / h * nz).astype(int), 0, nz - 1)
-    cells = kz * nt + kt
-    band = 0.5 * 0.5 * size
-    expected = 0.0
-    for c in np.unique(cells):
-        v = val[cells == c]
-        wt = (v[v > v.max() - band] - (v.max() - band)) / band
-        assert wt.max() == pytest.approx(1.0)
-        expected += SIGMA3 * v.max() * (2 * math.pi / nt) * (h / nz) * (wt / wt.sum()).sum()
-    assert totals[0.5][0] == pytest.approx(expected, rel=1e-12)
+def test_smooth_membrane_is_the_gradient_of_pressure_times_volume(packing):
+    """The default membrane: each grain's load is −σ3 ∂V/∂x of the enclosed volume V the cell is
+    measured with (central differences on the most loaded grains), with one pressure P for all,
+    the loads act inward, and they exert σ3 exactly (the radial virial −Σ (ρ + lever)·F / 2V)."""
+    sim, cell = _cell(packing)
+    sim.set_stage("consolidate")
+    sim.prepare()
+    sim.compute_forces()
+    p = sim.particles
+    f = _membrane_only(sim, cell)
+    loaded = np.flatnonzero(np.any(f != 0.0, axis=1))
+    assert loaded.size > cell._cells[2]  # more grains than cells share the load
+    rho = np.hypot(p.x[loaded, 0], p.x[loaded, 1])
+    inward = -(f[loaded, 0] * p.x[loaded, 0] + f[loaded, 1] * p.x[loaded, 1]) / rho
+    assert inward.sum() > 0 and np.mean(inward > 0) > 0.9
+    eps = 1e-8
+    pressures = []
+    for i in loaded[np.argsort(-np.linalg.norm(f[loaded], axis=1))[:6]]:
+        grad = np.zeros(3)
+        for c in range(3):
+            p.x[i, c] += eps
+            vp = cell._membrane(sim, apply=False)[0]
+            p.x[i, c] -= 2 * eps
+            vm = cell._membrane(sim, apply=False)[0]
+            p.x[i, c] += eps
+            grad[c] = (vp - vm) / (2 * eps)
+        pressure = -np.dot(f[i], grad) / np.dot(grad, grad)
+        np.testing.assert_allclose(f[i], -pressure * grad, rtol=1e-5, atol=1e-6 * np.abs(f[i]).max())
+        pressures.append(pressure)
+    # one pressure for every grain: σ3 on V, scaled so that the grains feel σ3 (the virial)
+    assert np.ptp(pressures) < 1e-5 * SIGMA3
+    assert SIGMA3 <= pressures[0] < 1.1 * SIGMA3
+    assert cell._membrane_pressure(sim) == pytest.approx(SIGMA3, rel=1e-12)
+
+
+def _total_energy(sim, cell):
+    """Kinetic + Hertz elastic (pairs and platens, F = 4/3 E* sqrt(R*) δ^1.5) + σ3 V."""
+    E, nu = MAT["youngs_modulus"], MAT["poisson_ratio"]
+    e_star = E / (2 * (1 - nu**2))  # grain–grain and grain–platen: one material
+    parts = sim.get_particles()
+    ids, rr = parts["id"], parts["r"]
+    u = 0.0
+    c = sim.contacts()
+    if len(c["id_i"]):
+        ri, rj = rr[np.searchsorted(ids, c["id_i"])], rr[np.searchsorted(ids, c["id_j"])]
+        d = np.maximum(c["overlap"], 0.0)
+        u += np.sum(8 / 15 * e_star * np.sqrt(ri * rj / (ri + rj)) * d**2.5)
+    wc = sim.wall_contacts()
+    if len(wc["id"]):
+        d = np.maximum(wc["overlap"], 0.0)
+        u += np.sum(8 / 15 * e_star * np.sqrt(rr[np.searchsorted(ids, wc["id"])]) * d**2.5)
+    kt, kr = sim.kinetic_energy()
+    return kt + kr + u + SIGMA3 * cell._membrane(sim, apply=False)[0]
+
+
+@pytest.mark.parametrize("smoothing", [0.1, 0.0])
+def test_the_smooth_membrane_conserves_energy(packing, smoothing):
+    """Frictionless elastic grains (e = 1) squeezed by the membrane between fixed platens: the
+    kinetic + elastic energy + σ3 V stays constant with the smooth membrane (a conservative load),
+    while a load that jumps to whichever grain is outermost heats the specimen (measured here: it
+    gains 19 % in the same run; 0.4 % with the smooth membrane)."""
+    mat = {**MAT, "restitution": 1.0, "friction": 0.0}
+    sim, cell = _cell(packing, rate=1e-12, smoothing=smoothing, mat=mat)  # shear at ~0: platens fixed
+    sim.set_stage("shear")
+    sim.prepare()
+    e0 = _total_energy(sim, cell)
+    sim.run(steps=3000)
+    drift = _total_energy(sim, cell) / e0 - 1.0
+    if smoothing > 0:
+        assert abs(drift) < 0.01
+    else:
+        assert drift > 0.05
+
+
+def _boundary_szz(sim, cell):
+    """The specimen's mean σ_zz from its boundary loads alone (equilibrium: V σ = Σ x ⊗ F over the
+    external loads at their points): the top platen at the height h, the membrane's loads at the
+    grains' surface points (centre + lever)."""
+    f = _membrane_only(sim, cell)
+    z = sim.particles.x[: sim.particles.n_owned, 2]
+    _f, mom, _vir = cell._applied
+    platen = -sim.walls["cell.top"].force[2] * cell.height()  # the top platen pushes down at z = h
+    membrane = np.sum(z * f[:, 2]) + mom[:, 8].sum()
+    return -(platen + membrane) / cell._volume, f[:, 2].sum()
 
 
 def test_boundary_stresses_agree_with_the_grains_own_stress(packing):
+    """The grains' own mean stress (Love–Weber, from their contacts) against the boundary's: σ_rr
+    against σ3; σ_zz against the platen's and the membrane's loads (the membrane pushes along its
+    own normal, so on a specimen wider at one end than the other it carries part of the axial load:
+    the platens' loads differ by exactly that, without gravity)."""
     sim, cell = _cell(packing)
     sim.set_stage("consolidate")
     sim.run(until=0.015)
     m = cell.measurements(sim)
-    top, bottom = sim.walls["cell.top"].force[2], -sim.walls["cell.bottom"].force[2]
-    assert top == pytest.approx(bottom, rel=0.03)  # no gravity: the column carries one force
+    top, bottom = sim.walls["cell.top"].force[2], sim.walls["cell.bottom"].force[2]
+    szz, fz = _boundary_szz(sim, cell)
+    assert top + bottom - fz == pytest.approx(0.0, abs=0.01 * top)  # axial equilibrium (loads on walls)
     assert m["sigma1"] == pytest.approx(SIGMA3, rel=0.1)  # the servo brings σ1 to σ3
-    assert m["lw_szz"] == pytest.approx(m["sigma1"], rel=0.03)
-    assert m["lw_srr"] == pytest.approx(m["sigma3"], rel=0.05)
-    assert m["sigma3"] == pytest.approx(SIGMA3, rel=1e-9)  # the membrane's applied load / its area
+    assert m["lw_szz"] == pytest.approx(szz, rel=0.03)
+    assert m["lw_srr"] == pytest.approx(m["sigma3"], rel=0.03)
+    assert m["sigma3"] == pytest.approx(SIGMA3, rel=1e-9)  # what the membrane's loads exert
 
 
 def test_shearing_bulges_the_specimen_and_mobilises_friction(packing):
@@ -133,7 +197,7 @@ def test_shearing_bulges_the_specimen_and_mobilises_friction(packing):
     assert m["eps_a"] == pytest.approx(0.08, abs=0.005)
     assert m["q"] > 0.2 * SIGMA3  # friction mobilised (μ = 0.3)
     assert m["radius"] > r0 * 1.005  # free to bulge: no rigid wall around it
-    assert m["lw_szz"] == pytest.approx(m["sigma1"], rel=0.05)
+    assert m["lw_szz"] == pytest.approx(_boundary_szz(sim, cell)[0], rel=0.05)
 
 
 @pytest.mark.slow  # ~45 s: APGD at its iteration cap every step

@@ -9,7 +9,11 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["SerialComm", "default_comm", "any_rank", "all_max", "all_min"]
+import numpy as np
+
+__all__ = [
+    "SerialComm", "default_comm", "any_rank", "all_max", "all_min", "all_max_array", "all_sum_int_array",
+]
 
 
 class SerialComm:
@@ -78,6 +82,24 @@ def all_min(comm, value: float) -> float:
     if comm.size == 1:
         return value
     return comm.allreduce(value, op=_mpi_op("MIN"))
+
+
+def all_max_array(comm, values: np.ndarray) -> np.ndarray:
+    """Elementwise maximum of a float64 array over ranks (exact)."""
+    if comm.size == 1:
+        return values
+    out = np.empty_like(values)
+    comm.Allreduce(np.ascontiguousarray(values), out, op=_mpi_op("MAX"))
+    return out
+
+
+def all_sum_int_array(comm, values: np.ndarray) -> np.ndarray:
+    """Elementwise sum of an int64 array over ranks (integers: exact in any order)."""
+    if comm.size == 1:
+        return values
+    out = np.empty_like(values)
+    comm.Allreduce(np.ascontiguousarray(values), out, op=_mpi_op("SUM"))
+    return out
 
 
 def _mpi_op(name: str):
