@@ -190,12 +190,15 @@ def select_grains(sim: Any, where: str, params: GrainSelectionParams) -> tuple[n
         ids.append(gid)
         origin.append(key)
     want = np.asarray(ids, dtype=np.int64)
-    centres = np.zeros((want.size, 3))
     rows = _rows_of(p.id[:n], want)
     mine = rows >= 0
-    centres[mine] = p.x[rows[mine]] + 0.0
-    if sim.comm.size > 1:
-        centres = sim.comm.allreduce(centres)
+    local = (mine, p.x[rows[mine]] + 0.0)
+    # before the first preparation every rank holds every particle: take the first rank's copy
+    parts = sim.comm.allgather(local) if sim.comm.size > 1 else [local]
+    centres = np.full((want.size, 3), np.nan)
+    for has, x in parts:
+        todo = has & np.isnan(centres[:, 0])
+        centres[todo] = x[todo[has]]
     return want, centres
 
 
