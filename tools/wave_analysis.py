@@ -272,7 +272,7 @@ def analyse_bed(run_dir, spacing: float | None = None) -> dict:
     return out
 
 
-def bed(run: Path, out: Path) -> dict:
+def bed(run: Path, out: Path, frames: tuple[int, ...] = (2, 4, 6)) -> dict:
     res = analyse_bed(run)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -317,7 +317,7 @@ def bed(run: Path, out: Path) -> dict:
     plt.close(fig)
     if rows:
         _write_csv(out / "bed_arrivals.csv", rows)
-    front_picture(run, out / "bed_front.png", res)
+    front_picture(run, out / "bed_front.png", res, frames)
     (out / "bed_arrivals.json").write_text(json.dumps(res, indent=2) + "\n")
     return res
 
@@ -511,6 +511,7 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("bed", help="arrival times in the 2-D bed")
     b.add_argument("run", type=Path)
     b.add_argument("--out", type=Path, default=None)
+    b.add_argument("--frames", type=int, nargs="+", default=[2, 4, 6], help="snapshots in the front picture")
     m = sub.add_parser("dem-c", help="DEM-C apparent front speed against iteration cap and step")
     m.add_argument("--out", type=Path, default=Path("out/wave_dem_c"))
     m.add_argument("--iterations", type=int, nargs="+", default=[1, 2, 5, 20])
@@ -532,7 +533,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"exponent of V_s ~ F_m^a: a = {res['exponent']:.4f} (1/6 = {1 / 6:.4f})")
         print(f"wrote {a.out}/chain_speeds.csv, chain_speeds.png")
     elif a.cmd == "bed":
-        res = bed(a.run, a.out or a.run)
+        res = bed(a.run, a.out or a.run, tuple(a.frames))
         for name, line in res["lines"].items():
             print(
                 f"{name}: arrival {line['speed_arrival']:.1f} m/s, speed peak {line['speed_peak']:.1f} m/s, "

@@ -36,7 +36,8 @@ centres when chosen), ``distance`` (from the first sensor's grain), ``arrival_ti
 ``peak_time``, ``peak_speed``, ``peak_force``, ``force_peak_time`` (and ``force_arrival_time``),
 null where there was none; and wave speeds: ``speed_arrival``, ``speed_peak``, ``speed_force_peak``,
 the inverse slopes of least-squares lines of those times against ``distance`` over the sensors that
-have one (at least two at distinct distances). Measured every series row: ``arrived_count`` (sensors
+have one (at least two at distinct distances; null when the times do not grow, a front that crossed
+every sensor within one sample, as DEM-C's does). Measured every series row: ``arrived_count`` (sensors
 whose arrival was seen), ``front_distance`` (the largest distance of those) and ``max_speed``.
 The online state is kept in checkpoints, so a resumed run reports the same arrival and peak times.
 
@@ -238,7 +239,10 @@ def _fit_speed(dist: np.ndarray, times: np.ndarray) -> float | None:
     if np.count_nonzero(ok) < 2 or np.ptp(dist[ok]) <= 0.0:
         return None
     slope = np.polyfit(dist[ok], times[ok], 1)[0]
-    return float(1.0 / slope) if slope > 0 else None
+    # times that do not grow beyond rounding: the front crossed every sensor within one sample
+    if not slope * np.ptp(dist[ok]) > 1e-9 * np.max(np.abs(times[ok])):
+        return None
+    return float(1.0 / slope)
 
 
 def _json(values: np.ndarray) -> list[float | None]:
