@@ -355,7 +355,7 @@ def front_picture(
                 pos = np.array(summary["results"][name]["positions"])
                 ax.plot(pos[:, 0] * 1e3, pos[:, 2] * 1e3, "c+", ms=7, mew=1.5)
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes[0].tolist(), label="speed [m/s]")
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=80, bbox_inches="tight")
     plt.close(fig)
     return path
 
