@@ -161,7 +161,9 @@ def _print_summary(summary: dict, out: Path) -> None:
         f"{summary['wall_time_s']:.1f} s wall time; output in {out}"
     )
     for name, res in summary.get("results", {}).items():
-        items = ", ".join(f"{k} = {v:.6g}" for k, v in res.items())
+        items = ", ".join(  # per-item lists (a probe's per-sensor times) are in summary.json only
+            f"{k} = {v:.6g}" for k, v in res.items() if isinstance(v, int | float) and not isinstance(v, bool)
+        )
         print(f"pdem: {name}: {items}")
     solver = summary.get("solver")
     if solver:

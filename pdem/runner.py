@@ -325,8 +325,17 @@ class Runner:
                 if out.velocities is not None
                 else np.broadcast_to(np.asarray(params.velocity or (0, 0, 0), float), out.positions.shape)
             )
+            motion: Any = params.motion
+            if out.fixed is not None and out.fixed.any():  # e.g. a lattice's fixed_edges
+                motion = np.where(out.fixed, "fixed", params.motion)
             sim.add_particles(
-                out.positions, out.radii, material=params.material, velocities=vel, motion=params.motion
+                out.positions,
+                out.radii,
+                material=params.material,
+                velocities=vel,
+                motion=motion,
+                fixed_translation=getattr(params, "fixed_translation", ""),
+                fixed_rotation=getattr(params, "fixed_rotation", ""),
             )
 
     # ---------------------------------------------------------------------------- measuring
@@ -399,6 +408,7 @@ class Runner:
             **self.measurements(),
         }
         self.series.setdefault(stage, []).append(row)
+        self._boundary_records(stage)
         if not self.root:
             return
         writer = self._series_writers.get(stage)
@@ -408,6 +418,23 @@ class Runner:
             writer = SeriesWriter(self.out / f"series_{stage}.csv", list(row), append=self._series_append)
             self._series_writers[stage] = writer
         writer.append(row)
+
+    def _boundary_records(self, stage: str) -> None:
+        """Rows the boundaries sampled since the last series row (``Boundary.records``, collective),
+        appended by rank 0 to ``<boundary>.<stage>.csv``."""
+        for name, b in self.boundaries.items():
+            rows = b.records(self.sim)
+            if not rows or not self.root:
+                continue
+            writer = self._series_writers.get(("records", name, stage))
+            if writer is None:
+                from .io.series import SeriesWriter
+
+                path = self.out / f"{name}.{stage}.csv"
+                writer = SeriesWriter(path, list(rows[0]), append=self._series_append)
+                self._series_writers[("records", name, stage)] = writer
+            for row in rows:
+                writer.append(row)
 
     def frame(self, stage: str, own: bool = False) -> Frame:
         """The snapshot of every particle (gathered on every rank), or with ``own`` of the particles
@@ -624,12 +651,15 @@ class Runner:
         return self._seed_series(self.series_from, start)
 
     def _series_files(self, directory: Path) -> list[tuple[str, Path]]:
-        """``(stage, path)`` of the series and solver CSVs in ``directory``."""
+        """``(stage, path)`` of the series, solver and boundary-record CSVs in ``directory``."""
         out = []
         for path in sorted(directory.glob("*.csv")):
             m = re.fullmatch(r"(series|solver)_(.+)\.csv", path.name)
             if m:
                 out.append((m.group(2), path))
+            elif m := re.fullmatch(r"([A-Za-z_][\w-]*)\.([A-Za-z_][\w-]*)\.csv", path.name):
+                if m.group(1) in self.boundaries:  # <boundary>.<stage>.csv (Boundary.records)
+                    out.append((m.group(2), path))
         return out
 
     def _stage_ran(self, stage: str, start: Any) -> bool:

@@ -306,7 +306,7 @@ class Simulation:
         material: str = None,
         velocities=None,
         angular_velocities=None,
-        motion: str = "free",
+        motion: str | Any = "free",
         group: int = 0,
         fixed_translation: str = "",
         fixed_rotation: str = "",
@@ -315,8 +315,9 @@ class Simulation:
         """Add spheres; returns their ids (consecutive, in the order given).
 
         ``radii`` may be a scalar. ``motion``: ``"free"`` (integrated), ``"fixed"`` (never moves) or
-        ``"prescribed"`` (moves with its given velocity, unaffected by forces). Fixed and prescribed
-        particles act as infinitely massive in contacts. ``group``: an integer tag (scalar or per
+        ``"prescribed"`` (moves with its given velocity, unaffected by forces), for all particles or
+        one name per particle (a bed whose edge grains are fixed). Fixed and prescribed particles act
+        as infinitely massive in contacts. ``group``: an integer tag (scalar or per
         particle). ``fixed_translation``/``fixed_rotation``: axes along/about which the particles may
         not move or turn (see :meth:`set_dof`). Other keywords give values of registered fields.
         """
@@ -345,9 +346,18 @@ class Simulation:
                 f"material '{self.materials[mat_idx].name}' is rigid (Material.rigid_wall): for walls only; "
                 "give the particles an elastic material"
             )
-        if motion not in MOTION_NAMES:
-            raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
-        mo = MOTION_NAMES[motion]
+        if isinstance(motion, str):
+            if motion not in MOTION_NAMES:
+                raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
+            mo = np.full(n, MOTION_NAMES[motion], np.int8)
+        else:
+            names = np.asarray(motion, dtype=object).reshape(-1)
+            if names.shape != (n,):
+                raise InputError(f"motion: give one name or one per particle ({n}); got {names.shape[0]}")
+            bad = sorted({str(m) for m in names if m not in MOTION_NAMES})
+            if bad:
+                raise InputError(f"motion = {bad[0]!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
+            mo = np.array([MOTION_NAMES[m] for m in names], dtype=np.int8)
         v = (
             np.zeros((n, 3))
             if velocities is None
@@ -362,8 +372,8 @@ class Simulation:
         mass = rho * 4.0 / 3.0 * math.pi * r**3
         inertia = 0.4 * mass * r**2
         free = mo == FREE
-        inv_m = 1.0 / mass if free else np.zeros(n)
-        inv_i = 1.0 / inertia if free else np.zeros(n)
+        inv_m = np.where(free, 1.0 / mass, 0.0)
+        inv_i = np.where(free, 1.0 / inertia, 0.0)
         try:
             dof = dof_mask(fixed_translation, fixed_rotation)
         except ValueError as exc:
@@ -373,7 +383,7 @@ class Simulation:
             raise InputError("more than 2**31 particles are not supported")
         values = {
             "id": ids, "x": x, "v": v, "w": w, "r": r, "mass": mass, "inv_m": inv_m, "inv_i": inv_i,
-            "mat": np.full(n, mat_idx, np.int32), "motion": np.full(n, mo, np.int8),
+            "mat": np.full(n, mat_idx, np.int32), "motion": mo,
             "group": np.broadcast_to(np.asarray(group, dtype=np.int32), (n,)),
             "dof": np.full(n, dof, np.uint8),
         }  # fmt: skip

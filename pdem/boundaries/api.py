@@ -25,6 +25,10 @@ keys are errors) and overrides the hooks it needs:
 * ``measurements(sim) -> dict[str, float]`` — scalars recorded in the time series (as
   ``<name>.<key>``) and usable in stage end conditions;
 * ``summary(series) -> dict`` — derived results at the end of the run (e.g. a steady flow rate);
+* ``records(sim) -> list[dict]`` — rows a probe sampled since the last call (each with ``step``
+  and ``time``), at its own cadence (e.g. every step, finer than the series); the runner drains
+  them at every series row and writes them to ``<name>.<stage>.csv`` (rank 0; every rank must
+  return the same rows); a resumed run truncates that file at the checkpoint's step like a series;
 * ``state()`` / ``restore(state)`` — JSON-serialisable memory kept in checkpoints.
 
 The hooks run inside ``Simulation.step`` (under a deck's runner and under ``Simulation.run`` alike),
@@ -140,6 +144,10 @@ class Boundary:
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
         """Derived results at the end of the run. Default: none."""
         return {}
+
+    def records(self, sim: Any) -> list[dict[str, float]]:
+        """Rows sampled since the last call, for ``<name>.<stage>.csv`` (collective). Default: none."""
+        return []
 
     def state(self) -> dict[str, Any]:
         """JSON-serialisable state a checkpoint must keep (counters, controller memory). Default: none."""

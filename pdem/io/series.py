@@ -58,6 +58,8 @@ def is_count_column(column: str) -> bool:
 
 
 def _cell(column: str, value: object, path: Path) -> str:
+    if type(value) is float and not value.is_integer():  # the common case, fast (wide probe rows)
+        return repr(value)
     if isinstance(value, bool | np.bool_):
         return "1" if value else "0"
     if isinstance(value, numbers.Integral):

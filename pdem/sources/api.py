@@ -97,17 +97,29 @@ class SourceParams(_DeckModel):
         "initial velocity, unaffected by forces)",
     )
     velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity (x, y, z) [m/s]")
+    fixed_translation: Str = Field(
+        "",
+        pattern="^[xyz]{0,3}$",
+        description="axes along which the particles may not move, e.g. 'y' (with fixed_rotation = "
+        "'xz': 2-D motion in the xz plane); default none",
+    )
+    fixed_rotation: Str = Field(
+        "", pattern="^[xyz]{0,3}$", description="axes about which the particles may not turn, e.g. 'xz'"
+    )
 
 
 @dataclass(frozen=True)
 class SourceOutput:
     """What a source produces: ``positions`` (n, 3) [m], ``radii`` (n,) [m] and optionally
-    ``velocities`` (n, 3) [m/s] (None: every sphere gets the table's ``velocity``). Converted to
-    float64 arrays; a wrong shape is a :class:`~pdem.errors.PluginError`."""
+    ``velocities`` (n, 3) [m/s] (None: every sphere gets the table's ``velocity``) and ``fixed``
+    (n,) bool: spheres that never move whatever the table's ``motion`` (None: none; a lattice's
+    ``fixed_edges``). Converted to float64 (bool) arrays; a wrong shape is a
+    :class:`~pdem.errors.PluginError`."""
 
     positions: np.ndarray
     radii: np.ndarray
     velocities: np.ndarray | None = None
+    fixed: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         x = np.ascontiguousarray(np.asarray(self.positions, dtype=np.float64))
@@ -130,6 +142,11 @@ class SourceOutput:
         object.__setattr__(self, "positions", x)
         object.__setattr__(self, "radii", r)
         object.__setattr__(self, "velocities", v)
+        if self.fixed is not None:
+            fx = np.ascontiguousarray(np.asarray(self.fixed, dtype=bool))
+            if fx.shape != r.shape:
+                raise PluginError(f"SourceOutput: fixed must have shape {r.shape}; got {fx.shape}")
+            object.__setattr__(self, "fixed", fx)
 
     def __len__(self) -> int:
         return int(self.radii.shape[0])

@@ -12,6 +12,7 @@ import dataclasses
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from ..deck.rules import REGION_MODELS as _REGION_MODELS
@@ -125,6 +126,11 @@ class LatticeParams(SourceParams):
     plane: Literal["xy", "xz", "yz"] | None = Field(
         None, description="coordinate plane, row axis then stacking axis (hex2d only; default 'xz')"
     )
+    fixed_edges: list[Literal["bottom", "top", "left", "right"]] | None = Field(
+        None,
+        description="hex2d only: edges whose spheres never move (motion 'fixed'): 'bottom' (row 0), "
+        "'top' (the last row), 'left' (the first sphere of every row), 'right' (the last of every row)",
+    )
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
@@ -147,7 +153,7 @@ class LatticeParams(SourceParams):
         elif lattice in ("sc", "fcc", "hcp"):
             if not _given(data, "region"):
                 out.append((("region",), f"required for lattice = '{lattice}': region (box or cylinder)"))
-            for k in ("n_cols", "n_rows", "origin", "plane"):
+            for k in ("n_cols", "n_rows", "origin", "plane", "fixed_edges"):
                 if _given(data, k):
                     out.append(((k,), f"{k} applies to lattice = 'hex2d' only; remove it for '{lattice}'"))
             radius = data.get("radius")
@@ -291,12 +297,18 @@ class LatticeSource(Source):
         from . import fcc, hcp, hex2d, simple_cubic
 
         p = self.params
+        fixed = None
         if p.lattice == "hex2d":
             x, r = hex2d(p.n_cols, p.n_rows, p.radius, origin=p.origin, plane=p.plane, spacing=p.spacing)
+            if p.fixed_edges:
+                row, col = np.divmod(np.arange(x.shape[0]), p.n_cols)  # hex2d's order: row by row
+                edge = {"bottom": row == 0, "top": row == p.n_rows - 1, "left": col == 0,
+                        "right": col == p.n_cols - 1}  # fmt: skip
+                fixed = np.logical_or.reduce([edge[e] for e in p.fixed_edges])
         else:
             fn = {"sc": simple_cubic, "fcc": fcc, "hcp": hcp}[p.lattice]
             x, r = fn(p.region.build(), p.radius, spacing=p.spacing)
-        return SourceOutput(x, r)
+        return SourceOutput(x, r, fixed=fixed)
 
     def r_max(self) -> float | None:
         return float(self.params.radius)
