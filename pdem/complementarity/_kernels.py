@@ -474,10 +474,10 @@ def _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, bn, bn_new):
 
 
 @njit(inline="always")
-def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected):
-    """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``), then the
-    rolling rows (:func:`_update_roll`, when the contact has them); returns the residual of the old
-    impulses, the old and new (γ_n, γ_t) and the changes of (ρ, σ)."""
+def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected):
+    """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``); returns the
+    residual of the old γ_c, the fully projected γ_n (the rolling rows' bound in the residual) and
+    the old and new impulses."""
     u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
     b = cscale[c]
     mu = cmu[c]
@@ -494,22 +494,23 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_rela
     gam[c, 1] = n1
     gam[c, 2] = n2
     gam[c, 3] = n3
-    d4 = d5 = d6 = d7 = 0.0
-    if croll[c, 2] > 0.0:
-        rr, d4, d5, d6, d7 = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)
-        if rr > rc or rr != rr:
-            rc = rr
-    return rc, g0, g1, g2, g3, n0, n1, n2, n3, d4, d5, d6, d7
+    return rc, p0, g0, g1, g2, g3, n0, n1, n2, n3
 
 
 @njit
 def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected=True):
     """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
-    corrected cone's ũ, as the law's default; false: the relaxed cone). Returns the largest
-    residual of the impulses before the sweep."""
+    corrected cone's ũ, as the law's default; false: the relaxed cone), its rolling rows after its
+    (γ_n, γ_t). Returns the largest residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        rc = _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected)[0]
+        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+        )
+        if croll[c, 2] > 0.0:
+            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
     return res
@@ -524,9 +525,14 @@ def gauss_seidel_sweep(
     (``corrected`` as in :func:`jacobi_update`). Returns the largest residual met during the sweep."""
     res = 0.0
     for c in range(nc):
-        rc, g0, g1, g2, g3, n0, n1, n2, n3, d4, d5, d6, d7 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected
+        rc, p0, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
         )
+        d4 = d5 = d6 = d7 = 0.0
+        if croll[c, 2] > 0.0:
+            rr, d4, d5, d6, d7 = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
         # apply the change at once
