@@ -261,3 +261,30 @@ def test_spinning_sphere_stops_after_the_closed_form_time(law):
     assert stopped is not None
     assert stopped == pytest.approx(t_stop, rel=0.01)
     assert abs(sim.particles.w[0, 2]) < 1e-6 * omega0
+
+
+# ----------------------------------------------------------------------------------- checkpoints
+def test_a_checkpoint_with_the_old_four_column_history_resumes():
+    """Before rolling friction DEM-C kept 4 floats of history per contact (γ_n, γ_t); a checkpoint
+    written then resumes with zero rolling impulses: without rolling friction, bitwise as from the
+    same checkpoint with 8 columns."""
+    import test_dem_c as base
+
+    kw = {"tolerance": 1e-6, "max_iterations": 60}
+    sim = base._packing("jacobi", v0=-1.0, **kw)
+    sim.run(steps=20)
+    state = sim.state_dict()
+    old = dict(state)
+    for k in old:
+        if k == "pairs/hist" or (k.startswith("walls/") and k.endswith("/hist")):
+            assert np.all(np.asarray(old[k])[:, 4:] == 0.0)
+            old[k] = np.asarray(old[k])[:, :4]
+    runs = []
+    for st in (state, old):
+        resumed = base._packing("jacobi", add=False, **kw)
+        resumed.load_state(st)
+        resumed.run(steps=10)
+        runs.append(resumed.state_dict())
+    assert runs[1]["pairs/hist"].shape[1] == 8
+    for k in runs[0]:
+        assert np.array_equal(np.asarray(runs[0][k]), np.asarray(runs[1][k])), k

@@ -7,8 +7,13 @@ pdem's own entry point like any contact law. One time step h:
 1. rebuild the neighbour list if particles moved more than half the skin (as DEM-P), else forward
    the ghosts' state;
 2. contacts: every listed pair and wall candidate with gap φ ≤ ``envelope``, normal n, bias
-   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulse of
-   the same id pair (of the same wall and particle);
+   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulses of
+   the same id pair (of the same wall and particle); restitution: a contact approaching at
+   v_n⁻ < −``restitution_threshold`` (start-of-step velocities) and closing within the step
+   (b + v_n⁻ < 0) gets b = min(b, e v_n⁻), so it leaves at ≥ e|v_n⁻| (Newton's impact law, as
+   Chrono NSC); rolling and spinning friction add, per contact, a rolling impulse (tangent) and a
+   spinning impulse (about n), bounded by μ_r R* γ_n and μ_s R* γ_n (DEM-P's torque bound
+   μ_r R* F_n) and clamped after the friction cone's projection (Tasora & Anitescu 2013, Chrono);
 3. walls advance (their velocity over the step enters the constraints: moving and servo walls);
 4. v_free = v + h g; solve the CCP for the impulses γ ∈ K (friction cones), u = Dᵀv⁺ + b,
    −u ∈ K°, γ ⊥ u, with the chosen solver; with ``cone = "corrected"`` (default) u_n is replaced by
@@ -36,8 +41,8 @@ The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (w
 ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
 (``Simulation.solver_log``); steps that hit the cap unconverged are counted.
 
-Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions are
-inelastic (no restitution at the velocity level), with ``cone = "relaxed"`` sliding contacts
+Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions
+slower than the restitution threshold are perfectly inelastic, with ``cone = "relaxed"`` sliding contacts
 separate at a normal speed μ|u_t| (the cone relaxation of Coulomb's law: a sliding sphere hops),
 Jacobi needs iterations growing with the number of grains a load must cross, and information moves
 at most one contact per iteration.
