@@ -406,6 +406,7 @@ class Stepper(Integrator):
             "method": "complementarity",
             "solver": p.solver,
             "cone": p.cone,
+            "restitution_threshold": p.restitution_threshold,
             "tolerance": p.tolerance,
             "max_iterations": p.max_iterations,
             "relaxation": p.relaxation,
