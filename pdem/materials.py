@@ -7,7 +7,7 @@ Mixing rules (documented, used by every built-in law):
 * effective moduli (Hertz/Mindlin, physics reference §1)
   ``1/E* = (1 − ν_i²)/E_i + (1 − ν_j²)/E_j`` and
   ``1/G* = 2(2 − ν_i)(1 + ν_i)/E_i + 2(2 − ν_j)(1 + ν_j)/E_j``;
-* restitution, friction and rolling friction of a pair: the **minimum** of the two materials'
+* restitution, friction, rolling and spinning friction of a pair: the **minimum** of the two materials'
   values (the rule of Chrono's SMC contact), unless an explicit pair value is given with
   :meth:`MaterialTable.set_pair`.
 A wall has a material like a particle; its density is not used.
@@ -29,10 +29,13 @@ class Material:
 
     Parameters (SI): ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa], ``poisson_ratio`` ν [-],
     ``restitution`` e ∈ [0, 1], ``friction`` μ ≥ 0 (sliding), ``rolling_friction`` μ_r ≥ 0
-    (dimensionless, multiplies R* F_n; 0 disables rolling resistance).
+    (dimensionless, multiplies R* F_n; 0 disables rolling resistance), ``spinning_friction`` μ_s ≥ 0
+    (dimensionless, multiplies R* F_n: the bound of the torque about the contact normal; 0 disables
+    it).
 
     ``rigid``: a wall material of infinite stiffness (:meth:`rigid_wall`): E* of a contact is the
-    grain's alone, E/(1 − ν²); its ``restitution``, ``friction`` and ``rolling_friction``, when
+    grain's alone, E/(1 − ν²); its ``restitution``, ``friction``, ``rolling_friction`` and
+    ``spinning_friction``, when
     given, are used as they are for its contacts (not mixed as minima), and when None the grain's
     apply. Rigid materials are for walls only.
     """
@@ -45,22 +48,24 @@ class Material:
     friction: float = 0.5
     rolling_friction: float = 0.0
     rigid: bool = False
+    spinning_friction: float = 0.0
 
     @classmethod
     def rigid_wall(
         cls, name: str, *, friction: float | None = None, restitution: float | None = None,
-        rolling_friction: float | None = None,
+        rolling_friction: float | None = None, spinning_friction: float | None = None,
     ) -> Material:  # fmt: skip
-        """A rigid wall material: infinite stiffness; its own friction/restitution/rolling
-        friction where given, else the grain's."""
+        """A rigid wall material: infinite stiffness; its own friction/restitution/rolling and
+        spinning friction where given, else the grain's."""
         return cls(name, density=math.inf, youngs_modulus=math.inf, poisson_ratio=0.0,
                    restitution=restitution, friction=friction, rolling_friction=rolling_friction,
-                   rigid=True)  # fmt: skip
+                   rigid=True, spinning_friction=spinning_friction)  # fmt: skip
 
     def __post_init__(self) -> None:
         if self.rigid:
             for key, lo, hi in (("restitution", 0.0, 1.0), ("friction", 0.0, math.inf),
-                                ("rolling_friction", 0.0, math.inf)):  # fmt: skip
+                                ("rolling_friction", 0.0, math.inf),
+                                ("spinning_friction", 0.0, math.inf)):  # fmt: skip
                 value = getattr(self, key)
                 if value is not None and not (lo <= value <= hi and math.isfinite(value)):
                     raise InputError(
@@ -77,6 +82,7 @@ class Material:
             ("restitution", 0.0 <= self.restitution <= 1.0, "a restitution coefficient in [0, 1]"),
             ("friction", self.friction >= 0, "a friction coefficient ≥ 0"),
             ("rolling_friction", self.rolling_friction >= 0, "a rolling friction coefficient ≥ 0"),
+            ("spinning_friction", self.spinning_friction >= 0, "a spinning friction coefficient ≥ 0"),
         ]
         for key, ok, allowed in checks:
             value = getattr(self, key)
@@ -112,8 +118,8 @@ def rayleigh_time(radius: float, mat: Material) -> float:
 class MaterialTable:
     """The materials of a simulation, indexed in the order they were added.
 
-    ``pair_values[(i, j)]`` holds explicit per-pair overrides of ``restitution``, ``friction`` or
-    ``rolling_friction`` (symmetric).
+    ``pair_values[(i, j)]`` holds explicit per-pair overrides of ``restitution``, ``friction``,
+    ``rolling_friction`` or ``spinning_friction`` (symmetric).
     """
 
     materials: list[Material] = field(default_factory=list)
@@ -139,8 +145,8 @@ class MaterialTable:
         return self.materials[k]
 
     def set_pair(self, a: str, b: str, **values: float) -> None:
-        """Override restitution / friction / rolling_friction for the pair (a, b)."""
-        allowed = {"restitution", "friction", "rolling_friction"}
+        """Override restitution / friction / rolling_friction / spinning_friction for the pair (a, b)."""
+        allowed = {"restitution", "friction", "rolling_friction", "spinning_friction"}
         for key, val in values.items():
             if key not in allowed:
                 raise InputError(f"pair ({a}, {b}): unknown key '{key}'; allowed: {sorted(allowed)}")
@@ -151,7 +157,8 @@ class MaterialTable:
         self.pair_values.setdefault((min(ia, ib), max(ia, ib)), {}).update(values)
 
     def mixed(self, i: int, j: int, key: str) -> float:
-        """Pair value of ``key`` (restitution, friction, rolling_friction): override or minimum."""
+        """Pair value of ``key`` (restitution, friction, rolling_friction, spinning_friction): override
+        or minimum."""
         override = self.pair_values.get((min(i, j), max(i, j)), {})
         if key in override:
             return override[key]

@@ -52,6 +52,15 @@ from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, 
 __all__ = ["Simulation"]
 
 
+def _history(saved, hsize: int) -> np.ndarray:
+    """A checkpoint's contact history as (rows, hsize). A 2-D history narrower than the law's (a
+    DEM-C checkpoint written before rolling friction: 4 columns of 8) is padded with zeros."""
+    h = np.asarray(saved, dtype=np.float64)
+    if h.ndim == 2 and h.shape[1] < hsize:
+        return np.concatenate([h, np.zeros((h.shape[0], hsize - h.shape[1]))], axis=1)
+    return h.reshape(-1, hsize)
+
+
 def _bor():
     from mpi4py import MPI
 
@@ -274,10 +283,11 @@ class Simulation:
         return self.materials.add(mat)
 
     #: material properties :meth:`set_material` may change during a run (no mass, stiffness or step change)
-    MUTABLE_MATERIAL_KEYS = ("friction", "restitution", "rolling_friction")
+    MUTABLE_MATERIAL_KEYS = ("friction", "restitution", "rolling_friction", "spinning_friction")
 
     def set_material(self, name: str, **values: float) -> bool:
-        """Change the ``friction``, ``restitution`` or ``rolling_friction`` of material ``name`` from
+        """Change the ``friction``, ``restitution``, ``rolling_friction`` or ``spinning_friction`` of
+        material ``name`` from
         the next force evaluation on (e.g. frictionless grains while a sample is prepared, then the
         real friction for the test). Density and stiffness cannot change: they set masses and the
         time step. The law's coefficient table is rebuilt in place; contact histories are kept (a
@@ -724,13 +734,13 @@ class Simulation:
         store = self.contact_store
         hsize = store.history_size
         store.keys = np.asarray(state["pairs/keys"], dtype=np.int64)
-        store.hist = np.asarray(state["pairs/hist"], dtype=np.float64).reshape(-1, hsize)
+        store.hist = _history(state["pairs/hist"], hsize)
         store.pi = store.pj = np.zeros(0, dtype=np.int64)
         store.force = np.zeros((0, 3))
         store.pair_capacity = max(8 * len(g["id"]), 64)
         for k, wall in enumerate(self._wall_list):
             key = f"walls/{wall.name}/"
-            whist = np.asarray(state[key + "hist"], dtype=np.float64).reshape(-1, hsize)
+            whist = _history(state[key + "hist"], hsize)
             ids = np.asarray(state[key + "ids"]) if key + "ids" in state else g["id"]  # dense before 0.2
             rows = np.asarray(state[key + "rows"]) if key + "rows" in state else np.zeros(len(ids), np.int64)
             store.set_wall_history(k, rows, ids, whist)

@@ -21,10 +21,11 @@ G = 9.81
 R = 1e-3
 
 
-def make_sim(solver="jacobi", mu=0.5, dt=1e-4, gravity=(0.0, 0.0, -G), **params):
+def make_sim(solver="jacobi", mu=0.5, dt=1e-4, gravity=(0.0, 0.0, -G), e=0.5, mu_r=0.0, mu_s=0.0, **params):
     sim = pdem.Simulation(law="complementarity", solver=solver, **params)
     sim.add_material(
-        "glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.5, friction=mu
+        "glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=e, friction=mu,
+        rolling_friction=mu_r, spinning_friction=mu_s,
     )
     sim.gravity = gravity
     sim.dt = dt
@@ -185,10 +186,12 @@ def test_incline_stick_and_slip(locked):
 
 
 # ----------------------------------------------------------------------------------- impacts
-def test_head_on_impact_removes_normal_velocity():
-    """Two equal spheres approaching: after the contact step their relative normal velocity is zero
-    (velocity-level rigid contact is perfectly inelastic) and momentum is conserved exactly."""
-    sim = make_sim("jacobi", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000)
+@pytest.mark.parametrize("e", [0.0, 0.3, 0.6, 0.9])
+def test_head_on_impact_restitution(e):
+    """Two equal spheres approaching head-on at 1.5 m/s, above the restitution threshold: after the
+    contact step they separate at e × the approach speed (Newton's impact law; e = 0: perfectly
+    inelastic, the relative normal velocity removed) and momentum is conserved exactly."""
+    sim = make_sim("jacobi", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000, e=e)
     gap = 0.5 * 0.1 * R
     sim.add_particles(
         [[-R - gap / 2, 0, 0], [R + gap / 2, 0, 0]],
@@ -201,24 +204,26 @@ def test_head_on_impact_removes_normal_velocity():
     p = sim.particles
     by_id = np.argsort(p.id[:2])
     v = p.v[:2][by_id]
-    assert v[1, 0] - v[0, 0] == pytest.approx(0.0, abs=1e-9)
+    assert v[1, 0] - v[0, 0] == pytest.approx(e * 1.5, abs=1e-9)
     mom = (p.mass[:2, None] * p.v[:2]).sum(axis=0)
     assert mom[0] == pytest.approx(p.mass[0] * 0.5, rel=1e-12)
     # no penetration beyond the envelope-free closing of the gap
     assert np.linalg.norm(p.x[0] - p.x[1]) >= 2 * R - 1e-12
 
 
+@pytest.mark.parametrize("e", [0.0, 0.5])
 @pytest.mark.parametrize("cone", ["corrected", "relaxed"])
-def test_oblique_impact_on_floor(cone):
-    """A sphere hitting the floor obliquely. Frictionless, its normal velocity is removed exactly.
-    With friction it slides through the step: the tangential impulse equals μ × the normal impulse
-    (the bound of the cone). Coulomb's law (the corrected cone) keeps the contact closed (u_n = 0);
-    the relaxed cone problem of physics reference §3 separates it at u_n = μ |u_t| (maximum
-    dissipation's artificial lift-off)."""
+def test_oblique_impact_on_floor(cone, e):
+    """A sphere hitting the floor obliquely at 0.5 m/s normal speed (above the restitution
+    threshold). Frictionless, it leaves the floor at e × its normal speed exactly (e = 0: the normal
+    velocity removed). With friction it slides through the step: the tangential impulse equals μ ×
+    the normal impulse (the bound of the cone). Coulomb's law (the corrected cone) gives the normal
+    velocity of Newton's law, e |v_z|; the relaxed cone problem of physics reference §3 adds
+    μ |u_t| (maximum dissipation's artificial lift-off)."""
     vx, vz = 1.0, -0.5
     for mu in (0.0, 0.2):
         sim = make_sim(
-            "apgd", mu=mu, gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000, cone=cone
+            "apgd", mu=mu, gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=1000, cone=cone, e=e
         )
         sim.add_particles([[0.0, 0.0, R]], R, material="glass", velocities=[[vx, 0.0, vz]])
         floor(sim)
@@ -230,17 +235,19 @@ def test_oblique_impact_on_floor(cone):
         assert jn > 0
         u_t = p.v[0, 0] - R * p.w[0, 1]  # contact-point slip velocity
         if mu == 0.0:
-            assert p.v[0, 2] == pytest.approx(0.0, abs=1e-15)
+            # the relaxed cone's APGD line search compares objective values and stalls near 7e-9 m/s
+            # here (cancellation of f's terms); the corrected cone's test does not
+            assert p.v[0, 2] == pytest.approx(-e * vz, abs=1e-12 if cone == "corrected" else 1e-8)
             assert jt == 0.0 and p.w[0, 1] == 0.0
             continue
         assert u_t > 0  # still sliding forward: gross sliding through the step
         assert -jt == pytest.approx(mu * jn, rel=1e-6)
         if cone == "corrected":
-            assert abs(p.v[0, 2]) < 1e-11  # the tolerance, 1e-12 m/s, at the scale of the step
-            # closed form: jn = m |vz| exactly, jt = −μ jn, I Δω = R |jt|
-            assert jn == pytest.approx(-m * vz, rel=1e-9)
+            assert abs(p.v[0, 2] + e * vz) < 1e-11  # the tolerance, 1e-12 m/s, at the scale of the step
+            # closed form: jn = m (1 + e) |vz| exactly, jt = −μ jn, I Δω = R |jt|
+            assert jn == pytest.approx(-(1 + e) * m * vz, rel=1e-9)
         else:
-            assert p.v[0, 2] == pytest.approx(mu * u_t, rel=1e-6)
+            assert p.v[0, 2] == pytest.approx(-e * vz + mu * u_t, rel=1e-6)
         # spin from the friction impulse about the centre: I Δω_y = R |jt|
         inertia = 0.4 * m * R * R
         assert p.w[0, 1] == pytest.approx(-R * jt / inertia, rel=1e-9)
@@ -472,21 +479,24 @@ def test_automatic_envelope_catches_fast_grains():
 def test_resume_is_bitwise_identical():
     """N steps, checkpoint (state_dict), a new simulation resumes for N more: bitwise equal to 2N
     uninterrupted steps (the envelope follows the state, not the rebuild history), solver counters
-    included."""
+    included. The grains bounce (restitution 0.5) and have rolling and spinning friction, so the
+    rolling impulses' warm start goes through the checkpoint too."""
+    kw = {"tolerance": 1e-6, "max_iterations": 60, "mu_r": 0.1, "mu_s": 0.05}
 
     def scene():
-        sim = _packing("jacobi", add=False, tolerance=1e-6, max_iterations=60)
+        sim = _packing("jacobi", add=False, **kw)
         return sim
 
-    ref = _packing("jacobi", v0=-1.0, tolerance=1e-6, max_iterations=60)
-    ref.run(steps=80)
-    half = _packing("jacobi", v0=-1.0, tolerance=1e-6, max_iterations=60)
-    half.run(steps=40)
+    ref = _packing("jacobi", v0=-1.0, **kw)
+    ref.run(steps=40)
+    half = _packing("jacobi", v0=-1.0, **kw)
+    half.run(steps=20)
     state = half.state_dict()
     assert half.envelope > 0.1 * R  # grown by the falling grains
+    assert np.any(state["pairs/hist"][:, 4:] != 0.0)  # rolling and spinning impulses to carry over
     resumed = scene()
     resumed.load_state(state)
-    resumed.run(steps=40)
+    resumed.run(steps=20)
     a, b = ref.state_dict(), resumed.state_dict()
     assert a.keys() == b.keys()
     for k in a:

@@ -59,7 +59,10 @@ def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
 
 def test_dem_c_jacobi_identical_on_1_to_4_ranks(tmp_path):
     """DEM-C with the distributed projected Jacobi solver: the same hopper, mid-discharge, is
-    bitwise identical on 1, 2, 3 and 4 ranks (one ghost-velocity exchange per iteration)."""
+    bitwise identical on 1, 2, 3 and 4 ranks (one ghost-velocity exchange per iteration), with
+    restitution 0.6 and rolling and spinning friction on every contact, so that the bounce test and
+    the rolling rows of cross-rank contacts are exercised (with them off the kernels take a subset
+    of the same path: the regression checksum with restitution off is the stored one of before)."""
     cmd = [
         sys.executable,
         str(ROOT / "tools" / "determinism.py"),
@@ -74,7 +77,13 @@ def test_dem_c_jacobi_identical_on_1_to_4_ranks(tmp_path):
         "--set",
         "contact.law=complementarity",
     ]
-    for s in HOPPER_SETS:
+    for s in HOPPER_SETS + [
+        "materials.glass.restitution=0.6",
+        "materials.glass.rolling_friction=0.1",
+        "materials.glass.spinning_friction=0.05",
+        "materials.steel.rolling_friction=0.1",
+        "materials.steel.spinning_friction=0.05",
+    ]:
         cmd += ["--set", s]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     print(proc.stdout, proc.stderr)

@@ -83,15 +83,17 @@ def chain_front_speed(n: int, method: str, dt: float, cap: int | None = None, t_
     return float("nan")
 
 
-def cost_per_contact(repeat: int = 5) -> dict[str, float]:
+def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]:
     """Kernel time per contact on a simple-cubic block of 4,000 spheres overlapping their six
-    neighbours by 0.5 % of the diameter (every neighbour pair is a contact for both methods)."""
+    neighbours by 0.5 % of the diameter (every neighbour pair is a contact for both methods).
+    ``rolling``: the material has rolling and spinning friction (DEM-C's rolling rows active)."""
     from pdem.complementarity import _kernels as ck
 
     g = np.stack(np.meshgrid(np.arange(20), np.arange(20), np.arange(10), indexing="ij"), -1).reshape(-1, 3)
     x = g * 1.99 * R
     sim = pdem.Simulation(law="complementarity", solver="jacobi", max_iterations=1, envelope=0.0)
-    sim.add_material("glass", **MAT)
+    roll = {"rolling_friction": 0.1, "spinning_friction": 0.05} if rolling else {}
+    sim.add_material("glass", **(MAT | roll))
     sim.add_particles(x, R, material="glass")
     sim.dt = 1e-4
     sim.max_overlap = 1.0
@@ -106,16 +108,17 @@ def cost_per_contact(repeat: int = 5) -> dict[str, float]:
         t0 = time.perf_counter()
         for _ in range(20):
             ck.jacobi_update(
-                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.gam, p.v, p.w, nc, 0.3
-            )
+                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w, nc,
+                0.3,
+            )  # fmt: skip
         t1 = time.perf_counter()
         for _ in range(20):
-            ck.accumulate(st.cb, st.cn, st.ca, st.gam, nc, P, L)
+            ck.accumulate(st.cb, st.cn, st.ca, st.croll, st.gam, nc, P, L)
         t2 = time.perf_counter()
         times_it.append((t1 - t0) / 20 / nc)
         times_acc.append((t2 - t1) / 20 / nc)
     hm = pdem.Simulation(law="hertz_mindlin")
-    hm.add_material("glass", **MAT)
+    hm.add_material("glass", **(MAT | roll))
     hm.add_particles(x, R, material="glass")
     hm.dt = 1e-7
     hm.prepare()
@@ -184,6 +187,11 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in cost.items():
         print(f"{k:32s} {v:10.1f}")
     results["cost"] = cost
+    print("   with rolling and spinning friction (mu_r = 0.1, mu_s = 0.05)")
+    cost_r = cost_per_contact(rolling=True) if 3 in args.parts else {}
+    for k, v in cost_r.items():
+        print(f"{k:32s} {v:10.1f}")
+    results["cost_rolling"] = cost_r
     (args.out / "dem_c_study.json").write_text(json.dumps(results, indent=2) + "\n")
     print(f"\nresults: {args.out / 'dem_c_study.json'}")
     return 0

@@ -12,11 +12,30 @@ Per contact c:
   x_i + a_i n = x_j − a_j n;
 * ``cbias[c]``: b = φ/h (or max(φ/h, −v_recovery)), φ the gap (negative when penetrating);
 * ``cmu[c]``: friction coefficient; ``cscale[c]``: B = 3 / trace(N_cc);
-* ``gam[c] = (γ_n, γ_tx, γ_ty, γ_tz)``: normal impulse and tangential impulse vector (⊥ n), applied
-  as G = γ_n n + γ_t on j and −G on i.
+* ``gam[c] = (γ_n, γ_tx, γ_ty, γ_tz, ρ_x, ρ_y, ρ_z, σ)``: normal impulse and tangential impulse
+  vector (⊥ n), applied as G = γ_n n + γ_t on j and −G on i; then the rolling (ρ ⊥ n) and spinning
+  (σ, about n) impulses, scaled by R*: the moment impulse R*(ρ + σ n) acts on j and its opposite on i;
+* ``croll[c] = (μ_r, μ_s, R*, B_r)``: rolling and spinning friction, effective radius
+  R* = a_i a_j/(a_i + a_j) (a wall: a_j) and the Jacobi scale B_r = 1/(R*² (I_i⁻¹ + I_j⁻¹)) of the
+  rolling rows; R* = 0 when the contact has neither (or no body can turn): its rolling rows are
+  skipped;
+* ``cvw[c] = (V_w, Ω_w)``: a wall's velocity at the contact point and its angular velocity.
 
 The contact velocity u = Dᵀv + b has u_n = n·v_rel + b and u_t = v_rel − (n·v_rel) n with
-v_rel = (v_j + ω_j × (−a_j n)) − (v_i + ω_i × (a_i n)) (physics reference §3).
+v_rel = (v_j + ω_j × (−a_j n)) − (v_i + ω_i × (a_i n)) (physics reference §3). The rolling rows'
+velocities are R* times the relative angular velocity ω_rel = ω_j − ω_i (a wall: ω_j − Ω_w): u_r its
+tangential part, u_s its normal part (both in m/s).
+
+Rolling and spinning friction (Tasora & Anitescu, Meccanica 48, 2013, as Chrono NSC solves it):
+|ρ| ≤ μ_r γ_n, |σ| ≤ μ_s γ_n (moment bounds μ_r R* γ_n and μ_s R* γ_n, the torque bound μ_r R* F_n
+of DEM-P's rolling resistance), each opposing its rolling or spinning velocity. Every update first
+projects (γ_n, γ_t) onto the friction cone, then clamps ρ and σ to the bounds of the new γ_n
+(Chrono's projection): the rolling rows never change γ_n, so they cause no dilation.
+
+Restitution (Newton's impact law, as Chrono NSC): a contact whose normal velocity at the start of
+the step v_n⁻ approaches faster than the threshold (v_n⁻ < −v_th) and would close within the step
+(b + v_n⁻ < 0) gets the bias min(b, e v_n⁻): the solve then gives u_n ≥ 0 with v_n⁺ ≥ e |v_n⁻|.
+Other contacts keep b (perfectly inelastic).
 
 ``corrected`` (the law's ``cone = "corrected"``): the solver works with ũ = (u_n + μ|u_t|, u_t)
 instead of u (De Saxcé's change of variable). γ ∈ K, ũ ∈ K*, γ ⊥ ũ is then Coulomb's law itself:
@@ -49,12 +68,40 @@ def project_cone(gn, tx, ty, tz, mu):
     return gn2, tx * s, ty * s, tz * s
 
 
+@njit(inline="always")
+def clamp_norm(x, y, z, bound):
+    """(x, y, z) scaled to length ``bound`` if longer (bound ≥ 0)."""
+    t = math.sqrt(x * x + y * y + z * z)
+    if t <= bound:
+        return x, y, z
+    if bound <= 0.0:
+        return 0.0, 0.0, 0.0
+    s = bound / t
+    return x * s, y * s, z * s
+
+
+@njit(inline="always")
+def clamp_abs(x, bound):
+    """x clamped to [−bound, bound]."""
+    if x > bound:
+        return bound
+    if x < -bound:
+        return -bound
+    return x
+
+
 @njit
-def project_cone_array(g, mu):
-    """Project each row of ``g`` (n, 4) onto its cone (tests, APGD)."""
+def project_cone_array(g, mu, croll):
+    """Project each row of ``g`` (n, 8) onto its cone, then clamp its rolling and spinning impulses
+    to the bounds of the projected γ_n (tests, APGD)."""
     out = g.copy()
     for c in range(g.shape[0]):
         out[c, 0], out[c, 1], out[c, 2], out[c, 3] = project_cone(g[c, 0], g[c, 1], g[c, 2], g[c, 3], mu[c])
+        if croll[c, 2] > 0.0:
+            out[c, 4], out[c, 5], out[c, 6] = clamp_norm(g[c, 4], g[c, 5], g[c, 6], croll[c, 0] * out[c, 0])
+            out[c, 7] = clamp_abs(g[c, 7], croll[c, 1] * out[c, 0])
+        else:
+            out[c, 4] = out[c, 5] = out[c, 6] = out[c, 7] = 0.0
     return out
 
 
@@ -77,10 +124,12 @@ def count_pair_contacts(pi, pj, x, r, inv_m, envelope):
 
 @njit
 def assemble_pairs(
-    pi, pj, hist, x, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, max_overlap,
-    cb, cn, ca, cvw, cbias, cmu, cscale, gam, csrc,
+    pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, v_bounce, max_overlap,
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc,
 ):  # fmt: skip
     """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
+    ``v`` holds the velocities at the start of the step (restitution's v_n⁻), ``coef[a, b]`` the
+    pair's (μ, e, μ_r, μ_s), ``v_bounce`` the restitution threshold [m/s].
 
     Returns (number of contacts, flags)."""
     flags = 0
@@ -107,9 +156,13 @@ def assemble_pairs(
         phi = dist - r[i] - r[j]
         if -phi > max_overlap * min(r[i], r[j]):
             flags |= FLAG_OVERLAP
-        _fill(c, i, j, nx, ny, nz, r[i], r[j], 0.0, 0.0, 0.0, phi, h, v_recovery,
-              coef[mat[i], mat[j], 0], inv_m[i], inv_m[j], inv_i[i], inv_i[j], hist[k],
-              cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+        vn0 = (v[j, 0] - v[i, 0]) * nx + (v[j, 1] - v[i, 1]) * ny + (v[j, 2] - v[i, 2]) * nz
+        co = coef[mat[i], mat[j]]
+        _fill(c, i, j, nx, ny, nz, r[i], r[j], 0.0, phi, h, v_recovery, co, vn0, v_bounce,
+              inv_m[i], inv_m[j], inv_i[i], inv_i[j], hist[k], cb, cn, ca, cbias, cmu, cscale, croll,
+              gam)  # fmt: skip
+        for q in range(6):
+            cvw[c, q] = 0.0
         csrc[c, 0] = -1
         csrc[c, 1] = k
         c += 1
@@ -117,8 +170,10 @@ def assemble_pairs(
 
 
 @njit(inline="always")
-def _fill(c, i, j, nx, ny, nz, ai, aj, vwx, vwy, vwz, phi, h, v_recovery, mu, imi, imj, iii, iij, hrow,
-          cb, cn, ca, cvw, cbias, cmu, cscale, gam):  # fmt: skip
+def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bounce, imi, imj, iii, iij,
+          hrow, cb, cn, ca, cbias, cmu, cscale, croll, gam):  # fmt: skip
+    """One contact row. ``rstar`` > 0: the effective radius of the rolling rows (a wall's contact);
+    0: a_i a_j/(a_i + a_j) (a pair's). ``co`` = (μ, e, μ_r, μ_s)."""
     cb[c, 0] = i
     cb[c, 1] = j
     cn[c, 0] = nx
@@ -126,13 +181,15 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, vwx, vwy, vwz, phi, h, v_recovery, mu, im
     cn[c, 2] = nz
     ca[c, 0] = ai
     ca[c, 1] = aj
-    cvw[c, 0] = vwx
-    cvw[c, 1] = vwy
-    cvw[c, 2] = vwz
     b = phi / h
     if v_recovery > 0.0 and b < -v_recovery:
         b = -v_recovery
+    e = co[1]
+    # Newton's impact law: approaching faster than the threshold and closing within the step
+    if e > 0.0 and vn0 < -v_bounce and b + vn0 < 0.0:
+        b = min(b, e * vn0)
     cbias[c] = b
+    mu = co[0]
     cmu[c] = mu
     trace = 3.0 * (imi + imj) + 2.0 * (ai * ai * iii + aj * aj * iij)
     cscale[c] = 3.0 / trace
@@ -141,25 +198,54 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, vwx, vwy, vwz, phi, h, v_recovery, mu, im
     ty = hrow[2]
     tz = hrow[3]
     tn = tx * nx + ty * ny + tz * nz
-    gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3] = project_cone(
-        hrow[0], tx - tn * nx, ty - tn * ny, tz - tn * nz, mu
-    )
+    g0, g1, g2, g3 = project_cone(hrow[0], tx - tn * nx, ty - tn * ny, tz - tn * nz, mu)
+    gam[c, 0] = g0
+    gam[c, 1] = g1
+    gam[c, 2] = g2
+    gam[c, 3] = g3
+    mu_r = co[2]
+    mu_s = co[3]
+    isum = iii + iij
+    if (mu_r > 0.0 or mu_s > 0.0) and isum > 0.0:
+        if rstar <= 0.0:
+            rstar = ai * aj / (ai + aj)
+        croll[c, 0] = mu_r
+        croll[c, 1] = mu_s
+        croll[c, 2] = rstar
+        croll[c, 3] = 1.0 / (rstar * rstar * isum)
+        # warm start: rolling part turned onto the tangent plane, both clamped to the bounds
+        rx = hrow[4]
+        ry = hrow[5]
+        rz = hrow[6]
+        rn = rx * nx + ry * ny + rz * nz
+        gam[c, 4], gam[c, 5], gam[c, 6] = clamp_norm(rx - rn * nx, ry - rn * ny, rz - rn * nz, mu_r * g0)
+        gam[c, 7] = clamp_abs(hrow[7], mu_s * g0)
+    else:
+        croll[c, 0] = 0.0
+        croll[c, 1] = 0.0
+        croll[c, 2] = 0.0
+        croll[c, 3] = 0.0
+        gam[c, 4] = 0.0
+        gam[c, 5] = 0.0
+        gam[c, 6] = 0.0
+        gam[c, 7] = 0.0
 
 
 @njit
 def assemble_walls(
-    kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, r, inv_m, inv_i, mat, coef, h,
-    envelope, v_recovery, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, gam, csrc, cpt,
-    wbody, wbinv,
+    kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, v, r, inv_m, inv_i, mat, coef, h,
+    envelope, v_recovery, v_bounce, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam,
+    csrc, cpt, wbody, wbinv,
 ):  # fmt: skip
     """Append wall contacts from row ``start``; zero the history of candidates out of reach.
 
     The wall geometry kernel returns n from the sphere into the wall; the contact normal here points
     from the wall (body i) to the particle (body j), i.e. −n. ``cpt`` receives the contact point
     relative to the wall's reference point (for the reported torque). A row of a wall that is a free
-    rigid body (``wbody[k]`` ≥ 0, the body's index in the velocity arrays, ``wbinv[k]`` its inverse
-    mass) makes that body the contact's partner i (translation only: no lever), so its velocity is
-    solved with the grains'. Returns (end row, flags)."""
+    rigid body (``wbody[k]`` ≥ 0, the body's index in the velocity arrays ``v``, ``wbinv[k]`` its
+    inverse mass) makes that body the contact's partner i (translation only: no lever), so its
+    velocity is solved with the grains'. The rolling rows' effective radius is the grain's radius
+    (DEM-P's R* of a wall contact). Returns (end row, flags)."""
     flags = 0
     c = start
     for k in range(kinds.shape[0]):
@@ -181,14 +267,26 @@ def assemble_walls(
                 flags |= FLAG_OVERLAP
             # lever of the wall's load: its closest point relative to the reference point
             vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
+            co = coef[mat[i], wmat[k]]
             if body >= 0:  # the body's velocity is an unknown of the problem
-                _fill(c, body, i, -nx, -ny, -nz, 0.0, r[i], 0.0, 0.0, 0.0, gap, h, v_recovery,
-                      coef[mat[i], wmat[k], 0], wbinv[k], inv_m[i], 0.0, inv_i[i], whist[q],
-                      cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+                vn0 = -((v[i, 0] - v[body, 0]) * nx + (v[i, 1] - v[body, 1]) * ny
+                        + (v[i, 2] - v[body, 2]) * nz)
+                _fill(c, body, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, co, vn0, v_bounce,
+                      wbinv[k], inv_m[i], 0.0, inv_i[i], whist[q], cb, cn, ca, cbias, cmu, cscale, croll,
+                      gam)  # fmt: skip
+                for s in range(6):
+                    cvw[c, s] = 0.0
             else:
-                _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], vwx, vwy, vwz, gap, h, v_recovery,
-                      coef[mat[i], wmat[k], 0], 0.0, inv_m[i], 0.0, inv_i[i], whist[q],
-                      cb, cn, ca, cvw, cbias, cmu, cscale, gam)  # fmt: skip
+                vn0 = -((v[i, 0] - vwx) * nx + (v[i, 1] - vwy) * ny + (v[i, 2] - vwz) * nz)
+                _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, co, vn0, v_bounce,
+                      0.0, inv_m[i], 0.0, inv_i[i], whist[q], cb, cn, ca, cbias, cmu, cscale, croll,
+                      gam)  # fmt: skip
+                cvw[c, 0] = vwx
+                cvw[c, 1] = vwy
+                cvw[c, 2] = vwz
+                cvw[c, 3] = omega[k, 0]
+                cvw[c, 4] = omega[k, 1]
+                cvw[c, 5] = omega[k, 2]
             csrc[c, 0] = k
             csrc[c, 1] = i
             csrc[c, 2] = q
@@ -200,7 +298,7 @@ def assemble_walls(
 
 
 @njit
-def accumulate(cb, cn, ca, gam, nc, P, L):
+def accumulate(cb, cn, ca, croll, gam, nc, P, L):
     """P, L ← Σ impulses and their moments per body, contacts in row order (P, L zeroed first)."""
     P[:] = 0.0
     L[:] = 0.0
@@ -217,19 +315,28 @@ def accumulate(cb, cn, ca, gam, nc, P, L):
         cx = ny * gz - nz * gy
         cy = nz * gx - nx * gz
         cz = nx * gy - ny * gx
+        rs = croll[c, 2]
+        if rs > 0.0:  # rolling and spinning: a pure moment R*(ρ + σ n) on j
+            mx = rs * (gam[c, 4] + gam[c, 7] * nx)
+            my = rs * (gam[c, 5] + gam[c, 7] * ny)
+            mz = rs * (gam[c, 6] + gam[c, 7] * nz)
+        else:
+            mx = 0.0
+            my = 0.0
+            mz = 0.0
         P[j, 0] += gx
         P[j, 1] += gy
         P[j, 2] += gz
-        L[j, 0] -= ca[c, 1] * cx
-        L[j, 1] -= ca[c, 1] * cy
-        L[j, 2] -= ca[c, 1] * cz
+        L[j, 0] -= ca[c, 1] * cx - mx
+        L[j, 1] -= ca[c, 1] * cy - my
+        L[j, 2] -= ca[c, 1] * cz - mz
         if i >= 0:
             P[i, 0] -= gx
             P[i, 1] -= gy
             P[i, 2] -= gz
-            L[i, 0] -= ca[c, 0] * cx
-            L[i, 1] -= ca[c, 0] * cy
-            L[i, 2] -= ca[c, 0] * cz
+            L[i, 0] -= ca[c, 0] * cx + mx
+            L[i, 1] -= ca[c, 0] * cy + my
+            L[i, 2] -= ca[c, 0] * cz + mz
 
 
 @njit(inline="always")
@@ -279,11 +386,37 @@ def _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w):
     return vn + cbias[c], rx - vn * nx, ry - vn * ny, rz - vn * nz
 
 
+@njit(inline="always")
+def _rolling_velocity(c, cb, cn, cvw, croll, w):
+    """R* × the relative angular velocity ω_j − ω_i (a wall: − Ω_w): its tangential part u_r and its
+    normal part u_s [m/s]."""
+    i = cb[c, 0]
+    j = cb[c, 1]
+    nx = cn[c, 0]
+    ny = cn[c, 1]
+    nz = cn[c, 2]
+    if i >= 0:
+        ox = w[j, 0] - w[i, 0]
+        oy = w[j, 1] - w[i, 1]
+        oz = w[j, 2] - w[i, 2]
+    else:
+        ox = w[j, 0] - cvw[c, 3]
+        oy = w[j, 1] - cvw[c, 4]
+        oz = w[j, 2] - cvw[c, 5]
+    rs = croll[c, 2]
+    on = ox * nx + oy * ny + oz * nz
+    return rs * (ox - on * nx), rs * (oy - on * ny), rs * (oz - on * nz), rs * on
+
+
 @njit
-def contact_velocities(cb, cn, ca, cvw, cbias, v, w, nc, u):
-    """u[c] = (u_n, u_t) = Dᵀ v + b for every contact."""
+def contact_velocities(cb, cn, ca, cvw, cbias, croll, v, w, nc, u):
+    """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off)."""
     for c in range(nc):
         u[c, 0], u[c, 1], u[c, 2], u[c, 3] = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        if croll[c, 2] > 0.0:
+            u[c, 4], u[c, 5], u[c, 6], u[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
+        else:
+            u[c, 4] = u[c, 5] = u[c, 6] = u[c, 7] = 0.0
 
 
 @njit
@@ -295,19 +428,56 @@ def correct_normal(u, cmu, nc):
 
 @njit(inline="always")
 def _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu):
-    """|γ − Π(γ − B u)| / B: the projected-gradient residual [m/s]."""
+    """|γ − Π(γ − B u)| / B: the projected-gradient residual [m/s], and the projected γ_n."""
     p0, p1, p2, p3 = project_cone(g0 - b * u0, g1 - b * u1, g2 - b * u2, g3 - b * u3, mu)
     d0 = g0 - p0
     d1 = g1 - p1
     d2 = g2 - p2
     d3 = g3 - p3
-    return math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b
+    return math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b, p0
+
+
+@njit(inline="always")
+def _roll_residual(r0, r1, r2, r3, u4, u5, u6, u7, bn, br, mu_r, mu_s):
+    """The rolling rows' residual [m/s]: |ρ − clamp(ρ − B_r u_r)| and |σ − clamp(σ − B_r u_s)| over
+    B_r, with the bounds of the projected normal impulse ``bn``; the larger of the two."""
+    p4, p5, p6 = clamp_norm(r0 - br * u4, r1 - br * u5, r2 - br * u6, mu_r * bn)
+    p7 = clamp_abs(r3 - br * u7, mu_s * bn)
+    d4 = r0 - p4
+    d5 = r1 - p5
+    d6 = r2 - p6
+    return max(math.sqrt(d4 * d4 + d5 * d5 + d6 * d6), abs(r3 - p7)) / br
+
+
+@njit(inline="always")
+def _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, bn, bn_new):
+    """ρ_c, σ_c ← clamp(· − ω B_r u) to the bounds of the new normal impulse ``bn_new`` (Chrono's
+    sequential projection: the sliding cone first, then the rolling and spinning bounds). Returns the
+    residual of the old values (bounds of ``bn``, the fully projected γ_n) and their changes."""
+    u4, u5, u6, u7 = _rolling_velocity(c, cb, cn, cvw, croll, w)
+    br = croll[c, 3]
+    mu_r = croll[c, 0]
+    mu_s = croll[c, 1]
+    r0 = gam[c, 4]
+    r1 = gam[c, 5]
+    r2 = gam[c, 6]
+    r3 = gam[c, 7]
+    rc = _roll_residual(r0, r1, r2, r3, u4, u5, u6, u7, bn, br, mu_r, mu_s)
+    s = omega_relax * br
+    n4, n5, n6 = clamp_norm(r0 - s * u4, r1 - s * u5, r2 - s * u6, mu_r * bn_new)
+    n7 = clamp_abs(r3 - s * u7, mu_s * bn_new)
+    gam[c, 4] = n4
+    gam[c, 5] = n5
+    gam[c, 6] = n6
+    gam[c, 7] = n7
+    return rc, n4 - r0, n5 - r1, n6 - r2, n7 - r3
 
 
 @njit(inline="always")
 def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected):
     """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``); returns the
-    residual of the old γ_c and the old and new impulses."""
+    residual of the old γ_c, the fully projected γ_n (the rolling rows' bound in the residual) and
+    the old and new impulses."""
     u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
     b = cscale[c]
     mu = cmu[c]
@@ -317,24 +487,30 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
     g1 = gam[c, 1]
     g2 = gam[c, 2]
     g3 = gam[c, 3]
-    rc = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+    rc, p0 = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
     s = omega_relax * b
     n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
     gam[c, 0] = n0
     gam[c, 1] = n1
     gam[c, 2] = n2
     gam[c, 3] = n3
-    return rc, g0, g1, g2, g3, n0, n1, n2, n3
+    return rc, p0, g0, g1, g2, g3, n0, n1, n2, n3
 
 
 @njit
-def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_relax, corrected=True):
+def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected=True):
     """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
-    corrected cone's ũ, as the law's default; false: the relaxed cone). Returns the largest
-    residual of the impulses before the sweep."""
+    corrected cone's ũ, as the law's default; false: the relaxed cone), its rolling rows after its
+    (γ_n, γ_t). Returns the largest residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        rc = _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected)[0]
+        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+        )
+        if croll[c, 2] > 0.0:
+            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
     return res
@@ -342,15 +518,21 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, nc, omega_rela
 
 @njit
 def gauss_seidel_sweep(
-    cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, inv_m, inv_i, dof, nc, omega_relax, corrected=True
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, inv_m, inv_i, dof, nc, omega_relax,
+    corrected=True,
 ):  # fmt: skip
     """One projected Gauss–Seidel sweep in row order, velocities updated after each contact
     (``corrected`` as in :func:`jacobi_update`). Returns the largest residual met during the sweep."""
     res = 0.0
     for c in range(nc):
-        rc, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
+        rc, p0, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
             c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
         )
+        d4 = d5 = d6 = d7 = 0.0
+        if croll[c, 2] > 0.0:
+            rr, d4, d5, d6, d7 = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
         # apply the change at once
@@ -364,35 +546,45 @@ def gauss_seidel_sweep(
         cx = ny * gz - nz * gy
         cy = nz * gx - nx * gz
         cz = nx * gy - ny * gx
+        rs = croll[c, 2]
+        mx = rs * (d4 + d7 * nx)
+        my = rs * (d5 + d7 * ny)
+        mz = rs * (d6 + d7 * nz)
         i = cb[c, 0]
         j = cb[c, 1]
         aj = ca[c, 1]
         v[j, 0] += inv_m[j] * gx
         v[j, 1] += inv_m[j] * gy
         v[j, 2] += inv_m[j] * gz
-        w[j, 0] -= inv_i[j] * aj * cx
-        w[j, 1] -= inv_i[j] * aj * cy
-        w[j, 2] -= inv_i[j] * aj * cz
+        w[j, 0] -= inv_i[j] * (aj * cx - mx)
+        w[j, 1] -= inv_i[j] * (aj * cy - my)
+        w[j, 2] -= inv_i[j] * (aj * cz - mz)
         _lock(v, w, dof, j)
         if i >= 0:
             ai = ca[c, 0]
             v[i, 0] -= inv_m[i] * gx
             v[i, 1] -= inv_m[i] * gy
             v[i, 2] -= inv_m[i] * gz
-            w[i, 0] -= inv_i[i] * ai * cx
-            w[i, 1] -= inv_i[i] * ai * cy
-            w[i, 2] -= inv_i[i] * ai * cz
+            w[i, 0] -= inv_i[i] * (ai * cx + mx)
+            w[i, 1] -= inv_i[i] * (ai * cy + my)
+            w[i, 2] -= inv_i[i] * (ai * cz + mz)
             _lock(v, w, dof, i)
     return res
 
 
 @njit
-def residual_max(gam, u, cmu, cscale, nc):
-    """max over contacts of |γ − Π(γ − B u)| / B (pass ũ for the corrected cone's residual)."""
+def residual_max(gam, u, cmu, cscale, croll, nc):
+    """max over contacts of |γ − Π(γ − B u)| / B and the rolling rows' residual (pass ũ for the
+    corrected cone's residual)."""
     res = 0.0
     for c in range(nc):
-        rc = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
-                       cscale[c], cmu[c])  # fmt: skip
+        rc, p0 = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
+                           cscale[c], cmu[c])  # fmt: skip
+        if croll[c, 2] > 0.0:
+            rr = _roll_residual(gam[c, 4], gam[c, 5], gam[c, 6], gam[c, 7], u[c, 4], u[c, 5], u[c, 6],
+                                u[c, 7], p0, croll[c, 3], croll[c, 0], croll[c, 1])  # fmt: skip
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
     return res
@@ -400,22 +592,24 @@ def residual_max(gam, u, cmu, cscale, nc):
 
 @njit
 def store_history(gam, csrc, nc, n_pair, hist, whist):
-    """Keep each contact's impulse for the next step's warm start."""
+    """Keep each contact's impulses for the next step's warm start."""
+    hs = hist.shape[1]
     for c in range(nc):
         k = csrc[c, 1]
         if c < n_pair:
-            for q in range(4):
+            for q in range(hs):
                 hist[k, q] = gam[c, q]
         else:
             row = csrc[c, 2]
-            for q in range(4):
+            for q in range(hs):
                 whist[row, q] = gam[c, q]
 
 
 @njit
-def contact_forces(gam, cn, cpt, csrc, nc, n_pair, inv_h, fpair, out_idx, out_val, counts, cstart):
+def contact_forces(gam, cn, cpt, croll, csrc, nc, n_pair, inv_h, fpair, out_idx, out_val, counts, cstart):
     """Report contact forces: ``fpair[k]`` = force on the higher-id particle of pair k; per wall the
-    force on the wall (−G/h) and its torque about the wall's reference point (the DEM-P layout)."""
+    force on the wall (−G/h) and its torque about the wall's reference point, with the rolling and
+    spinning moment on the wall (the DEM-P layout)."""
     fpair[:] = 0.0
     counts[:] = 0
     for c in range(nc):
@@ -446,6 +640,12 @@ def contact_forces(gam, cn, cpt, csrc, nc, n_pair, inv_h, fpair, out_idx, out_va
             out_val[row, 3] = qy * fz - qz * fy
             out_val[row, 4] = qz * fx - qx * fz
             out_val[row, 5] = qx * fy - qy * fx
+            rs = croll[c, 2]
+            if rs > 0.0:  # the moment −R*(ρ + σ n)/h on the wall
+                rs *= inv_h
+                out_val[row, 3] -= rs * (gam[c, 4] + gam[c, 7] * cn[c, 0])
+                out_val[row, 4] -= rs * (gam[c, 5] + gam[c, 7] * cn[c, 1])
+                out_val[row, 5] -= rs * (gam[c, 6] + gam[c, 7] * cn[c, 2])
 
 
 @njit

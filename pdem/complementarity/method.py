@@ -7,8 +7,13 @@ pdem's own entry point like any contact law. One time step h:
 1. rebuild the neighbour list if particles moved more than half the skin (as DEM-P), else forward
    the ghosts' state;
 2. contacts: every listed pair and wall candidate with gap φ ≤ ``envelope``, normal n, bias
-   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulse of
-   the same id pair (of the same wall and particle);
+   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulses of
+   the same id pair (of the same wall and particle); restitution: a contact approaching at
+   v_n⁻ < −``restitution_threshold`` (start-of-step velocities) and closing within the step
+   (b + v_n⁻ < 0) gets b = min(b, e v_n⁻), so it leaves at ≥ e|v_n⁻| (Newton's impact law, as
+   Chrono NSC); rolling and spinning friction add, per contact, a rolling impulse (tangent) and a
+   spinning impulse (about n), bounded by μ_r R* γ_n and μ_s R* γ_n (DEM-P's torque bound
+   μ_r R* F_n) and clamped after the friction cone's projection (Tasora & Anitescu 2013, Chrono);
 3. walls advance (their velocity over the step enters the constraints: moving and servo walls);
 4. v_free = v + h g; solve the CCP for the impulses γ ∈ K (friction cones), u = Dᵀv⁺ + b,
    −u ∈ K°, γ ⊥ u, with the chosen solver; with ``cone = "corrected"`` (default) u_n is replaced by
@@ -36,8 +41,8 @@ The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (w
 ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
 (``Simulation.solver_log``); steps that hit the cap unconverged are counted.
 
-Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions are
-inelastic (no restitution at the velocity level), with ``cone = "relaxed"`` sliding contacts
+Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions
+slower than the restitution threshold are perfectly inelastic, with ``cone = "relaxed"`` sliding contacts
 separate at a normal speed μ|u_t| (the cone relaxation of Coulomb's law: a sliding sphere hops),
 Jacobi needs iterations growing with the number of grains a load must cross, and information moves
 at most one contact per iteration.
@@ -101,19 +106,30 @@ class ComplementarityParams(LawParams):
         "radius per step (used when [run] dt is not given)",
     )
     reference_speed: float = Field(1.0, gt=0, description="speed [m/s] of the automatic step rule")
+    restitution_threshold: float = Field(
+        0.1,
+        ge=0,
+        description="restitution applies to contacts approaching faster than this [m/s] at the start "
+        "of the step (and closing within it): their normal velocity after the step is at least "
+        "e × the approach speed, e the pair's material restitution (Newton's impact law); slower "
+        "contacts, among them the persistent contacts of packings, are perfectly inelastic. "
+        "Default 0.1 m/s: above the velocity noise of unconverged solves in dense packings, below "
+        "the impact speed of a grain falling half a millimetre",
+    )
 
 
 class Complementarity(ContactLaw):
-    """DEM-C (see module docstring). Coefficient row: ``[μ]`` per material pair."""
+    """DEM-C (see module docstring). Coefficient row: ``[μ, e, μ_r, μ_s]`` per material pair."""
 
     name = "complementarity"
     kind = "complementarity"
-    history_size = 4  # last step's impulse (γ_n, γ_t) for the warm start
-    n_coef = 1
+    history_size = 8  # last step's impulses (γ_n, γ_t, ρ, σ) for the warm start
+    n_coef = 4
     Params = ComplementarityParams
 
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
-        return np.array([materials.mixed(a, b, "friction")])
+        keys = ("friction", "restitution", "rolling_friction", "spinning_friction")
+        return np.array([materials.mixed(a, b, k) for k in keys])
 
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Rigid contact has no stiffness limit: the step is bounded only by accuracy."""
@@ -175,11 +191,12 @@ class Stepper(Integrator):
         self.cb = np.empty((cap, 2), dtype=np.int64)
         self.cn = np.empty((cap, 3))
         self.ca = np.empty((cap, 2))
-        self.cvw = np.empty((cap, 3))
+        self.cvw = np.empty((cap, 6))
         self.cbias = np.empty(cap)
         self.cmu = np.empty(cap)
         self.cscale = np.empty(cap)
-        self.gam = np.empty((cap, 4))
+        self.croll = np.empty((cap, 4))
+        self.gam = np.empty((cap, 8))
         self.csrc = np.empty((cap, 3), dtype=np.int64)
         self.cpt = np.zeros((cap, 3))
         self._cap = cap
@@ -220,6 +237,7 @@ class Stepper(Integrator):
             self.V, self.W, self.IM, self.II, self.DOF = p.v, p.w, p.inv_m, p.inv_i, p.dof
         env = sim.envelope
         v_rec = self.p.recovery_speed or 0.0
+        v_th = self.p.restitution_threshold
         n_tot = p.n
         n_own = p.n_owned
         npairs = cs.pi.shape[0]
@@ -232,19 +250,20 @@ class Stepper(Integrator):
         w_params = cs.params.copy() if walls else None
         # ... with the velocity the walls move at during the step
         sim.advance_walls(h)
+        # self.V: the velocities at the start of the step (restitution's pre-impact velocities)
         n_pair, flags = ck.assemble_pairs(
-            cs.pi, cs.pj, cs.hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
-            sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale,
-            self.gam, self.csrc,
+            cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env,
+            v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+            self.cscale, self.croll, self.gam, self.csrc,
         )  # fmt: skip
         nc = n_pair
         if walls:
             cs.filter_meshes(p.x, p.r, p.inv_m, env)
             nc, wflags = ck.assemble_walls(
                 cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
-                cs.wall_hist, p.x, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
-                sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot),
+                cs.wall_hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
+                v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot),
             )  # fmt: skip
             flags |= wflags
         g = sim.g
@@ -276,7 +295,7 @@ class Stepper(Integrator):
         if cs.force.shape[0] != npairs:
             cs.force = np.zeros((npairs, 3))
         ck.contact_forces(
-            self.gam, self.cn, self.cpt, self.csrc, nc, n_pair, 1.0 / h, cs.force, cs.out_idx,
+            self.gam, self.cn, self.cpt, self.croll, self.csrc, nc, n_pair, 1.0 / h, cs.force, cs.out_idx,
             cs.out_val, cs.counts, cs.cstart,
         )  # fmt: skip
         sim.record_wall_loads()
@@ -387,6 +406,7 @@ class Stepper(Integrator):
             "method": "complementarity",
             "solver": p.solver,
             "cone": p.cone,
+            "restitution_threshold": p.restitution_threshold,
             "tolerance": p.tolerance,
             "max_iterations": p.max_iterations,
             "relaxation": p.relaxation,
@@ -401,7 +421,7 @@ class Stepper(Integrator):
     def _sync_velocities(self, nc, v_free, w_free, P, L) -> None:
         sim = self.sim
         p = sim.particles
-        ck.accumulate(self.cb, self.cn, self.ca, self.gam, nc, P, L)
+        ck.accumulate(self.cb, self.cn, self.ca, self.croll, self.gam, nc, P, L)
         ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
         if self._bodies:
             self._body_velocities(nc, v_free)
@@ -415,8 +435,8 @@ class Stepper(Integrator):
         it = 0
         while it < pr.max_iterations:
             local = ck.jacobi_update(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
-                self.W, nc, pr.relaxation, self.corrected,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.croll, self.gam,
+                self.V, self.W, nc, pr.relaxation, self.corrected,
             )  # fmt: skip
             it += 1
             self._sync_velocities(nc, v_free, w_free, P, L)
@@ -431,11 +451,13 @@ class Stepper(Integrator):
     def _residual(self, nc) -> float:
         """The residual of the current impulses and velocities: of Coulomb's law (ũ) for the corrected
         cone, of the relaxed cone problem (u) otherwise."""
-        u = np.empty((nc, 4))
-        ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
+        u = np.empty((nc, 8))
+        ck.contact_velocities(
+            self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, u
+        )  # fmt: skip
         if self.corrected:
             ck.correct_normal(u, self.cmu, nc)
-        return ck.residual_max(self.gam, u, self.cmu, self.cscale, nc)
+        return ck.residual_max(self.gam, u, self.cmu, self.cscale, self.croll, nc)
 
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         pr = self.p
@@ -444,8 +466,8 @@ class Stepper(Integrator):
         it = 0
         while it < pr.max_iterations:
             res = ck.gauss_seidel_sweep(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.gam, self.V,
-                self.W, self.IM, self.II, self.DOF, nc, pr.relaxation, self.corrected,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.croll, self.gam,
+                self.V, self.W, self.IM, self.II, self.DOF, nc, pr.relaxation, self.corrected,
             )  # fmt: skip
             it += 1
             if res <= pr.tolerance:
@@ -471,26 +493,30 @@ class Stepper(Integrator):
         corrected = self.corrected
         cmu = self.cmu[:nc]
         cscale = self.cscale[:nc]
+        croll = self.croll[:nc]
         gam = self.gam[:nc]
 
         def grad(gv: np.ndarray) -> np.ndarray:
             self.gam[:nc] = gv
             self._sync_velocities(nc, v_free, w_free, P, L)
-            u = np.empty((nc, 4))
-            ck.contact_velocities(self.cb, self.cn, self.ca, self.cvw, self.cbias, self.V, self.W, nc, u)
+            u = np.empty((nc, 8))
+            ck.contact_velocities(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, u
+            )  # fmt: skip
             if corrected:
                 ck.correct_normal(u, cmu, nc)
             return u
 
-        r_vec = grad(np.zeros((nc, 4)))  # u(0) = r
+        r_vec = grad(np.zeros((nc, 8)))  # u(0) = r
 
         def objective(gv: np.ndarray, u: np.ndarray) -> float:
             # f = ½ γ·(Nγ) + r·γ with Nγ = u − r
             return float(0.5 * np.sum(gv * (u - r_vec)) + np.sum(r_vec * gv))
 
-        g0 = ck.project_cone_array(gam.copy(), cmu)
+        g0 = ck.project_cone_array(gam.copy(), cmu, croll)
         # step from a Lipschitz estimate: |N(γ0 − γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start
-        ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * np.array([1.0, 0, 0, 0]), cmu)
+        e_n = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+        ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * e_n, cmu, croll)
         d = g0 - ghat
         nd = float(np.sqrt(np.sum(d * d)))
         if nd > 0.0:
@@ -512,7 +538,7 @@ class Stepper(Integrator):
             gy = grad(y)
             fy = 0.0 if corrected else objective(y, gy)
             while True:
-                g_new = ck.project_cone_array(y - t * gy, cmu)
+                g_new = ck.project_cone_array(y - t * gy, cmu, croll)
                 u_new = grad(g_new)
                 step = g_new - y
                 if corrected:
@@ -529,7 +555,7 @@ class Stepper(Integrator):
             theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
             beta = theta * (1.0 - theta) / (theta * theta + theta_new)
             y_new = g_new + beta * (g_new - gam_k)
-            res = ck.residual_max(g_new, u_new, cmu, cscale, nc)
+            res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
             if res < best_res:
                 best_res = res
                 best = g_new.copy()

@@ -355,6 +355,8 @@ class ContactSection(_DeckModel):
 
 
 _MAT_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Material) if f.name != "name"}
+#: the contact values of a material that a pair or a stage may override
+CONTACT_VALUES = ("restitution", "friction", "rolling_friction", "spinning_friction")
 
 
 class MaterialSpec(_DeckModel):
@@ -374,11 +376,18 @@ class MaterialSpec(_DeckModel):
         ge=0,
         description="rolling friction coefficient μ_r [-] (multiplies R* F_n; 0 disables rolling resistance)",
     )
+    spinning_friction: Float = Field(
+        _MAT_DEFAULTS["spinning_friction"],
+        ge=0,
+        description="spinning friction coefficient μ_s [-]: the torque about the contact normal is "
+        "bounded by μ_s R* F_n (0 disables spinning resistance)",
+    )
     rigid: bool = Field(
         False,
         description="a rigid wall material (walls only): infinite stiffness, so a contact's E* is the "
-        "grain's alone; give no density, youngs_modulus or poisson_ratio; restitution, friction and "
-        "rolling_friction, when given, are the wall's own (not mixed), else the grain's apply",
+        "grain's alone; give no density, youngs_modulus or poisson_ratio; restitution, friction, "
+        "rolling_friction and spinning_friction, when given, are the wall's own (not mixed), else the "
+        "grain's apply",
     )
 
     @classmethod
@@ -401,29 +410,24 @@ class MaterialSpec(_DeckModel):
     def to_material(self, name: str) -> Material:
         """The :class:`pdem.materials.Material` called ``name``."""
         if self.rigid:
-            own = {k: getattr(self, k) for k in ("restitution", "friction", "rolling_friction")
-                   if k in self.model_fields_set}  # fmt: skip
+            own = {k: getattr(self, k) for k in CONTACT_VALUES if k in self.model_fields_set}
             return Material.rigid_wall(name, **own)
         return Material(name=name, **self.model_dump())
 
 
 class _ContactValues(_DeckModel):
-    """Optional restitution / friction / rolling friction, at least one given (a material pair's,
-    or a material's during one stage)."""
+    """Optional restitution / friction / rolling / spinning friction, at least one given (a material
+    pair's, or a material's during one stage)."""
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        if not any(_given(data, k) for k in ("restitution", "friction", "rolling_friction")):
-            return [((), "give at least one of restitution, friction, rolling_friction")]
+        if not any(_given(data, k) for k in CONTACT_VALUES):
+            return [((), f"give at least one of {', '.join(CONTACT_VALUES)}")]
         return []
 
     def values(self) -> dict[str, float]:
         """The values that are set."""
-        return {
-            k: v
-            for k in ("restitution", "friction", "rolling_friction")
-            if (v := getattr(self, k)) is not None
-        }
+        return {k: v for k in CONTACT_VALUES if (v := getattr(self, k)) is not None}
 
 
 class MaterialPair(_ContactValues):
@@ -435,6 +439,7 @@ class MaterialPair(_ContactValues):
     restitution: Float | None = Field(None, ge=0, le=1, description="restitution of the pair [-], in [0, 1]")
     friction: Float | None = Field(None, ge=0, description="sliding friction of the pair [-]")
     rolling_friction: Float | None = Field(None, ge=0, description="rolling friction of the pair [-]")
+    spinning_friction: Float | None = Field(None, ge=0, description="spinning friction of the pair [-]")
 
 
 # -------------------------------------------------------------------------------------------------
@@ -750,6 +755,9 @@ class StageMaterial(_ContactValues):
     rolling_friction: Float | None = Field(
         None, ge=0, description="rolling friction μ_r during this stage [-]"
     )
+    spinning_friction: Float | None = Field(
+        None, ge=0, description="spinning friction μ_s during this stage [-]"
+    )
 
 
 class Stage(_DeckModel):
@@ -767,7 +775,8 @@ class Stage(_DeckModel):
     materials: dict[Str, StageMaterial] = Field(
         {},
         description="contact properties of materials during this stage only (tables "
-        "[stages.materials.NAME]: friction, restitution, rolling_friction), e.g. frictionless grains "
+        "[stages.materials.NAME]: friction, restitution, rolling_friction, spinning_friction), e.g. "
+        "frictionless grains "
         "while a dense sample is prepared; the other stages use [materials]",
     )
 
@@ -929,7 +938,8 @@ class Deck(_DeckModel):
         min_length=1, description="materials by name (tables [materials.NAME]); at least one"
     )
     material_pairs: list[MaterialPair] = Field(
-        default_factory=list, description="per-pair overrides of restitution, friction, rolling_friction"
+        default_factory=list,
+        description="per-pair overrides of restitution, friction, rolling_friction, spinning_friction",
     )
     # after validation each entry is the source plugin's own Params model: serialised as that
     particles: list[SerializeAsAny[ParticleEntry]] = Field(

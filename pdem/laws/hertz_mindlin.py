@@ -34,7 +34,11 @@ above the input e (tested in ``tests/test_physics_impacts.py``).
 −μ_r R* max(F_n, 0) ω_roll/|ω_roll|, with ω_roll the tangential part of ω_j − ω_i, limited in
 magnitude to I* |ω_roll| / dt so that it cannot reverse the relative rolling within a step.
 
-Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ, μ_r, clamp]``.
+**Spinning resistance** (off unless a material has ``spinning_friction`` > 0): likewise a torque on
+j of −μ_s R* max(F_n, 0) sign(ω_n) n about the normal, ω_n = n·(ω_j − ω_i), limited to
+I* |ω_n| / dt.
+
+Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ, μ_r, clamp, μ_s]``.
 """
 
 from __future__ import annotations
@@ -99,6 +103,15 @@ def hertz_mindlin_force(
             mx = -mag * rx / wr
             my = -mag * ry / wr
             mz = -mag * rz / wr
+    if coef[mi, mj, 8] > 0.0 and fn > 0.0:
+        wn = wx * nx + wy * ny + wz * nz
+        if wn != 0.0:
+            mag = min(coef[mi, mj, 8] * r_eff * fn, i_eff * abs(wn) / dt)
+            if wn > 0.0:
+                mag = -mag
+            mx += mag * nx
+            my += mag * ny
+            mz += mag * nz
     return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, mx, my, mz)
 
 
@@ -157,6 +170,10 @@ def force_numpy(delta, n, vrel, wrel, r_eff, m_eff, i_eff, c, hist, dt):
         if np.linalg.norm(wr) > 0:
             mag = min(c[6] * r_eff * fn, i_eff * np.linalg.norm(wr) / dt)
             m = -mag * wr / np.linalg.norm(wr)
+    if len(c) > 8 and c[8] > 0 and fn > 0:
+        wn = float(wrel @ n)
+        if wn != 0.0:
+            m = m - min(c[8] * r_eff * fn, i_eff * abs(wn) / dt) * np.sign(wn) * n
     return fn * n + ft, m
 
 
@@ -201,7 +218,7 @@ class HertzMindlin(ContactLaw):
     name = "hertz_mindlin"
     kind = "penalty"
     history_size = 3
-    n_coef = 8
+    n_coef = 9
     Params = HertzMindlinParams
     pair_kernel = hertz_mindlin_pair_kernel
     wall_kernel = hertz_mindlin_wall_kernel
@@ -211,11 +228,14 @@ class HertzMindlin(ContactLaw):
         clamp = 1.0 if p.clamp_normal else 0.0
         mu = materials.mixed(a, b, "friction")
         mu_r = materials.mixed(a, b, "rolling_friction")
+        mu_s = materials.mixed(a, b, "spinning_friction")
         if p.parameterisation == "material":
             e_star, g_star = effective_moduli(materials[a], materials[b])
             beta = damping_ratio(materials.mixed(a, b, "restitution"))
-            return np.array([0.0, e_star, g_star, beta, math.sqrt(4.0 * g_star / e_star), mu, mu_r, clamp])
-        return np.array([1.0, p.kn, p.kt, p.cn, p.ct, mu, mu_r, clamp])
+            return np.array(
+                [0.0, e_star, g_star, beta, math.sqrt(4.0 * g_star / e_star), mu, mu_r, clamp, mu_s]
+            )
+        return np.array([1.0, p.kn, p.kt, p.cn, p.ct, mu, mu_r, clamp, mu_s])
 
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Material form: the Rayleigh time min T_R. Coefficient form: 2 sqrt(m*/S_n) with the

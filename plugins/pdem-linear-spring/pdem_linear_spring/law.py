@@ -184,12 +184,13 @@ class LinearSpring(ContactLaw):
 
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         p = self.params
-        if materials.mixed(a, b, "rolling_friction") > 0.0:
-            raise InputError(
-                f"law 'linear_spring' has no rolling resistance, but materials '{materials[a].name}' and "
-                f"'{materials[b].name}' have rolling_friction > 0; set rolling_friction = 0 or use "
-                "law = 'hertz_mindlin'"
-            )
+        for key, what in (("rolling_friction", "rolling"), ("spinning_friction", "spinning")):
+            if materials.mixed(a, b, key) > 0.0:
+                raise InputError(
+                    f"law 'linear_spring' has no {what} resistance, but materials '{materials[a].name}' "
+                    f"and '{materials[b].name}' have {key} > 0; set {key} = 0 or use "
+                    "law = 'hertz_mindlin'"
+                )
         beta = damping_ratio(materials.mixed(a, b, "restitution"))
         clamp = 1.0 if p.clamp_normal else 0.0
         mu = materials.mixed(a, b, "friction")

@@ -81,6 +81,13 @@ def test_rolling_friction_is_refused():
         LinearSpring(kn=KN).coefficients(mt)
 
 
+def test_spinning_friction_is_refused():
+    mt = MaterialTable()
+    mt.add(Material("a", spinning_friction=0.1))
+    with pytest.raises(InputError, match="no spinning resistance"):
+        LinearSpring(kn=KN).coefficients(mt)
+
+
 # ---------------------------------------------------------------------------------------------
 # (b) kernel against the plain-Python twin
 # ---------------------------------------------------------------------------------------------
