@@ -178,6 +178,7 @@ def test_boundary_stresses_agree_with_the_grains_own_stress(packing):
     m = cell.measurements(sim)
     top, bottom = sim.walls["cell.top"].force[2], sim.walls["cell.bottom"].force[2]
     szz, fz = _boundary_szz(sim, cell)
+    assert m["szz_boundary"] == pytest.approx(szz, rel=1e-9)  # the series column, computed here anew
     assert top + bottom - fz == pytest.approx(0.0, abs=0.01 * top)  # axial equilibrium (loads on walls)
     assert m["sigma1"] == pytest.approx(SIGMA3, rel=0.1)  # the servo brings σ1 to σ3
     assert m["lw_szz"] == pytest.approx(szz, rel=0.03)

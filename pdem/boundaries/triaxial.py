@@ -367,6 +367,7 @@ class TriaxialCell(Boundary):
         vir = np.einsum("ij,ij->i", (np.stack([dx[w], dy[w], np.zeros(w.size)], axis=1) + lever), f)
         self._applied = (f, np.einsum("ka,kb->kab", lever, f).reshape(-1, 9), vir)
         self._applied_volume = self._volume
+        self._axial_virial = np.zeros(0)  # radial loads only
         return geometry
 
     def _smooth_membrane(self, sim, apply, b, size, nz, nt, h, theta, zrel, rho, r, rows, dx, dy):
@@ -431,6 +432,9 @@ class TriaxialCell(Boundary):
         sim.particles.f[rows[loaded]] += f[loaded]
         self._applied = (f[loaded], mom[loaded].reshape(-1, 9), vir[loaded])
         self._applied_volume = self._volume
+        # the loads' axial virial Σ (z + lever_z) f_z (z from the bottom platen): the membrane's part
+        # of the specimen's mean σ_zz (it pushes along its normal, which tilts on a barrel)
+        self._axial_virial = zrel[loaded] * f[loaded, 2] + mom[loaded, 2, 2]
         return geometry
 
     # ------------------------------------------------------------------ measuring
@@ -444,9 +448,18 @@ class TriaxialCell(Boundary):
         sigma1 = float(self.top.force[2]) / area
         # realised σ3: the pressure the membrane forces exert (their radial virial, exact over ranks)
         sigma3 = self._membrane_pressure(sim)
+        # the specimen's mean σ_zz from its boundary loads (equilibrium): the top platen at h, the
+        # membrane's loads at their points; equals σ1 for a straight specimen
+        axial = getattr(self, "_axial_virial", np.zeros(0))
+        vol_applied = getattr(self, "_applied_volume", math.nan)
+        szz_boundary = (
+            (float(self.top.force[2]) * h - sim.exact_sum(axial)) / vol_applied
+            if self.phase in ("consolidate", "shear") and vol_applied > 0 else sigma1
+        )
         out = {
             "sigma1": sigma1,
             "sigma3": sigma3,
+            "szz_boundary": szz_boundary,
             "q": sigma1 - sigma3,
             "p": (sigma1 + 2 * sigma3) / 3,
             "height": h,
@@ -491,6 +504,11 @@ class TriaxialCell(Boundary):
                 out["lw_sigma1_error_p95"] = float(np.nanpercentile(e1, 95))
                 out["lw_sigma3_error_mean"] = float(np.nanmean(e3))
                 out["lw_sigma3_error_p95"] = float(np.nanpercentile(e3, 95))
+                sb = key("szz_boundary")
+                if sb is not None:  # against the full axial boundary load (platen + membrane)
+                    eb = np.abs(lz[shear] / sb[shear] - 1)
+                    out["lw_szz_boundary_error_mean"] = float(np.nanmean(eb))
+                    out["lw_szz_boundary_error_p95"] = float(np.nanpercentile(eb, 95))
             inert = key("inertial")
             if inert is not None and np.isfinite(inert[shear]).any():
                 out["inertial_number_max"] = float(np.nanmax(inert[shear]))
