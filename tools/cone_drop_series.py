@@ -5,7 +5,9 @@
                                      [--ranks N] [--out DIR] [--set KEY=VALUE ...] [--render] [--dry-run]
 
 Each run is ``pdem DECK --set boundaries.pen.tip=... --set boundaries.pen.release_height=H`` (plus
-``apex_deg`` for a cone, plus the extra ``--set``s) into ``OUT/<tip>_H<cm>``, one after the other
+``apex_deg`` and ``shaft_length`` = ``--cone-shaft`` for a cone: by default 0, solid cones of the
+standard base (D = 20.3 mm) and density 700 kg/m³ like the ball; plus the extra ``--set``s) into
+``OUT/<tip>_H<cm>``, one after the other
 (``mpiexec -n N`` with ``--ranks``). A run whose ``summary.json`` exists is kept and skipped, so the
 series can be stopped and started again; a failed run stops it with its exit code. DECK defaults to
 ``inputs/cone_drop.toml`` (reduced bed); OUT to ``out/cone_drop_series``.
@@ -40,6 +42,7 @@ TIPS = {
     "cone60": ["boundaries.pen.tip=cone", "boundaries.pen.apex_deg=60.0"],
     "cone30": ["boundaries.pen.tip=cone", "boundaries.pen.apex_deg=30.0"],
 }
+CONES = ("cone60", "cone30")
 
 
 def command(deck: Path, out: Path, sets: list[str], ranks: int) -> list[str]:
@@ -72,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ranks", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("out") / "cone_drop_series")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--cone-shaft", type=float, default=0.0,
+                    help="rod length above the cones [m] (default 0: solid cones, like the ball; the "
+                    "deck's 0.1 drops the whole penetrometer)")  # fmt: skip
     ap.add_argument("--render", action="store_true", help="crater picture of each run (pyvista)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     args = ap.parse_args(argv)
@@ -79,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for k, (tip, h) in enumerate(runs):
         run_dir = args.out / f"{tip}_H{h * 100:g}cm"
-        sets = [*TIPS[tip], f"boundaries.pen.release_height={h!r}", *args.overrides]
+        sets = [*TIPS[tip], f"boundaries.pen.release_height={h!r}"]
+        if tip in CONES:
+            sets.append(f"boundaries.pen.shaft_length={args.cone_shaft!r}")
+        sets += args.overrides
         cmd = command(args.deck, run_dir, sets, args.ranks)
         if args.dry_run:
             print(" ".join(cmd))

@@ -4,13 +4,15 @@ at constant speed, or dropped onto it as a free rigid body (experiments.md §2).
 **Body.** ``tip = "cone"``: a rod of diameter D (default from the standard cone base area 323 mm²,
 D = 20.3 mm) with a conical tip of apex angle ``apex_deg`` (60° standard, 30° the sharp cone), the
 apex down on the axis (x, y) = ``axis``; the cone is L_c = (D/2) / tan(apex/2) long, the shaft above
-it ``shaft_length``. Both are one triangle-mesh wall (``segments`` facets around): the cone's fan of
-``segments`` triangles first, then the shaft's 2 × ``segments``. A mesh rather than a Frustum and a
+it ``shaft_length`` (0: a bare cone), closed by a flat cap. All of it is one triangle-mesh wall
+(``segments`` facets around): the cone's fan of ``segments`` triangles first, then the shaft's
+2 × ``segments``, then the cap's ``segments`` (so a body sunk deeper than its length stays
+closed). A mesh rather than a Frustum and a
 CylinderTube wall: a grain at the rim where cone and shaft meet is within reach of both surfaces'
 edges (the same circle), and two analytic walls would load it twice; the mesh wall counts one
 contact per grain (:mod:`pdem.boundaries._mesh`). With 48 segments the flat facets lie within
 R (1 − cos(π/48)) = 0.2 % of R of the true cone, 0.02 mm for D = 20.3 mm. The **tip force** is the
-load on the cone's facets, the **shaft force** the load on the shaft's (rows of the same wall,
+load on the cone's facets, the **shaft force** the load on the shaft's and the cap's (rows of the same wall,
 each row's load an exact sum, added in row order, so the split is the same on any number of
 ranks). ``tip = "sphere"``: a ball of diameter ``diameter`` (default 1 inch), all of it "tip".
 
@@ -181,7 +183,8 @@ class PenetrometerParams(BoundaryParams):
 
 def cone_mesh(diameter: float, apex_deg: float, shaft_length: float, segments: int):
     """Vertices and triangles of a cone (apex at the origin, opening along +z) topped by a rod of the
-    same diameter: the cone's ``segments`` triangles first, then the rod's 2 × ``segments``. Returns
+    same diameter and closed by a flat cap: the cone's ``segments`` triangles first, then the rod's
+    2 × ``segments`` (none if ``shaft_length`` is 0), then the cap's ``segments``. Returns
     (vertices, triangles, cone length)."""
     radius = 0.5 * diameter
     length = radius / math.tan(math.radians(0.5 * apex_deg))
@@ -191,6 +194,7 @@ def cone_mesh(diameter: float, apex_deg: float, shaft_length: float, segments: i
     k = np.arange(segments)
     nxt = (k + 1) % segments
     tris = [np.stack([np.zeros(segments, dtype=np.int64), 1 + k, 1 + nxt], axis=1)]
+    top_ring = 1 + k
     if shaft_length > 0:
         top = ring.copy()
         top[:, 2] += shaft_length
@@ -201,6 +205,10 @@ def cone_mesh(diameter: float, apex_deg: float, shaft_length: float, segments: i
         quads[0::2] = np.stack([b0, b1, t1], axis=1)
         quads[1::2] = np.stack([b0, t1, t0], axis=1)
         tris.append(quads)
+        top_ring = t0
+    centre = sum(len(v) for v in verts)
+    verts.append(np.array([[0.0, 0.0, length + shaft_length]]))
+    tris.append(np.stack([np.full(segments, centre), top_ring, np.roll(top_ring, -1)], axis=1))
     return np.concatenate(verts), np.concatenate(tris).astype(np.int64), length
 
 
