@@ -345,3 +345,30 @@ def test_analytic_fall_matches_the_stepped_fall():
             speeds[fall] = pen.measurements(sim)["velocity"]
     assert speeds["analytic"] == pytest.approx(-math.sqrt(2 * g * (0.01 - 1e-3)), rel=1e-12)
     assert abs(speeds["integrate"] - speeds["analytic"]) < 2 * g * dt
+
+
+def test_resume_inside_the_drop_is_bitwise(tmp_path):
+    """A checkpoint taken while the dropped body moves (its velocity, the surface and the touch are
+    boundary state): resuming from it ends bitwise where the uninterrupted run ends."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from determinism import compare
+
+    from pdem.io.checkpoint import read_checkpoint
+
+    sets = ["boundaries.pen.mode=drop", "output.checkpoint_every_steps=750", "output.every_steps=750"]
+    full, cont = tmp_path / "full", tmp_path / "cont"
+    args = [str(SMALL), "--output", str(full), "--quiet"]
+    for s in sets:
+        args += ["--set", s]
+    assert main(args) == 0
+    assert (
+        main(["resume", str(full / "checkpoints" / "step_0000000750.h5"), "--output", str(cont), "--quiet"])
+        == 0
+    )
+    a, _ = read_checkpoint(full / "checkpoints" / "latest.h5")
+    b, _ = read_checkpoint(cont / "checkpoints" / "latest.h5")
+    assert int(a["scalars/step"]) == int(b["scalars/step"]) == 1500
+    assert compare(a, b) is None
+    sa, sb = _series(full / "series_penetrate.csv"), _series(cont / "series_penetrate.csv")
+    for key in ("pen.depth", "pen.velocity", "pen.tip_force", "pen.surface"):
+        assert np.array_equal(sa[key], sb[key]), key
