@@ -409,10 +409,17 @@ class Penetrometer(Boundary):
             speed = 0.0
         self.motion.velocity = np.array([0.0, 0.0, -speed])
 
+    def _velocity(self) -> float:
+        """The body's vertical velocity: a free body's own (set at release, before any step), else
+        the wall's."""
+        if isinstance(self.motion, RigidBody):
+            return float(self.motion.velocity_now[2])
+        return float(self.body.velocity[2])
+
     def after_step(self, sim: Any) -> None:
         if self.phase != "drop":
             return
-        v = float(self.body.velocity[2])
+        v = self._velocity()
         if not self.touched and self.tip_z() <= self.surface:
             self.touched = True
             self.impact_velocity = v
@@ -439,7 +446,7 @@ class Penetrometer(Boundary):
             "shaft_force": shaft,
             "qc": tip / self.area,
             "total_force": float(self.body.force[2]),
-            "velocity": float(self.body.velocity[2]),
+            "velocity": self._velocity(),
             "tip_z": self.tip_z(),
             "surface": self.surface,
             "at_rest": float(
