@@ -16,9 +16,9 @@ Then, from every run's ``summary.json`` (``results.pen``): the final depth d of 
 bed surface and the total drop distance H + d, and per tip a least-squares power law
 d = A (H + d)^n in log–log (exponent n; Uehara et al., PRL 90, 194301, 2003, report n = 1/3 for
 spheres in loose beads). Written: ``OUT/drop_series.csv`` (tip, H, d, H + d, impact speed, mass,
-wall time), ``OUT/drop_series.json`` (the fits) and ``OUT/drop_series.png``. ``--render`` draws each
-run's last frame cut through the axis (``tools/render.py --clip-y``: the crater and the body) into
-``OUT/<run>/crater.png``.
+how long the body has been at rest at the end, wall time), ``OUT/drop_series.json`` (the fits)
+and ``OUT/drop_series.png``. ``--render`` draws each run's last frame cut through the axis
+(``tools/render.py --clip-y``: the crater and the body) into ``OUT/<run>/crater.png``.
 """
 
 from __future__ import annotations
@@ -108,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         res = summary["results"]["pen"]
         rows.append({"tip": tip, "H_m": h, "depth_m": res["final_depth"], "total_drop_m": res["total_drop"],
                      "impact_velocity_m_s": res.get("impact_velocity"), "mass_kg": res["mass"],
-                     "at_rest": summary.get("completed"), "wall_time_s": summary.get("wall_time_s"),
+                     "rest_time_s": res.get("rest_time"), "completed": summary.get("completed"),
+                     "wall_time_s": summary.get("wall_time_s"),
                      "run": run_dir.name})  # fmt: skip
         if args.render and not (run_dir / "crater.png").is_file():
             subprocess.call([sys.executable, str(ROOT / "tools" / "render.py"), str(run_dir), "--clip-y",
