@@ -277,6 +277,7 @@ def test_small_deck_pushes_and_summarises(tmp_path):
     assert "qc_mean" in summary
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
 @pytest.mark.parametrize(
     "overrides",
@@ -288,9 +289,9 @@ def test_small_deck_pushes_and_summarises(tmp_path):
             "boundaries.pen.mode=drop",
             "boundaries.pen.release_height=0.003",
             "stages.settle.end.steps=30",
-            "stages.penetrate.end.steps=400",
-            "output.every_steps=430",
-            "output.checkpoint_every_steps=430",
+            "stages.penetrate.end.steps=150",
+            "output.every_steps=180",
+            "output.checkpoint_every_steps=180",
             "output.series_every_steps=10",
         ],
     ],
