@@ -484,7 +484,8 @@ class Wall:
         out = np.zeros((self.n_rows, 6))
         comm = getattr(self, "_comm", None)
         for r in range(self.n_rows):
-            vals = bufs[r][: self._counts[r]] if r < len(bufs) else np.zeros((0, 6))
+            # a wall just switched on or off recorded no rows yet (``record_load(0)``): no load
+            vals = bufs[r][: self._counts[r]] if r < min(len(bufs), len(self._counts)) else np.zeros((0, 6))
             if comm is not None and comm.size > 1:
                 from ..parallel.exact import exact_sums
 

@@ -1,0 +1,155 @@
+#!/usr/bin/env python
+"""Drop a sphere and cones from several heights onto the bed and fit depth against drop distance.
+
+    python tools/cone_drop_series.py [DECK] [--tips sphere cone60 cone30] [--heights 0.02 0.05 0.1 0.3]
+                                     [--ranks N] [--out DIR] [--set KEY=VALUE ...] [--render] [--dry-run]
+
+Each run is ``pdem DECK --set boundaries.pen.tip=... --set boundaries.pen.release_height=H`` (plus
+``apex_deg`` and ``shaft_length`` = ``--cone-shaft`` for a cone: by default 0, solid cones of the
+standard base (D = 20.3 mm) and density 700 kg/m³ like the ball; plus the extra ``--set``s) into
+``OUT/<tip>_H<cm>``, one after the other
+(``mpiexec -n N`` with ``--ranks``). A run whose ``summary.json`` exists is kept and skipped, so the
+series can be stopped and started again; a failed run stops it with its exit code. DECK defaults to
+``inputs/cone_drop.toml`` (reduced bed); OUT to ``out/cone_drop_series``.
+
+Then, from every run's ``summary.json`` (``results.pen``): the final depth d of the tip below the
+bed surface and the total drop distance H + d, and per tip a least-squares power law
+d = A (H + d)^n in log–log (exponent n; Uehara et al., PRL 90, 194301, 2003, report n = 1/3 for
+spheres in loose beads). Written: ``OUT/drop_series.csv`` (tip, H, d, H + d, impact speed, mass,
+how long the body has been at rest at the end, wall time), ``OUT/drop_series.json`` (the fits)
+and ``OUT/drop_series.png``. ``--render`` draws each run's last frame cut through the axis
+(``tools/render.py --clip-y``: the crater and the body) into ``OUT/<run>/crater.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TIPS = {
+    "sphere": ["boundaries.pen.tip=sphere"],
+    "cone60": ["boundaries.pen.tip=cone", "boundaries.pen.apex_deg=60.0"],
+    "cone30": ["boundaries.pen.tip=cone", "boundaries.pen.apex_deg=30.0"],
+}
+CONES = ("cone60", "cone30")
+
+
+def command(deck: Path, out: Path, sets: list[str], ranks: int) -> list[str]:
+    pdem = [sys.executable, "-m", "pdem"]
+    if ranks > 1:
+        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+        if mpiexec is None:
+            raise SystemExit("--ranks > 1 needs mpiexec (pip install mpich)")
+        pdem = [mpiexec, "-n", str(ranks), *pdem]
+    cmd = [*pdem, str(deck), "--output", str(out), "--overwrite", "--quiet"]
+    for s in sets:
+        cmd += ["--set", s]
+    return cmd
+
+
+def fit_power_law(total: np.ndarray, depth: np.ndarray) -> tuple[float, float]:
+    """(A, n) of depth = A total^n, least squares in log–log over the positive pairs."""
+    ok = (total > 0) & (depth > 0)
+    if ok.sum() < 2:
+        return math.nan, math.nan
+    n, log_a = np.polyfit(np.log(total[ok]), np.log(depth[ok]), 1)
+    return float(math.exp(log_a)), float(n)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("deck", nargs="?", type=Path, default=ROOT / "inputs" / "cone_drop.toml")
+    ap.add_argument("--tips", nargs="+", choices=sorted(TIPS), default=["sphere", "cone60", "cone30"])
+    ap.add_argument("--heights", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.3], help="H [m]")
+    ap.add_argument("--ranks", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=Path("out") / "cone_drop_series")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--cone-shaft", type=float, default=0.0,
+                    help="rod length above the cones [m] (default 0: solid cones, like the ball; the "
+                    "deck's 0.1 drops the whole penetrometer)")  # fmt: skip
+    ap.add_argument("--render", action="store_true", help="crater picture of each run (pyvista)")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    args = ap.parse_args(argv)
+    runs = [(tip, h) for tip in args.tips for h in args.heights]
+    rows = []
+    for k, (tip, h) in enumerate(runs):
+        run_dir = args.out / f"{tip}_H{h * 100:g}cm"
+        sets = [*TIPS[tip], f"boundaries.pen.release_height={h!r}"]
+        if tip in CONES:
+            sets.append(f"boundaries.pen.shaft_length={args.cone_shaft!r}")
+        sets += args.overrides
+        cmd = command(args.deck, run_dir, sets, args.ranks)
+        if args.dry_run:
+            print(" ".join(cmd))
+            continue
+        tag = f"[{k + 1}/{len(runs)}]"
+        if (run_dir / "summary.json").is_file():
+            print(f"{tag} {run_dir}: done before, kept", file=sys.stderr)
+        else:
+            print(f"{tag} {' '.join(cmd)}", file=sys.stderr)
+            t0 = time.perf_counter()
+            code = subprocess.call(cmd)
+            if code != 0:
+                print(f"run {run_dir} failed (exit {code})", file=sys.stderr)
+                return code
+            print(f"{tag} {run_dir}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        summary = json.loads((run_dir / "summary.json").read_text())
+        res = summary["results"]["pen"]
+        rows.append({"tip": tip, "H_m": h, "depth_m": res["final_depth"], "total_drop_m": res["total_drop"],
+                     "impact_velocity_m_s": res.get("impact_velocity"), "mass_kg": res["mass"],
+                     "rest_time_s": res.get("rest_time"), "completed": summary.get("completed"),
+                     "wall_time_s": summary.get("wall_time_s"),
+                     "run": run_dir.name})  # fmt: skip
+        if args.render and not (run_dir / "crater.png").is_file():
+            subprocess.call([sys.executable, str(ROOT / "tools" / "render.py"), str(run_dir), "--clip-y",
+                             "--field", "speed", "--out", str(run_dir / "crater.png")])  # fmt: skip
+    if args.dry_run or not rows:
+        return 0
+    args.out.mkdir(parents=True, exist_ok=True)
+    with (args.out / "drop_series.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    fits = {}
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 5))
+    for tip in args.tips:
+        sel = [r for r in rows if r["tip"] == tip]
+        tot = np.array([r["total_drop_m"] for r in sel])
+        dep = np.array([r["depth_m"] for r in sel])
+        a, n = fit_power_law(tot, dep)
+        fits[tip] = {"A": a, "exponent": n, "runs": len(sel)}
+        print(f"{tip}: d = {a:.4g} (H + d)^{n:.3f} over {len(sel)} heights; depths "
+              + ", ".join(f"{r['H_m'] * 100:g} cm -> {r['depth_m'] * 1000:.2f} mm" for r in sel))  # fmt: skip
+        line = ax.loglog(tot * 100, dep * 1000, "o", label=f"{tip}: n = {n:.2f}")[0]
+        if math.isfinite(n):
+            xs = np.geomspace(tot.min(), tot.max(), 20)
+            ax.loglog(xs * 100, a * xs**n * 1000, "-", color=line.get_color(), lw=0.8)
+    ax.set_xlabel("total drop distance H + d [cm]")
+    ax.set_ylabel("final depth d [mm]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out / "drop_series.png", dpi=120)
+    (args.out / "drop_series.json").write_text(json.dumps({"fits": fits, "runs": rows}, indent=2) + "\n")
+    print(f"wrote {args.out / 'drop_series.csv'}, .json, .png", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
