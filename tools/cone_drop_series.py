@@ -27,13 +27,14 @@ import argparse
 import csv
 import json
 import math
-import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _launch import command, run_once  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,19 +44,6 @@ TIPS = {
     "cone30": ["boundaries.pen.tip=cone", "boundaries.pen.apex_deg=30.0"],
 }
 CONES = ("cone60", "cone30")
-
-
-def command(deck: Path, out: Path, sets: list[str], ranks: int) -> list[str]:
-    pdem = [sys.executable, "-m", "pdem"]
-    if ranks > 1:
-        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
-        if mpiexec is None:
-            raise SystemExit("--ranks > 1 needs mpiexec (pip install mpich)")
-        pdem = [mpiexec, "-n", str(ranks), *pdem]
-    cmd = [*pdem, str(deck), "--output", str(out), "--overwrite", "--quiet"]
-    for s in sets:
-        cmd += ["--set", s]
-    return cmd
 
 
 def fit_power_law(total: np.ndarray, depth: np.ndarray) -> tuple[float, float]:
@@ -93,17 +81,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             print(" ".join(cmd))
             continue
-        tag = f"[{k + 1}/{len(runs)}]"
-        if (run_dir / "summary.json").is_file():
-            print(f"{tag} {run_dir}: done before, kept", file=sys.stderr)
-        else:
-            print(f"{tag} {' '.join(cmd)}", file=sys.stderr)
-            t0 = time.perf_counter()
-            code = subprocess.call(cmd)
-            if code != 0:
-                print(f"run {run_dir} failed (exit {code})", file=sys.stderr)
-                return code
-            print(f"{tag} {run_dir}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        code = run_once(cmd, run_dir, f"[{k + 1}/{len(runs)}]")
+        if code != 0:
+            return code
         summary = json.loads((run_dir / "summary.json").read_text())
         res = summary["results"]["pen"]
         rows.append({"tip": tip, "H_m": h, "depth_m": res["final_depth"], "total_drop_m": res["total_drop"],

@@ -23,16 +23,14 @@ minutes per run on 2 cores; the results are in docs/experiments/).
 from __future__ import annotations
 
 import argparse
-import shutil
-import subprocess
 import sys
-import time
 import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 import mohr_coulomb  # noqa: E402
+from _launch import command, run_once  # noqa: E402
 
 TESTS = {
     # test: (boundary type, stress key, default deck, default stresses [Pa])
@@ -50,19 +48,6 @@ def boundary_of(deck: Path, kind: str) -> str:
     if len(names) != 1:
         raise SystemExit(f"{deck}: expected one boundary of type '{kind}', found {names or 'none'}")
     return names[0]
-
-
-def command(deck: Path, out: Path, sets: list[str], ranks: int) -> list[str]:
-    pdem = [sys.executable, "-m", "pdem"]
-    if ranks > 1:
-        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
-        if mpiexec is None:
-            raise SystemExit("--ranks > 1 needs mpiexec (pip install mpich)")
-        pdem = [mpiexec, "-n", str(ranks), *pdem]
-    cmd = [*pdem, str(deck), "--output", str(out), "--overwrite", "--quiet"]
-    for s in sets:
-        cmd += ["--set", s]
-    return cmd
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,16 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             print(" ".join(cmd))
             continue
-        if (run_dir / "summary.json").is_file():
-            print(f"[{k + 1}/{len(stresses)}] {run_dir}: done before, kept", file=sys.stderr)
-            continue
-        print(f"[{k + 1}/{len(stresses)}] {' '.join(cmd)}", file=sys.stderr)
-        t0 = time.perf_counter()
-        code = subprocess.call(cmd)
+        code = run_once(cmd, run_dir, f"[{k + 1}/{len(stresses)}] {s:g} Pa:")
         if code != 0:
-            print(f"run at {s:g} Pa failed (exit {code}); its output is {run_dir}", file=sys.stderr)
             return code
-        print(f"[{k + 1}/{len(stresses)}] {run_dir}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     if args.dry_run:
         return 0
     return mohr_coulomb.main([*map(str, outputs), "--out", str(out / "mohr_coulomb")])

@@ -86,19 +86,19 @@ def all_min(comm, value: float) -> float:
 
 def all_max_array(comm, values: np.ndarray) -> np.ndarray:
     """Elementwise maximum of a float64 array over ranks (exact)."""
-    if comm.size == 1:
-        return values
-    out = np.empty_like(values)
-    comm.Allreduce(np.ascontiguousarray(values), out, op=_mpi_op("MAX"))
-    return out
+    return _allreduce_array(comm, values, "MAX")
 
 
 def all_sum_int_array(comm, values: np.ndarray) -> np.ndarray:
     """Elementwise sum of an int64 array over ranks (integers: exact in any order)."""
+    return _allreduce_array(comm, values, "SUM")
+
+
+def _allreduce_array(comm, values: np.ndarray, op: str) -> np.ndarray:
     if comm.size == 1:
         return values
     out = np.empty_like(values)
-    comm.Allreduce(np.ascontiguousarray(values), out, op=_mpi_op("SUM"))
+    comm.Allreduce(np.ascontiguousarray(values), out, op=_mpi_op(op))
     return out
 
 
