@@ -42,42 +42,84 @@ def global_count(comm, n: int) -> int:
 
 
 # ------------------------------------------------------------------ exact partial sums (O(P) reductions)
-# A rank's terms are reduced locally to a Shewchuk expansion: a few non-overlapping doubles whose sum
-# is exactly the sum of the terms (the ``partials`` of math.fsum). Gathering the ranks' expansions
-# and applying math.fsum to all of them gives the correctly rounded value of the exact global sum,
-# whatever the partition and the order of the terms, while each rank sends a few numbers instead of
-# its terms. A nonoverlapping expansion of doubles has at most ~2,100 components (one per bit of the
-# exponent range); in practice a handful.
-_EXPANSION_CAP = 2112
+# A rank's terms are reduced locally to a few doubles whose sum is exactly the sum of the terms.
+# Gathering the ranks' lists and applying math.fsum to all of them gives the correctly rounded value of
+# the exact global sum, whatever the partition and the order of the terms, while each rank sends a few
+# numbers instead of its terms. The local reduction is a long fixed-point accumulator (Kulisch;
+# Collange et al.'s "superaccumulator"): every double is an integer multiple of 2⁻¹⁰⁷⁴, so its
+# 53-bit significand (read from its bits) is added, split into 32-bit digits, to int64 bins of
+# weight 2^(32k − 1130). Integer additions are exact and commutative; each adds < 2³², so 2³¹ terms
+# fit before a bin could overflow. In the hopper APGD scene it took a third of the time of
+# Shewchuk's expansion (math.fsum's partials), 0.57 s against 1.7 s of 57,479 dot products.
+_OFFSET = 1130  # the bit position of 2⁰ in the accumulator: the smallest double, 2⁻¹⁰⁷⁴, sits at p = 56
+_BINS = 72  # p ≤ 1024 − 53 + 1130 = 2101: digit bins up to 67, room for the carries
 
 
 @njit(inline="always")
-def _grow(part, m, x):
-    """Add x to the expansion part[:m] (increasing magnitude, nonoverlapping): Shewchuk's
-    grow-expansion with zero elimination, as math.fsum. Returns the new length."""
-    i = 0
-    for k in range(m):
-        y = part[k]
-        if abs(x) < abs(y):
-            x, y = y, x
-        hi = x + y
-        lo = y - (hi - x)
-        if lo != 0.0:
-            part[i] = lo
-            i += 1
-        x = hi
-    part[i] = x
-    return i + 1
+def _acc_add(acc, bits):
+    """acc += x exactly, x a finite nonzero double given by its IEEE bits (int64)."""
+    ex = (bits >> 52) & 0x7FF
+    mi = bits & 0xFFFFFFFFFFFFF  # |x| = mi 2^(ex − 1075), with the hidden bit for normal numbers
+    if ex == 0:
+        ex = 1  # subnormal
+    else:
+        mi |= np.int64(1) << 52
+    sgn = np.int64(-1) if bits < 0 else np.int64(1)
+    p = ex - 1075 + _OFFSET  # |x| = mi 2^(p − OFFSET)
+    k = p >> 5
+    s = p & 31
+    d0 = (mi & ((np.int64(1) << (32 - s)) - 1)) << s
+    rest = mi >> (32 - s)
+    acc[k] += sgn * d0
+    acc[k + 1] += sgn * (rest & 0xFFFFFFFF)
+    acc[k + 2] += sgn * (rest >> 32)
+
+
+@njit
+def _acc_digits(acc):
+    """The accumulator as a list of exact doubles: carries propagated so that every digit has the
+    sign of the total (then no digit exceeds the total in magnitude, and none overflows unless the
+    total does), each digit times its weight."""
+    for k in range(_BINS - 1):
+        c = acc[k] >> 32
+        acc[k] -= c << 32
+        acc[k + 1] += c
+    neg = False
+    for k in range(_BINS - 1, -1, -1):
+        if acc[k] != 0:
+            neg = acc[k] < 0
+            break
+    if neg:  # digits of −total, all ≥ 0 after the carries, then negated
+        for k in range(_BINS):
+            acc[k] = -acc[k]
+        for k in range(_BINS - 1):
+            c = acc[k] >> 32
+            acc[k] -= c << 32
+            acc[k + 1] += c
+        for k in range(_BINS):
+            acc[k] = -acc[k]
+    n = 0
+    for k in range(_BINS):
+        if acc[k] != 0:
+            n += 1
+    out = np.empty(n)
+    n = 0
+    for k in range(_BINS):
+        if acc[k] != 0:
+            out[n] = math.ldexp(float(acc[k]), 32 * k - _OFFSET)
+            n += 1
+    return out
 
 
 @njit
 def dot_partials(a, b, rows):
-    """The exact expansion of Σ_{c in rows} Σ_k a[c, k] b[c, k] (each product rounded once, as
-    ``np.sum(a * b)`` forms it) and the plain sum of non-finite products (0.0 if none).
+    """Σ_{c in rows} Σ_k a[c, k] b[c, k] (each product rounded once, as ``np.sum(a * b)`` forms
+    it) as a few doubles whose sum is exact, and the plain sum of non-finite products (0.0 if none).
 
     Returns (partials, special); combine ranks' results with :func:`exact_reduce`."""
-    part = np.empty(_EXPANSION_CAP)
-    m = 0
+    acc = np.zeros(_BINS, dtype=np.int64)
+    buf = np.empty(1)
+    ibuf = buf.view(np.int64)  # the bits of a double
     special = 0.0
     for q in range(rows.shape[0]):
         c = rows[q]
@@ -88,8 +130,9 @@ def dot_partials(a, b, rows):
             if not math.isfinite(x):
                 special += x
                 continue
-            m = _grow(part, m, x)
-    return part[:m].copy(), special
+            buf[0] = x
+            _acc_add(acc, ibuf[0])
+    return _acc_digits(acc), special
 
 
 def exact_reduce(comm, sums, maxima=()) -> tuple[list[float], list[float]]:
@@ -111,7 +154,7 @@ def exact_reduce(comm, sums, maxima=()) -> tuple[list[float], list[float]]:
             continue
         try:
             out_sums.append(math.fsum(np.concatenate([s[k][0] for s, _ in every])))
-        except OverflowError:  # the exact sum is beyond the double range
+        except (OverflowError, ValueError):  # the exact sum is beyond the double range
             out_sums.append(math.nan)
     out_max = []
     for k in range(len(local[1])):
