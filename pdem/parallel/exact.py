@@ -142,8 +142,19 @@ def exact_reduce(comm, sums, maxima=()) -> tuple[list[float], list[float]]:
     rounded exact sum over all ranks (NaN or ±inf if any term was not finite). ``maxima``: local
     floats; each result is the global maximum (NaN if any rank's is NaN). Every result is independent
     of the partition and of the order of the ranks, so every rank takes the same decisions from them."""
+    if comm.size == 1:  # the same values as the general path below, without its lists
+        out = []
+        for part, special in sums:
+            if special != 0.0 or special != special:
+                out.append(special)
+            else:
+                try:
+                    out.append(math.fsum(part))
+                except (OverflowError, ValueError):
+                    out.append(math.nan)
+        return out, [float(v) for v in maxima]
     local = (list(sums), [float(v) for v in maxima])
-    every = comm.allgather(local) if comm.size > 1 else [local]
+    every = comm.allgather(local)
     out_sums = []
     for k in range(len(local[0])):
         special = 0.0
