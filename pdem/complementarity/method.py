@@ -62,7 +62,8 @@ import numpy as np
 from pydantic import Field
 
 from ..api import ContactLaw, InputError, Integrator, LawParams, MaterialTable
-from ..parallel.comm import all_max
+from ..parallel.comm import all_max, any_rank
+from ..parallel.exact import dot_partials, exact_reduce
 from . import _kernels as ck
 
 __all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
@@ -516,9 +517,6 @@ class Stepper(Integrator):
         exact max, gathered in one collective per line-search trial, so every rank takes the same
         decisions and the results are bitwise identical on any number of ranks. The serial run
         takes the same path (its sums are exact too)."""
-        from ..parallel.comm import any_rank
-        from ..parallel.exact import dot_partials, exact_reduce
-
         pr = self.p
         comm = self.sim.comm
         if not any_rank(comm, nc > 0):
