@@ -287,15 +287,25 @@ def test_solvers_reach_the_same_velocities_on_a_packing():
         assert np.max(np.abs(states[s] - states["apgd"])) < 1e-6, s
 
 
-def test_gauss_seidel_and_apgd_refuse_mpi():
+def test_gauss_seidel_refuses_mpi_and_apgd_accepts_it(monkeypatch):
+    """Gauss–Seidel is sequential across the packing: refused under MPI, with an error naming the key
+    and the solvers that do run there. APGD and Jacobi run (tests/test_mpi.py: bitwise identical on
+    1–3 ranks)."""
+
     class FakeComm:
         size = 2
 
-    law = pdem.Simulation(law="complementarity", solver="apgd").law
-    sim = pdem.Simulation(law="complementarity", solver="apgd")
+    sim = pdem.Simulation(law="complementarity", solver="gauss_seidel")
     sim.comm = FakeComm()
-    with pytest.raises(InputError, match="solver = 'jacobi'"):
-        law.make_integrator(sim)
+    with pytest.raises(InputError, match="contact.solver = 'gauss_seidel'.*solver = 'jacobi' or 'apgd'"):
+        sim.law.make_integrator(sim)
+    import pdem.complementarity.method as method
+
+    monkeypatch.setattr(method, "Stepper", lambda sim, law: ("stepper", law.params.solver))
+    for solver in ("apgd", "jacobi"):
+        sim = pdem.Simulation(law="complementarity", solver=solver)
+        sim.comm = FakeComm()
+        assert sim.law.make_integrator(sim) == ("stepper", solver)
 
 
 # ----------------------------------------------------------------------------------- decks

@@ -1,7 +1,8 @@
-"""Engine refactors keep results bitwise identical: four reduced reference scenes (the hopper with
-DEM-P and with DEM-C, the periodic column collapse, the benchmark column) are fingerprinted and
-compared with the fingerprints stored in tests/data/regression_checksums.json, which were made by
-tools/regression_checksums.py on the main branch before the engine-seams refactor.
+"""Engine refactors keep results bitwise identical: five reduced reference scenes (the hopper with
+DEM-P, with DEM-C Jacobi and with DEM-C APGD, the periodic column collapse, the benchmark column) are
+fingerprinted and compared with the fingerprints stored in tests/data/regression_checksums.json,
+which were made by tools/regression_checksums.py on the main branch before the engine-seams refactor
+(the APGD scene: when APGD's sums became exact for MPI).
 
 A change that must alter results (a different summation order, a new physical term) regenerates the
 file with ``python tools/regression_checksums.py --write tests/data/regression_checksums.json`` and

@@ -32,7 +32,11 @@ Solvers (``solver``):
   forwards its ghosts' velocities once per iteration; the stopping test uses a max (exact), so the
   results are bitwise identical on any rank count.
 * ``"apgd"``: accelerated projected gradient descent with adaptive step and restart (Mazhar et al.
-  2015); serial (its global dot products would need exact reductions under MPI).
+  2015). Under MPI every rank iterates its contacts (cross-rank ones on both ranks, identically)
+  and forwards its ghosts' velocities after every evaluation of ũ; the dot products and norms that
+  steer it are exact global sums, each contact counted once (by the owner of its lower-id grain),
+  and its decisions are taken alike on every rank: bitwise identical on any rank count
+  (:meth:`Stepper._apgd`).
 * ``"gauss_seidel"``: projected Gauss–Seidel / SOR in contact order (pairs by id, then walls);
   serial.
 
@@ -58,7 +62,8 @@ import numpy as np
 from pydantic import Field
 
 from ..api import ContactLaw, InputError, Integrator, LawParams, MaterialTable
-from ..parallel.comm import all_max
+from ..parallel.comm import all_max, any_rank
+from ..parallel.exact import dot_partials, exact_reduce
 from . import _kernels as ck
 
 __all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
@@ -68,7 +73,9 @@ class ComplementarityParams(LawParams):
     """Parameters of :class:`Complementarity` (DEM-C)."""
 
     solver: Literal["jacobi", "apgd", "gauss_seidel"] = Field(
-        "jacobi", description="CCP solver: 'jacobi' (MPI, deterministic), 'apgd' or 'gauss_seidel' (serial)"
+        "jacobi",
+        description="CCP solver: 'jacobi' or 'apgd' (both MPI, bitwise identical on any rank count), "
+        "'gauss_seidel' (serial)",
     )
     cone: Literal["corrected", "relaxed"] = Field(
         "corrected",
@@ -147,10 +154,12 @@ class Complementarity(ContactLaw):
         return 0.1 * float(np.min(radii)) if len(radii) else 0.0
 
     def make_integrator(self, sim) -> Stepper:
-        if self.params.solver != "jacobi" and sim.comm.size > 1:
+        if self.params.solver == "gauss_seidel" and sim.comm.size > 1:
             raise InputError(
-                f"contact.solver = '{self.params.solver}' runs on one rank only (its results would depend "
-                "on the partition); use solver = 'jacobi' under MPI, or run serially"
+                "contact.solver = 'gauss_seidel' runs on one rank only (it sweeps the contacts in one "
+                "sequence across the whole packing, so its results would depend on the partition); use "
+                "solver = 'jacobi' or 'apgd' under MPI (both bitwise identical on any rank count), or "
+                "run serially"
             )
         return Stepper(sim, self)
 
@@ -475,6 +484,18 @@ class Stepper(Integrator):
         self._sync_velocities(nc, v_free, w_free, P, L)
         return it, self._residual(nc)
 
+    def _counted_rows(self, nc: int) -> np.ndarray:
+        """The contact rows this rank counts in APGD's global sums, so that every contact is counted
+        exactly once over all ranks: a pair by the rank that owns its lower-id particle (pair rows
+        are (i, j) with id_i < id_j, so: i owned here), a wall contact by the rank that owns its grain
+        (j). A cross-rank pair is a row on both ranks (computed identically), counted on one; a pair
+        with a periodic image of an owned particle likewise."""
+        p = self.sim.particles
+        cb = self.cb[:nc]
+        i, j = cb[:, 0], cb[:, 1]
+        pair = (i >= 0) & (i < p.n)  # −1: a fixed wall; ≥ n: a rigid-body wall (after the particles)
+        return np.flatnonzero(np.where(pair, i < p.n_owned, j < p.n_owned)).astype(np.int64)
+
     def _apgd(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         """Accelerated projected gradient descent with adaptive step size and restart (Mazhar et al.,
         ACM TOG 34(3), 2015, Algorithm 1), on f(γ) = ½ γᵀNγ + rᵀγ over the cones, ∇f = u(γ).
@@ -485,9 +506,20 @@ class Stepper(Integrator):
         f(γ) ≤ f(y) + ∇f(y)·(γ − y) + L/2 |γ − y|² is (γ − y)·(u(γ) − u(y)) ≤ L |γ − y|², and that
         local Lipschitz test is applied to ũ. (It also avoids the cancellation of f's large terms.
         Holding the shift fixed through whole APGD solves and refreshing it between them, a fixed
-        point of convex problems, needed 10–40 times the iterations on a sheared packing.)"""
+        point of convex problems, needed 10–40 times the iterations on a sheared packing.)
+
+        Partition independence (MPI): every per-contact operation (projection, extrapolation,
+        ũ from the bodies' velocities) is elementwise, and a cross-rank contact's row holds the same
+        numbers on both ranks (as in Jacobi: impulses accumulated per body in contact-row order,
+        ghosts' velocities forwarded after every evaluation of ũ). The scalars that steer the
+        iteration (dot products and norms, hence the step size, line search and restart; the
+        residual) are global: exact sums over :meth:`_counted_rows` (each contact once) and an
+        exact max, gathered in one collective per line-search trial, so every rank takes the same
+        decisions and the results are bitwise identical on any number of ranks. The serial run
+        takes the same path (its sums are exact too)."""
         pr = self.p
-        if nc == 0:
+        comm = self.sim.comm
+        if not any_rank(comm, nc > 0):
             self._sync_velocities(nc, v_free, w_free, P, L)
             return 0, 0.0
         corrected = self.corrected
@@ -495,6 +527,11 @@ class Stepper(Integrator):
         cscale = self.cscale[:nc]
         croll = self.croll[:nc]
         gam = self.gam[:nc]
+        rows = self._counted_rows(nc)
+
+        def reduce(pairs, maxima=()):
+            """Global exact Σ a·b for each (a, b) and global max of each local value."""
+            return exact_reduce(comm, [dot_partials(a, b, rows) for a, b in pairs], maxima)
 
         def grad(gv: np.ndarray) -> np.ndarray:
             self.gam[:nc] = gv
@@ -509,22 +546,24 @@ class Stepper(Integrator):
 
         r_vec = grad(np.zeros((nc, 8)))  # u(0) = r
 
-        def objective(gv: np.ndarray, u: np.ndarray) -> float:
-            # f = ½ γ·(Nγ) + r·γ with Nγ = u − r
-            return float(0.5 * np.sum(gv * (u - r_vec)) + np.sum(r_vec * gv))
+        def objective(s_nu: float, s_r: float) -> float:
+            # f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ
+            return 0.5 * s_nu + s_r
 
         g0 = ck.project_cone_array(gam.copy(), cmu, croll)
         # step from a Lipschitz estimate: |N(γ0 − γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start
         e_n = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
         ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * e_n, cmu, croll)
         d = g0 - ghat
-        nd = float(np.sqrt(np.sum(d * d)))
+        nd = math.sqrt(reduce([(d, d)])[0][0])
         if nd > 0.0:
-            lip = float(np.sqrt(np.sum((grad(g0) - grad(ghat)) ** 2))) / nd
+            du = grad(g0) - grad(ghat)
+            lip = math.sqrt(reduce([(du, du)])[0][0]) / nd
         else:
             lip = 0.0
         if not (lip > 0.0):
-            lip = float(np.max(3.0 / cscale))
+            local = float(np.max(3.0 / cscale)) if nc else -math.inf
+            lip = reduce([], [local])[1][0]
         t = 1.0 / lip
         gam_k = g0
         y = g0.copy()
@@ -536,17 +575,29 @@ class Stepper(Integrator):
         while it < pr.max_iterations:
             it += 1
             gy = grad(y)
-            fy = 0.0 if corrected else objective(y, gy)
+            if corrected:
+                fy = 0.0
+            else:
+                s = reduce([(y, gy - r_vec), (r_vec, y)])[0]
+                fy = objective(s[0], s[1])
             while True:
                 g_new = ck.project_cone_array(y - t * gy, cmu, croll)
                 u_new = grad(g_new)
                 step = g_new - y
+                # one collective per trial: the acceptance test's sums, the restart test's and the
+                # residual (the last two used only if the trial is accepted)
+                local_res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
+                restart_terms = (gy, g_new - gam_k)
                 if corrected:
-                    if float(np.sum(step * (u_new - gy))) <= lip * float(np.sum(step * step)):
-                        break
-                elif objective(g_new, u_new) <= fy + float(np.sum(gy * step)) + 0.5 * lip * float(
-                    np.sum(step * step)
-                ):
+                    s, m = reduce([(step, u_new - gy), (step, step), restart_terms], [local_res])
+                    accept = s[0] <= lip * s[1]
+                else:
+                    s, m = reduce(
+                        [(g_new, u_new - r_vec), (r_vec, g_new), (gy, step), (step, step), restart_terms],
+                        [local_res],
+                    )
+                    accept = objective(s[0], s[1]) <= fy + s[2] + 0.5 * lip * s[3]
+                if accept:
                     break
                 lip *= 2.0
                 t = 1.0 / lip
@@ -555,13 +606,13 @@ class Stepper(Integrator):
             theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
             beta = theta * (1.0 - theta) / (theta * theta + theta_new)
             y_new = g_new + beta * (g_new - gam_k)
-            res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
+            res = m[0]
             if res < best_res:
                 best_res = res
                 best = g_new.copy()
             if res <= pr.tolerance:
                 break
-            if float(np.sum(gy * (g_new - gam_k))) > 0.0:  # restart
+            if s[-1] > 0.0:  # restart
                 y_new = g_new.copy()
                 theta_new = 1.0
             lip *= 0.9

@@ -13,7 +13,9 @@ import math
 
 import numpy as np
 
-__all__ = ["exact_sum", "exact_sums", "global_count"]
+from .._jit import njit
+
+__all__ = ["exact_sum", "exact_sums", "global_count", "dot_partials", "exact_reduce"]
 
 
 def exact_sum(comm, values) -> float:
@@ -37,3 +39,136 @@ def exact_sums(comm, rows: np.ndarray) -> np.ndarray:
 def global_count(comm, n: int) -> int:
     """Sum of an integer over ranks (exact)."""
     return int(n) if comm.size == 1 else int(comm.allreduce(int(n)))
+
+
+# ------------------------------------------------------------------ exact partial sums (O(P) reductions)
+# A rank's terms are reduced locally to a few doubles whose sum is exactly the sum of the terms.
+# Gathering the ranks' lists and applying math.fsum to all of them gives the correctly rounded value of
+# the exact global sum, whatever the partition and the order of the terms, while each rank sends a few
+# numbers instead of its terms. The local reduction is a long fixed-point accumulator (Kulisch;
+# Collange et al.'s "superaccumulator"): every double is an integer multiple of 2⁻¹⁰⁷⁴, so its
+# 53-bit significand (read from its bits) is added, split into 32-bit digits, to int64 bins of
+# weight 2^(32k − 1130). Integer additions are exact and commutative; each adds < 2³², so 2³¹ terms
+# fit before a bin could overflow. In the hopper APGD scene it took a third of the time of
+# Shewchuk's expansion (math.fsum's partials), 0.57 s against 1.7 s of 57,479 dot products.
+_OFFSET = 1130  # the bit position of 2⁰ in the accumulator: the smallest double, 2⁻¹⁰⁷⁴, sits at p = 56
+_BINS = 72  # p ≤ 1024 − 53 + 1130 = 2101: digit bins up to 67, room for the carries
+
+
+@njit(inline="always")
+def _acc_add(acc, bits):
+    """acc += x exactly, x a finite nonzero double given by its IEEE bits (int64)."""
+    ex = (bits >> 52) & 0x7FF
+    mi = bits & 0xFFFFFFFFFFFFF  # |x| = mi 2^(ex − 1075), with the hidden bit for normal numbers
+    if ex == 0:
+        ex = 1  # subnormal
+    else:
+        mi |= np.int64(1) << 52
+    sgn = np.int64(-1) if bits < 0 else np.int64(1)
+    p = ex - 1075 + _OFFSET  # |x| = mi 2^(p − OFFSET)
+    k = p >> 5
+    s = p & 31
+    d0 = (mi & ((np.int64(1) << (32 - s)) - 1)) << s
+    rest = mi >> (32 - s)
+    acc[k] += sgn * d0
+    acc[k + 1] += sgn * (rest & 0xFFFFFFFF)
+    acc[k + 2] += sgn * (rest >> 32)
+
+
+@njit
+def _acc_digits(acc):
+    """The accumulator as a list of exact doubles: carries propagated so that every digit has the
+    sign of the total (then no digit exceeds the total in magnitude, and none overflows unless the
+    total does), each digit times its weight."""
+    for k in range(_BINS - 1):
+        c = acc[k] >> 32
+        acc[k] -= c << 32
+        acc[k + 1] += c
+    neg = False
+    for k in range(_BINS - 1, -1, -1):
+        if acc[k] != 0:
+            neg = acc[k] < 0
+            break
+    if neg:  # digits of −total, all ≥ 0 after the carries, then negated
+        for k in range(_BINS):
+            acc[k] = -acc[k]
+        for k in range(_BINS - 1):
+            c = acc[k] >> 32
+            acc[k] -= c << 32
+            acc[k + 1] += c
+        for k in range(_BINS):
+            acc[k] = -acc[k]
+    n = 0
+    for k in range(_BINS):
+        if acc[k] != 0:
+            n += 1
+    out = np.empty(n)
+    n = 0
+    for k in range(_BINS):
+        if acc[k] != 0:
+            out[n] = math.ldexp(float(acc[k]), 32 * k - _OFFSET)
+            n += 1
+    return out
+
+
+@njit
+def dot_partials(a, b, rows):
+    """Σ_{c in rows} Σ_k a[c, k] b[c, k] (each product rounded once, as ``np.sum(a * b)`` forms
+    it) as a few doubles whose sum is exact, and the plain sum of non-finite products (0.0 if none).
+
+    Returns (partials, special); combine ranks' results with :func:`exact_reduce`."""
+    acc = np.zeros(_BINS, dtype=np.int64)
+    buf = np.empty(1)
+    ibuf = buf.view(np.int64)  # the bits of a double
+    special = 0.0
+    for q in range(rows.shape[0]):
+        c = rows[q]
+        for k in range(a.shape[1]):
+            x = a[c, k] * b[c, k]
+            if x == 0.0:
+                continue
+            if not math.isfinite(x):
+                special += x
+                continue
+            buf[0] = x
+            _acc_add(acc, ibuf[0])
+    return _acc_digits(acc), special
+
+
+def exact_reduce(comm, sums, maxima=()) -> tuple[list[float], list[float]]:
+    """Global values of several local reductions in one collective call.
+
+    ``sums``: (partials, special) pairs from :func:`dot_partials`; each result is the correctly
+    rounded exact sum over all ranks (NaN or ±inf if any term was not finite). ``maxima``: local
+    floats; each result is the global maximum (NaN if any rank's is NaN). Every result is independent
+    of the partition and of the order of the ranks, so every rank takes the same decisions from them."""
+    if comm.size == 1:  # the same values as the general path below, without its lists
+        out = []
+        for part, special in sums:
+            if special != 0.0 or special != special:
+                out.append(special)
+            else:
+                try:
+                    out.append(math.fsum(part))
+                except (OverflowError, ValueError):
+                    out.append(math.nan)
+        return out, [float(v) for v in maxima]
+    local = (list(sums), [float(v) for v in maxima])
+    every = comm.allgather(local)
+    out_sums = []
+    for k in range(len(local[0])):
+        special = 0.0
+        for s, _ in every:
+            special += s[k][1]  # ±inf and NaN: the same result in any order
+        if special != 0.0 or special != special:
+            out_sums.append(special)
+            continue
+        try:
+            out_sums.append(math.fsum(np.concatenate([s[k][0] for s, _ in every])))
+        except (OverflowError, ValueError):  # the exact sum is beyond the double range
+            out_sums.append(math.nan)
+    out_max = []
+    for k in range(len(local[1])):
+        vals = [m[k] for _, m in every]
+        out_max.append(math.nan if any(v != v for v in vals) else max(vals))
+    return out_sums, out_max
