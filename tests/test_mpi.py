@@ -57,79 +57,50 @@ def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
     assert int(last.split(":")[1].split()[0]) < 300
 
 
+# DEM-C hopper scenes: restitution and rolling and spinning friction on every contact, so that the
+# bounce test and the rolling rows of cross-rank contacts are exercised
+DEM_C_SETS = HOPPER_SETS + [
+    "contact.law=complementarity",
+    "materials.glass.restitution=0.6",
+    "materials.glass.rolling_friction=0.1",
+    "materials.glass.spinning_friction=0.05",
+    "materials.steel.rolling_friction=0.1",
+    "materials.steel.spinning_friction=0.05",
+]
+
+
+def _dem_c_hopper(ranks, steps, sets=(), keep=None):
+    """tools/determinism.py on the DEM-C hopper: its output, after checking that every rank count
+    matched the first bit for bit and that the hopper is mid-discharge."""
+    cmd = [sys.executable, str(ROOT / "tools" / "determinism.py"), str(ROOT / "inputs" / "hopper.toml"),
+           "--ranks", *map(str, ranks), "--steps", str(steps)]  # fmt: skip
+    if keep is not None:
+        cmd += ["--keep", str(keep)]
+    for s in [*DEM_C_SETS, *sets]:
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    print(proc.stdout, proc.stderr)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.count("bitwise identical") == len(ranks) - 1
+    left = int([ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0].split(":")[1].split()[0])
+    assert 0 < left < 300  # mid-discharge: grains are flowing through the orifice
+    return proc
+
+
 def test_dem_c_jacobi_identical_on_1_to_4_ranks(tmp_path):
     """DEM-C with the distributed projected Jacobi solver: the same hopper, mid-discharge, is
     bitwise identical on 1, 2, 3 and 4 ranks (one ghost-velocity exchange per iteration), with
-    restitution 0.6 and rolling and spinning friction on every contact, so that the bounce test and
-    the rolling rows of cross-rank contacts are exercised (with them off the kernels take a subset
-    of the same path: the regression checksum with restitution off is the stored one of before)."""
-    cmd = [
-        sys.executable,
-        str(ROOT / "tools" / "determinism.py"),
-        str(ROOT / "inputs" / "hopper.toml"),
-        "--ranks",
-        "1",
-        "2",
-        "3",
-        "4",
-        "--steps",
-        "700",
-        "--set",
-        "contact.law=complementarity",
-    ]
-    for s in HOPPER_SETS + [
-        "materials.glass.restitution=0.6",
-        "materials.glass.rolling_friction=0.1",
-        "materials.glass.spinning_friction=0.05",
-        "materials.steel.rolling_friction=0.1",
-        "materials.steel.spinning_friction=0.05",
-    ]:
-        cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    print(proc.stdout, proc.stderr)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 3
-    left = int([ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0].split(":")[1].split()[0])
-    assert 0 < left < 300  # mid-discharge: grains are flowing through the orifice
+    restitution and rolling friction on (with them off the kernels take a subset of the same path:
+    the regression checksum with restitution off is the stored one of before)."""
+    _dem_c_hopper((1, 2, 3, 4), 700)
 
 
 def test_dem_c_apgd_identical_on_1_2_3_ranks(tmp_path):
-    """DEM-C with APGD under MPI: the same hopper (restitution, rolling and spinning friction on),
-    mid-discharge, is bitwise identical on 1, 2 and 3 ranks, and so is every step's iteration count
-    (solver_<stage>.csv): the global sums that steer APGD (step size, line search, restart, stop) are
-    exact and count each cross-rank contact once."""
-    steps = 600
-    cmd = [
-        sys.executable,
-        str(ROOT / "tools" / "determinism.py"),
-        str(ROOT / "inputs" / "hopper.toml"),
-        "--ranks",
-        "1",
-        "2",
-        "3",
-        "--steps",
-        str(steps),
-        "--keep",
-        str(tmp_path),
-        "--set",
-        "contact.law=complementarity",
-        "--set",
-        "contact.complementarity.solver=apgd",
-    ]
-    for s in HOPPER_SETS + [
-        "materials.glass.restitution=0.6",
-        "materials.glass.rolling_friction=0.1",
-        "materials.glass.spinning_friction=0.05",
-        "materials.steel.rolling_friction=0.1",
-        "materials.steel.spinning_friction=0.05",
-    ]:
-        cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    print(proc.stdout, proc.stderr)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 2
-    left = int([ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0].split(":")[1].split()[0])
-    assert 0 < left < 300  # mid-discharge: grains are flowing through the orifice
+    """DEM-C with APGD under MPI: the same hopper, mid-discharge, is bitwise identical on 1, 2 and
+    3 ranks, and so is every step's iteration count (solver_<stage>.csv): the global sums that
+    steer APGD (step size, line search, restart, stop) are exact and count each cross-rank contact
+    once."""
+    _dem_c_hopper((1, 2, 3), 600, ["contact.complementarity.solver=apgd"], keep=tmp_path)
     for stage in ("fill", "discharge"):
         logs = [
             np.genfromtxt(tmp_path / f"ranks{k}" / f"solver_{stage}.csv", delimiter=",", names=True)
