@@ -305,8 +305,8 @@ class TriaxialCell(Boundary):
         rho = np.hypot(dx, dy)
         # cells of about one `size` around the outermost radius (an exact global max), counted at the
         # stage's first step and kept (stored in checkpoints), or counted anew every step
-        r_out = all_max(sim.comm, float(np.max(rho + r)) if r.size else 0.0)
-        if self._grid is None or self.params.membrane_grid == "step":
+        if self._grid is None or self.params.membrane_grid == "step":  # alike on every rank
+            r_out = all_max(sim.comm, float(np.max(rho + r)) if r.size else 0.0)
             nz, nt = max(int(round(h / size)), 1), max(int(round(2 * math.pi * r_out / size)), 6)
             if apply:  # (a measurement before the stage's first step does not fix the grid)
                 self._grid = (nz, nt)
