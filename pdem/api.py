@@ -11,7 +11,9 @@ Contact laws (``pdem.contact_laws``)
 Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
     wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
-    :func:`surface_velocity` (a wall's velocity at a point: translation, rotation, radius rate).
+    :func:`surface_velocity` (a wall's velocity at a point: translation, rotation, radius rate);
+    partition-independent sums inside kernels: :func:`exact_accumulator`, :func:`exact_add`,
+    :func:`exact_partials` (combine ranks with :func:`pdem.parallel.exact.exact_reduce`).
 Boundaries (``pdem.boundaries``)
     :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
     :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
@@ -76,11 +78,13 @@ from .io.base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .io.frame import Frame, WallState
 from .io.wall_mesh import wall_triangles
 from .materials import Material, MaterialTable
+from .parallel.exact import exact_accumulator, exact_add, exact_partials
 from .simulation import Simulation
 from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
 __all__ = [
     "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "surface_velocity",
+    "exact_accumulator", "exact_add", "exact_partials",
     "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",

@@ -486,6 +486,57 @@ def test_automatic_envelope_catches_fast_grains():
     assert results[0.01 * R] < R - 0.3 * R  # lands 0.5 r deep: 3.5 r - 5 × 0.6 r
 
 
+@pytest.mark.parametrize("rule", ["contact", "global"])
+def test_envelope_per_contact_two_grains_approaching_head_on(rule):
+    """Two spheres approaching each other at 2 m/s each (0.4 r per step each at h = 2e-4 s), started
+    1.6 r apart in gap: the pair's own envelope (2.5 h × the larger speed bound) takes them into
+    the problem before they meet, under either rule, so they never overlap; a moving wall (a floor
+    rising at 3 m/s under a resting sphere) likewise."""
+    sim = make_sim("apgd", gravity=(0, 0, 0), dt=2e-4, tolerance=1e-12, max_iterations=500, e=0.0,
+                   envelope_rule=rule)
+    sim.add_particles([[0.0, 0.0, 0.0], [3.6 * R, 0.0, 0.0]], R, material="glass",
+                      velocities=[[2.0, 0, 0], [-2.0, 0, 0]])
+    sim.max_overlap = 10.0
+    gap_min = math.inf
+    for _ in range(10):
+        sim.step()
+        x = sim.particles.x
+        gap_min = min(gap_min, float(np.linalg.norm(x[1] - x[0])) - 2 * R)
+    assert gap_min >= -1e-9 * R
+    sim = make_sim("apgd", gravity=(0, 0, 0), dt=2e-4, tolerance=1e-12, max_iterations=500, e=0.0,
+                   envelope_rule=rule)
+    sim.add_particles([[0.0, 0.0, 3.0 * R]], R, material="glass")
+    sim.add_wall(shapes.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), material="glass", name="floor",
+                 motion=pdem.api.ConstantVelocity((0.0, 0.0, 3.0)))
+    sim.max_overlap = 10.0
+    worst = math.inf
+    for _ in range(6):
+        sim.step()
+        worst = min(worst, sim.particles.x[0, 2] - sim.walls["floor"].shape.point[2] - R)
+    assert worst >= -1e-9 * R
+
+
+def test_envelope_per_contact_ignores_a_distant_fast_grain():
+    """A resting row of spheres on a floor and one sphere falling fast far away: with the
+    per-contact rule the resting contacts keep the base envelope (0.1 r_min), so a sphere resting
+    0.5 r above the floor, nor a pair 0.2 r apart, is a contact row; with the global rule every
+    contact's envelope is 2.5 h × the fast sphere's speed (2.5 r) and they are. The resting spheres
+    end the step at rest either way."""
+    rows = {}
+    for rule in ("contact", "global"):
+        sim = make_sim("apgd", dt=2e-4, tolerance=1e-10, max_iterations=500, envelope_rule=rule)
+        xs = [[k * 2.2 * R, 0.0, R] for k in range(5)] + [[0.0, 5 * R, 1.5 * R], [0.0, 0.0, 40 * R]]
+        vs = [[0.0, 0.0, 0.0]] * 6 + [[0.0, 0.0, -5.0]]
+        sim.add_particles(xs, R, material="glass", velocities=vs)
+        floor(sim)
+        sim.step()
+        rows[rule] = sim.integrator.log[-1][3]
+        assert np.abs(sim.particles.v[:5]).max() < 1e-9
+        assert sim.envelope == pytest.approx(2.5 * (5.0 + G * 2e-4 * (rule == "contact")) * 2e-4, rel=1e-6)
+    assert rows["contact"] == 5  # the five resting spheres on the floor
+    assert rows["global"] >= 10  # and the one hovering 0.5 r above it, the four pairs 0.2 r apart
+
+
 def test_resume_is_bitwise_identical():
     """N steps, checkpoint (state_dict), a new simulation resumes for N more: bitwise equal to 2N
     uninterrupted steps (the envelope follows the state, not the rebuild history), solver counters

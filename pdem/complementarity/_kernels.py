@@ -50,7 +50,19 @@ from __future__ import annotations
 
 import math
 
-from ..api import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, njit, surface_velocity, wall_contact
+import numpy as np
+
+from ..api import (
+    FLAG_COINCIDENT,
+    FLAG_NONFINITE,
+    FLAG_OVERLAP,
+    exact_accumulator,
+    exact_add,
+    exact_partials,
+    njit,
+    surface_velocity,
+    wall_contact,
+)
 
 
 @njit(inline="always")
@@ -125,11 +137,15 @@ def count_pair_contacts(pi, pj, x, r, inv_m, envelope):
 @njit
 def assemble_pairs(
     pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, v_bounce, max_overlap,
-    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc,
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc, spd, env_base, env_factor,
 ):  # fmt: skip
     """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
     ``v`` holds the velocities at the start of the step (restitution's v_n⁻), ``coef[a, b]`` the
     pair's (μ, e, μ_r, μ_s), ``v_bounce`` the restitution threshold [m/s].
+
+    A pair enters when its gap is below its own envelope, min(``envelope``, max(``env_base``,
+    ``env_factor`` × max(spd_i, spd_j))), ``spd`` a bound on each body's speed during the step
+    (``env_factor`` = 0: every pair at ``envelope``).
 
     Returns (number of contacts, flags)."""
     flags = 0
@@ -141,7 +157,10 @@ def assemble_pairs(
         dy = x[j, 1] - x[i, 1]
         dz = x[j, 2] - x[i, 2]
         d2 = dx * dx + dy * dy + dz * dz
-        lim = r[i] + r[j] + envelope
+        env = envelope
+        if env_factor > 0.0:
+            env = min(envelope, max(env_base, env_factor * max(spd[i], spd[j])))
+        lim = r[i] + r[j] + env
         if d2 > lim * lim or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
             for q in range(hist.shape[1]):
                 hist[k, q] = 0.0
@@ -235,7 +254,7 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bou
 def assemble_walls(
     kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, v, r, inv_m, inv_i, mat, coef, h,
     envelope, v_recovery, v_bounce, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam,
-    csrc, cpt, wbody, wbinv,
+    csrc, cpt, wbody, wbinv, spd, env_base, env_factor,
 ):  # fmt: skip
     """Append wall contacts from row ``start``; zero the history of candidates out of reach.
 
@@ -245,7 +264,8 @@ def assemble_walls(
     rigid body (``wbody[k]`` ≥ 0, the body's index in the velocity arrays ``v``, ``wbinv[k]`` its
     inverse mass) makes that body the contact's partner i (translation only: no lever), so its
     velocity is solved with the grains'. The rolling rows' effective radius is the grain's radius
-    (DEM-P's R* of a wall contact). Returns (end row, flags)."""
+    (DEM-P's R* of a wall contact). The envelope is per contact as in :func:`assemble_pairs`, with
+    the speed of the wall's surface at the contact point for the wall's. Returns (end row, flags)."""
     flags = 0
     c = start
     for k in range(kinds.shape[0]):
@@ -259,14 +279,19 @@ def assemble_walls(
                 continue
             gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
             body = wbody[k]
-            if gap > envelope or (inv_m[i] == 0.0 and body < 0):
+            out = gap > envelope or (inv_m[i] == 0.0 and body < 0)
+            if not out:
+                # lever of the wall's load: its closest point relative to the reference point
+                vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
+                if env_factor > 0.0:
+                    sw = spd[body] if body >= 0 else math.sqrt(vwx * vwx + vwy * vwy + vwz * vwz)
+                    out = gap > min(envelope, max(env_base, env_factor * max(spd[i], sw)))
+            if out:
                 for s in range(whist.shape[1]):
                     whist[q, s] = 0.0
                 continue
             if -gap > max_overlap * r[i]:
                 flags |= FLAG_OVERLAP
-            # lever of the wall's load: its closest point relative to the reference point
-            vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
             co = coef[mat[i], wmat[k]]
             if body >= 0:  # the body's velocity is an unknown of the problem
                 vn0 = -((v[i, 0] - v[body, 0]) * nx + (v[i, 1] - v[body, 1]) * ny
@@ -295,6 +320,15 @@ def assemble_walls(
             cpt[c, 2] = qz
             c += 1
     return c, flags
+
+
+@njit
+def speed_bounds(v, n, dv):
+    """|v_i| + ``dv`` for bodies [0, n): a bound on each body's speed during the step."""
+    out = np.empty(n)
+    for i in range(n):
+        out[i] = math.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]) + dv
+    return out
 
 
 @njit
@@ -588,6 +622,73 @@ def residual_max(gam, u, cmu, cscale, croll, nc):
         if rc > res or rc != rc:
             res = rc
     return res
+
+
+@njit
+def project_step(y, gy, t, mu, croll, nc, out):
+    """out = Π(y − t gy) row by row (APGD's projected gradient step; the arithmetic of
+    ``project_cone_array(y - t * gy, …)``, without the temporary)."""
+    for c in range(nc):
+        g0 = y[c, 0] - t * gy[c, 0]
+        g1 = y[c, 1] - t * gy[c, 1]
+        g2 = y[c, 2] - t * gy[c, 2]
+        g3 = y[c, 3] - t * gy[c, 3]
+        out[c, 0], out[c, 1], out[c, 2], out[c, 3] = project_cone(g0, g1, g2, g3, mu[c])
+        if croll[c, 2] > 0.0:
+            r4 = y[c, 4] - t * gy[c, 4]
+            r5 = y[c, 5] - t * gy[c, 5]
+            r6 = y[c, 6] - t * gy[c, 6]
+            out[c, 4], out[c, 5], out[c, 6] = clamp_norm(r4, r5, r6, croll[c, 0] * out[c, 0])
+            out[c, 7] = clamp_abs(y[c, 7] - t * gy[c, 7], croll[c, 1] * out[c, 0])
+        else:
+            out[c, 4] = out[c, 5] = out[c, 6] = out[c, 7] = 0.0
+
+
+@njit
+def contact_velocities_corrected(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
+    """:func:`contact_velocities`, then (``corrected``) :func:`correct_normal`, in one pass."""
+    for c in range(nc):
+        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        if corrected:
+            u0 += cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
+        u[c, 0] = u0
+        u[c, 1] = u1
+        u[c, 2] = u2
+        u[c, 3] = u3
+        if croll[c, 2] > 0.0:
+            u[c, 4], u[c, 5], u[c, 6], u[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
+        else:
+            u[c, 4] = u[c, 5] = u[c, 6] = u[c, 7] = 0.0
+
+
+@njit
+def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
+    """The local reductions of one corrected-cone APGD trial, in one pass: exact partials (as
+    :func:`pdem.parallel.exact.dot_partials`) of Σ (γ − y)·(ũ(γ) − ũ(y)), Σ |γ − y|² and
+    Σ ũ(y)·(γ − γ_k) over ``rows``, and the residual max of (γ, ũ(γ)) over all rows."""
+    a1, b1, i1 = exact_accumulator()
+    a2, b2, i2 = exact_accumulator()
+    a3, b3, i3 = exact_accumulator()
+    sp1 = 0.0
+    sp2 = 0.0
+    sp3 = 0.0
+    for q in range(rows.shape[0]):
+        c = rows[q]
+        for k in range(8):
+            s = g_new[c, k] - y[c, k]
+            sp1 += exact_add(a1, b1, i1, s * (u_new[c, k] - gy[c, k]))
+            sp2 += exact_add(a2, b2, i2, s * s)
+            sp3 += exact_add(a3, b3, i3, gy[c, k] * (g_new[c, k] - gam_k[c, k]))
+    res = residual_max(g_new, u_new, cmu, cscale, croll, nc)
+    return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
+
+
+@njit
+def extrapolate(g_new, gam_k, beta, nc, out):
+    """out = γ + β (γ − γ_k) (APGD's momentum step; numpy's arithmetic, without temporaries)."""
+    for c in range(nc):
+        for k in range(8):
+            out[c, k] = g_new[c, k] + beta * (g_new[c, k] - gam_k[c, k])
 
 
 @njit

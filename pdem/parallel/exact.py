@@ -15,7 +15,10 @@ import numpy as np
 
 from .._jit import njit
 
-__all__ = ["exact_sum", "exact_sums", "global_count", "dot_partials", "exact_reduce"]
+__all__ = [
+    "exact_sum", "exact_sums", "global_count", "dot_partials", "exact_reduce", "exact_accumulator",
+    "exact_add", "exact_partials",
+]  # fmt: skip
 
 
 def exact_sum(comm, values) -> float:
@@ -109,6 +112,34 @@ def _acc_digits(acc):
             out[n] = math.ldexp(float(acc[k]), 32 * k - _OFFSET)
             n += 1
     return out
+
+
+@njit(inline="always")
+def exact_accumulator():
+    """A new exact accumulator for kernels: (acc, scratch, scratch bits), all three to be passed to
+    :func:`exact_add`; read it with :func:`exact_partials`."""
+    buf = np.empty(1)
+    return np.zeros(_BINS, dtype=np.int64), buf, buf.view(np.int64)
+
+
+@njit(inline="always")
+def exact_add(acc, buf, bits, x):
+    """acc += x exactly (x a double); returns x if it is not finite (sum those apart, as
+    :func:`dot_partials` does), else 0.0."""
+    if x == 0.0:
+        return 0.0
+    if not math.isfinite(x):
+        return x
+    buf[0] = x
+    _acc_add(acc, bits[0])
+    return 0.0
+
+
+@njit(inline="always")
+def exact_partials(acc):
+    """The accumulator's value as a few doubles whose sum is exact (combine ranks' with
+    :func:`exact_reduce`); the accumulator is consumed."""
+    return _acc_digits(acc)
 
 
 @njit
