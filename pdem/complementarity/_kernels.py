@@ -331,46 +331,52 @@ def speed_bounds(v, n, dv):
     return out
 
 
+@njit(inline="always")
+def _accumulate_row(c, cb, cn, ca, croll, gam, P, L):
+    """P, L += contact c's impulse and its moments on its two bodies."""
+    i = cb[c, 0]
+    j = cb[c, 1]
+    nx = cn[c, 0]
+    ny = cn[c, 1]
+    nz = cn[c, 2]
+    gx = gam[c, 0] * nx + gam[c, 1]
+    gy = gam[c, 0] * ny + gam[c, 2]
+    gz = gam[c, 0] * nz + gam[c, 3]
+    # n × G; a_i × (−G) = −a_i (n × G), (−a_j n) × G = −a_j (n × G)
+    cx = ny * gz - nz * gy
+    cy = nz * gx - nx * gz
+    cz = nx * gy - ny * gx
+    rs = croll[c, 2]
+    if rs > 0.0:  # rolling and spinning: a pure moment R*(ρ + σ n) on j
+        mx = rs * (gam[c, 4] + gam[c, 7] * nx)
+        my = rs * (gam[c, 5] + gam[c, 7] * ny)
+        mz = rs * (gam[c, 6] + gam[c, 7] * nz)
+    else:
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+    P[j, 0] += gx
+    P[j, 1] += gy
+    P[j, 2] += gz
+    L[j, 0] -= ca[c, 1] * cx - mx
+    L[j, 1] -= ca[c, 1] * cy - my
+    L[j, 2] -= ca[c, 1] * cz - mz
+    if i >= 0:
+        P[i, 0] -= gx
+        P[i, 1] -= gy
+        P[i, 2] -= gz
+        L[i, 0] -= ca[c, 0] * cx + mx
+        L[i, 1] -= ca[c, 0] * cy + my
+        L[i, 2] -= ca[c, 0] * cz + mz
+
+
 @njit
 def accumulate(cb, cn, ca, croll, gam, nc, P, L):
     """P, L ← Σ impulses and their moments per body, contacts in row order (P, L zeroed first)."""
     P[:] = 0.0
     L[:] = 0.0
     for c in range(nc):
-        i = cb[c, 0]
-        j = cb[c, 1]
-        nx = cn[c, 0]
-        ny = cn[c, 1]
-        nz = cn[c, 2]
-        gx = gam[c, 0] * nx + gam[c, 1]
-        gy = gam[c, 0] * ny + gam[c, 2]
-        gz = gam[c, 0] * nz + gam[c, 3]
-        # n × G; a_i × (−G) = −a_i (n × G), (−a_j n) × G = −a_j (n × G)
-        cx = ny * gz - nz * gy
-        cy = nz * gx - nx * gz
-        cz = nx * gy - ny * gx
-        rs = croll[c, 2]
-        if rs > 0.0:  # rolling and spinning: a pure moment R*(ρ + σ n) on j
-            mx = rs * (gam[c, 4] + gam[c, 7] * nx)
-            my = rs * (gam[c, 5] + gam[c, 7] * ny)
-            mz = rs * (gam[c, 6] + gam[c, 7] * nz)
-        else:
-            mx = 0.0
-            my = 0.0
-            mz = 0.0
-        P[j, 0] += gx
-        P[j, 1] += gy
-        P[j, 2] += gz
-        L[j, 0] -= ca[c, 1] * cx - mx
-        L[j, 1] -= ca[c, 1] * cy - my
-        L[j, 2] -= ca[c, 1] * cz - mz
-        if i >= 0:
-            P[i, 0] -= gx
-            P[i, 1] -= gy
-            P[i, 2] -= gz
-            L[i, 0] -= ca[c, 0] * cx + mx
-            L[i, 1] -= ca[c, 0] * cy + my
-            L[i, 2] -= ca[c, 0] * cz + mz
+        _accumulate_row(c, cb, cn, ca, croll, gam, P, L)
 
 
 @njit(inline="always")
@@ -547,6 +553,28 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, ome
                 rc = rr
         if rc > res or rc != rc:
             res = rc
+    return res
+
+
+@njit
+def jacobi_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected, P, L):
+    """:func:`jacobi_update` and :func:`accumulate` of the new impulses in one pass over the rows
+    (the same arithmetic in the same order: the same bits). Returns the largest residual of the
+    impulses before the sweep."""
+    P[:] = 0.0
+    L[:] = 0.0
+    res = 0.0
+    for c in range(nc):
+        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+        )
+        if croll[c, 2] > 0.0:
+            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+            if rr > rc or rr != rr:
+                rc = rr
+        if rc > res or rc != rc:
+            res = rc
+        _accumulate_row(c, cb, cn, ca, croll, gam, P, L)
     return res
 
 

@@ -449,9 +449,13 @@ class Stepper(Integrator):
 
     # ------------------------------------------------------------------ solvers
     def _sync_velocities(self, nc, v_free, w_free, P, L) -> None:
+        ck.accumulate(self.cb, self.cn, self.ca, self.croll, self.gam, nc, P, L)
+        self._apply_impulses(nc, v_free, w_free, P, L)
+
+    def _apply_impulses(self, nc, v_free, w_free, P, L) -> None:
+        """v, ω of every body from the accumulated impulses P, L; ghosts' forwarded."""
         sim = self.sim
         p = sim.particles
-        ck.accumulate(self.cb, self.cn, self.ca, self.croll, self.gam, nc, P, L)
         ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
         if self._bodies:
             self._body_velocities(nc, v_free)
@@ -464,12 +468,12 @@ class Stepper(Integrator):
         res = 0.0
         it = 0
         while it < pr.max_iterations:
-            local = ck.jacobi_update(
+            local = ck.jacobi_sweep(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.croll, self.gam,
-                self.V, self.W, nc, pr.relaxation, self.corrected,
+                self.V, self.W, nc, pr.relaxation, self.corrected, P, L,
             )  # fmt: skip
             it += 1
-            self._sync_velocities(nc, v_free, w_free, P, L)
+            self._apply_impulses(nc, v_free, w_free, P, L)
             res = all_max(sim.comm, local)
             if res <= pr.tolerance:
                 break
