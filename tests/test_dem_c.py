@@ -576,3 +576,24 @@ def test_a_key_given_at_top_level_and_in_the_law_table_is_an_error(tmp_path):
     )
     with pytest.raises(DeckError, match=r"contact\.complementarity\.tolerance: given both"):
         load_deck(deck)
+
+
+def test_apgd_stops_on_non_finite_sums_and_the_step_fails():
+    """A non-finite velocity makes APGD's sums NaN, which no line-search trial can accept: the solve
+    stops at once (counted as a line-search stall) and the step fails with pdem's numerical error,
+    instead of doubling the step's Lipschitz estimate a thousand times per iteration."""
+    import time
+
+    from pdem.errors import PdemError
+
+    sim = make_sim("apgd", max_iterations=200, tolerance=1e-12)
+    sim.add_particles([[0.0, 0.0, R], [0.0, 0.0, 3 * R]], R, material="glass")
+    floor(sim)
+    sim.step()
+    sim.particles.v[1, 2] = math.nan
+    t0 = time.perf_counter()
+    with pytest.raises(PdemError):
+        sim.step()
+    assert time.perf_counter() - t0 < 5.0
+    assert sim.integrator.n_stalls == 1
+    assert sim.integrator.summary()["line_search_stalls"] == 1

@@ -183,6 +183,7 @@ class Stepper(Integrator):
         self.law = law
         self.p = law.params
         self.n_unconverged = 0
+        self.n_stalls = 0  # APGD solves stopped by a line search that could not accept a step
         self.n_steps = 0
         self.total_iterations = 0
         self.max_residual = 0.0
@@ -407,15 +408,17 @@ class Stepper(Integrator):
     def state(self) -> dict[str, np.ndarray]:
         """Counters for checkpoints (the envelope is saved by the simulation)."""
         return {
-            "solver/counters": np.array([self.n_steps, self.n_unconverged, self.total_iterations]),
+            "solver/counters": np.array(
+                [self.n_steps, self.n_unconverged, self.total_iterations, self.n_stalls]
+            ),
             "solver/max_residual": np.array(self.max_residual),
         }
 
     def restore(self, state: dict) -> None:
         if "solver/counters" in state:
-            self.n_steps, self.n_unconverged, self.total_iterations = (
-                int(c) for c in state["solver/counters"]
-            )
+            counters = [int(c) for c in state["solver/counters"]]
+            self.n_steps, self.n_unconverged, self.total_iterations = counters[:3]
+            self.n_stalls = counters[3] if len(counters) > 3 else 0  # older checkpoints: none
             self.max_residual = float(state["solver/max_residual"])
 
     def stats(self) -> dict[str, float]:
@@ -445,6 +448,7 @@ class Stepper(Integrator):
             "unconverged_steps": self.n_unconverged,
             "mean_iterations": self.total_iterations / max(self.n_steps, 1),
             "max_residual": self.max_residual,
+            "line_search_stalls": self.n_stalls,
         }
 
     # ------------------------------------------------------------------ solvers
@@ -520,6 +524,8 @@ class Stepper(Integrator):
         i, j = cb[:, 0], cb[:, 1]
         pair = (i >= 0) & (i < p.n)  # −1: a fixed wall; ≥ n: a rigid-body wall (after the particles)
         return np.flatnonzero(np.where(pair, i < p.n_owned, j < p.n_owned)).astype(np.int64)
+
+    MAX_TRIALS = 60  # line-search doublings of the Lipschitz estimate per APGD iteration
 
     def _apgd(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         """Accelerated projected gradient descent with adaptive step size and restart (Mazhar et al.,
@@ -601,6 +607,8 @@ class Stepper(Integrator):
         it = 0
         while it < pr.max_iterations:
             it += 1
+            trials = 0
+            stalled = False
             gy = grad(y)
             if corrected:
                 fy = 0.0
@@ -630,10 +638,17 @@ class Stepper(Integrator):
                     accept = objective(s[0], s[1]) <= fy + s[2] + 0.5 * lip * s[3]
                 if accept:
                     break
+                trials += 1
+                if not (math.isfinite(s[0]) and math.isfinite(s[1])) or trials > self.MAX_TRIALS:
+                    # non-finite sums never pass the test, and a step 2^60 times below the estimate
+                    # makes no progress: stop this solve (keeping its best iterate) instead of looping
+                    stalled = True
+                    break
                 lip *= 2.0
                 t = 1.0 / lip
-                if lip > 1e300:
-                    break
+            if stalled:
+                self.n_stalls += 1
+                break
             theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
             beta = theta * (1.0 - theta) / (theta * theta + theta_new)
             y_new = np.empty((nc, 8))
