@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Column collapse, pdem vs LAMMPS, side by side on the same machine in the same session.
 
-    python tools/bench_vs_lammps.py [--n 20000] [--steps 5000] [--repeats 3]
+    python tools/bench_vs_lammps.py [--n 20000] [--steps 5000] [--repeats 3] [--shuffle] [--ranks 1 2]
 
 1. Makes (once, cached in tools/_work/) a settled column of N polydisperse spheres with pdem's own
    pluviation (d uniform in 0.9–1.1 mm, ρ = 2500 kg/m³, footprint 20 × 20 mm) and writes it both as
@@ -17,6 +17,10 @@
 
 With ``--ranks 1 2`` both codes also run on 2 ranks (MPI; LAMMPS splits the box in y, pdem balances
 its cut planes on particle counts) and each code's speed-up over its own serial run is reported.
+
+With ``--shuffle`` both codes read the packing's rows in random order (the input-order test of
+issue 14): pdem runs as read (ids by row), with its file source's ``order = "spatial"`` (ids by
+cells), and on the sorted copy, and the three times are reported with LAMMPS's.
 
 The last line is ``ratio pdem/lammps = X.XX`` (pdem throughput over LAMMPS throughput at the first
 rank count, > 1 means pdem is faster). Exit code 1 if the physical check fails.
@@ -85,7 +89,20 @@ def sorted_copy(src: Path) -> Path:
     return dst
 
 
-def pdem_worker(packing: str, steps: int) -> dict:
+def shuffled_copy(src: Path, seed: int) -> Path:
+    """A copy of a packing file with its rows in random order (both codes read it row by row)."""
+    import numpy as np
+
+    from pdem.sources import read_spheres, write_spheres_text
+
+    dst = WORK / f"{src.stem}_shuffled{seed}.txt"
+    d = read_spheres(src)
+    perm = np.random.default_rng(seed).permutation(len(d["radii"]))
+    write_spheres_text(dst, d["positions"][perm], d["radii"][perm])
+    return dst
+
+
+def pdem_worker(packing: str, steps: int, order: str = "file") -> dict:
     """Run in a fresh process: build, time the loop, report. Called with --worker."""
     t_start = time.perf_counter()
     import numpy as np
@@ -98,6 +115,11 @@ def pdem_worker(packing: str, steps: int) -> dict:
     t_import = time.perf_counter()
     comm = default_comm()
     d = read_spheres(packing)
+    if order == "spatial":  # what a deck's file source does with order = "spatial"
+        from pdem.sources import spatial_order
+
+        o = spatial_order(d["positions"], 2.0 * float(d["radii"].max()))
+        d = {"positions": d["positions"][o], "radii": d["radii"][o]}
     sim = pdem.Simulation(comm=comm)
     sim.add_material("glass", **MATERIAL)
     sim.add_particles(d["positions"], d["radii"])
@@ -129,13 +151,13 @@ def pdem_worker(packing: str, steps: int) -> dict:
     )
 
 
-def run_pdem(packing: Path, steps: int, cold: bool = False, ranks: int = 1) -> dict:
+def run_pdem(packing: Path, steps: int, cold: bool = False, ranks: int = 1, order: str = "file") -> dict:
     env = dict(os.environ)
     tmpdir = None
     if cold:
         tmpdir = tempfile.TemporaryDirectory(prefix="pdem-cold-cache-")
         env["PDEM_NUMBA_CACHE_DIR"] = tmpdir.name
-    cmd = [sys.executable, __file__, "--worker", str(packing), "--steps", str(steps)]
+    cmd = [sys.executable, __file__, "--worker", str(packing), "--steps", str(steps), "--order", order]
     if ranks > 1:
         mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or "mpiexec"
         cmd = [mpiexec, "-n", str(ranks), *cmd]
@@ -160,10 +182,14 @@ def main(argv=None) -> int:
                          "spatially, and both codes get the same sorted rows)")
     ap.add_argument("--ranks", type=int, nargs="+", default=[1],
                     help="rank counts to run both codes on, e.g. --ranks 1 2 (speed-ups are reported)")
+    ap.add_argument("--shuffle", action="store_true",
+                    help="give both codes the packing's rows in random order (pdem then also runs with "
+                         "its file source's order = 'spatial', and both of its times are reported)")
+    ap.add_argument("--order", default="file", help=argparse.SUPPRESS)
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        result = pdem_worker(args.worker, args.steps)
+        result = pdem_worker(args.worker, args.steps, args.order)
         from pdem.parallel.comm import default_comm
 
         if default_comm().rank == 0:
@@ -175,6 +201,10 @@ def main(argv=None) -> int:
         print("LAMMPS (lmp) not found: apt-get install lammps", file=sys.stderr)
         return 2
     packing = make_packing(args.n, args.seed) if args.packing is None else sorted_copy(args.packing)
+    if args.shuffle:  # the sorted copy in spatial_order's order, which order = "spatial" reproduces
+        sorted_packing = sorted_copy(packing) if args.packing is None else packing
+        packing = shuffled_copy(packing, args.seed)
+        print(f"rows shuffled: {packing}", flush=True)
     data = WORK / f"{packing.stem}.lammps.data"
     peer.data_from_packing(packing, data, density=MATERIAL["density"], xmax=XMAX, ymax=YMAX)
     epar = args.epar if args.epar is not None else peer.calibrate_tsuji(0.5)
@@ -185,8 +215,15 @@ def main(argv=None) -> int:
     ranks = sorted(set(args.ranks))
     pd: dict[int, list] = {k: [] for k in ranks}
     lm: dict[int, list] = {k: [] for k in ranks}
+    ps: dict[int, list] = {k: [] for k in ranks}  # --shuffle: pdem with order = "spatial"
+    pz: dict[int, list] = {k: [] for k in ranks}  # --shuffle: pdem on the sorted copy
     for rep in range(args.repeats):
         for k in ranks:  # alternate the codes so both see the same machine state
+            if args.shuffle:
+                ps[k].append(run_pdem(packing, args.steps, ranks=k, order="spatial"))
+                pz[k].append(run_pdem(sorted_packing, args.steps, ranks=k))
+                print(f"  run {rep + 1}, {k} rank(s): pdem sorted copy {pz[k][-1]['loop_time']:.2f} s, "
+                      f"shuffled with order = 'spatial' {ps[k][-1]['loop_time']:.2f} s", flush=True)
             pd[k].append(run_pdem(packing, args.steps, ranks=k))
             lm[k].append(peer.run_lammps(data, ranks=k, steps=args.steps, epar=epar, xmax=XMAX, ymax=YMAX,
                                          skin=1e-4, dt=2e-6))
@@ -201,6 +238,18 @@ def main(argv=None) -> int:
     for k in ranks:
         print(f"pdem   {k} rank(s): loop {t_pd[k]:.2f} s -> {rate_pd[k] / 1e6:.2f} M particle-steps/s")
         print(f"LAMMPS {k} rank(s): loop {t_lm[k]:.2f} s -> {rate_lm[k] / 1e6:.2f} M particle-steps/s")
+    if args.shuffle:
+        for k in ranks:
+            t_s = statistics.median(r["loop_time"] for r in ps[k])
+            t_z = statistics.median(r["loop_time"] for r in pz[k])
+            print(f"pdem   {k} rank(s), shuffled rows: file order {t_pd[k]:.2f} s ({t_pd[k] / t_z:.3f}x the "
+                  f"sorted copy's {t_z:.2f} s), order = 'spatial' {t_s:.2f} s ({t_s / t_z:.3f}x); "
+                  f"LAMMPS on the shuffled rows {t_lm[k]:.2f} s")
+            same = ps[k][0]["front_x"] == pz[k][0]["front_x"] and ps[k][0]["ke_trans"] == pz[k][0]["ke_trans"]
+            print(f"pdem   {k} rank(s): order = 'spatial' on the shuffled rows gives the sorted copy's "
+                  f"results bit for bit: {same}")
+            ratio = t_lm[k] / t_s * (args.steps - 1) / args.steps
+            print(f"ratio pdem(order = 'spatial')/lammps, {k} rank(s) = {ratio:.2f}")
     if 1 in ranks:
         for k in ranks[1:]:
             print(f"speed-up on {k} ranks over serial: pdem {t_pd[1] / t_pd[k]:.2f}x, "

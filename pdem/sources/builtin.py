@@ -194,6 +194,14 @@ class FileParams(SourceParams):
         description="initial velocity (x, y, z) [m/s] used when the file has no velocity columns; "
         "default zero",
     )
+    order: Literal["file", "spatial"] = Field(
+        "file",
+        description="the order in which the spheres get their ids: 'file' (default), the file's rows; "
+        "'spatial', sorted by cells of 2 r_max (z, then y, then x; pdem.sources.spatial_order), so a "
+        "file in any row order gives the same ids and the same results as a spatially sorted copy, and "
+        "runs as fast (DEM-P's sums follow the ids: a shuffled 18k-sphere column ran 14-17 % slower "
+        "in file order)",
+    )
 
     @field_validator("path")
     @classmethod
@@ -323,7 +331,13 @@ class FileSource(Source):
         from . import read_spheres
 
         d = read_spheres(Path(base_dir) / self.params.path)  # the validated path is absolute
-        return SourceOutput(d["positions"], d["radii"], d.get("velocities"))
+        x, r, v = d["positions"], d["radii"], d.get("velocities")
+        if self.params.order == "spatial" and r.size:
+            from . import spatial_order
+
+            o = spatial_order(x, 2.0 * float(r.max()))
+            x, r, v = x[o], r[o], (None if v is None else v[o])
+        return SourceOutput(x, r, v)
 
 
 class PluviateSource(Source):
