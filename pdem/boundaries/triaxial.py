@@ -297,9 +297,7 @@ class TriaxialCell(Boundary):
         h = self.height()
         size = self.params.cell_size
         if size is None:  # one mean diameter (exact sums: the same on any rank count), once a stage
-            if self._size is None:
-                self._size = 2.0 * sim.exact_sum(r) / max(sim.count(r.size), 1)
-            size = self._size
+            size = self._mean_diameter(sim)
         dx = x[:, 0] - self.axis_xy[0]
         dy = x[:, 1] - self.axis_xy[1]
         rho = np.hypot(dx, dy)
@@ -470,12 +468,24 @@ class TriaxialCell(Boundary):
         }
         out.update(self._love_weber(sim, vol))
         # inertial number of the loading, I = ε̇ d sqrt(ρ/p) (grain density from their mass and volume)
-        if self.phase == "shear" and out["p"] > 0 and self._size:
+        # (a column of every shear row, also the first after a resume: a series keeps its columns)
+        if self.phase == "shear":
             prt = sim.particles
             n = prt.n_owned
             rho = sim.exact_sum(prt.mass[:n]) / sim.exact_sum(4.0 / 3.0 * math.pi * prt.r[:n] ** 3)
-            out["inertial"] = self.params.strain_rate * self._size * math.sqrt(rho / out["p"])
+            d = self._mean_diameter(sim)
+            pm = out["p"]
+            out["inertial"] = self.params.strain_rate * d * math.sqrt(rho / pm) if pm > 0 else math.nan
         return out
+
+    def _mean_diameter(self, sim) -> float:
+        """The mean diameter of the grains in the cell (exact sums: the same on any rank count),
+        taken once a stage (and again after a resume)."""
+        if self._size is None:
+            p, n, live = self._own(sim)
+            r = p.r[:n][live]
+            self._size = 2.0 * sim.exact_sum(r) / max(sim.count(r.size), 1)
+        return self._size
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
         """Peak deviator and where, final volumetric strain, servo accuracy of σ₃ and of σ₁ at the end
