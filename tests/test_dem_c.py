@@ -516,6 +516,34 @@ def test_envelope_per_contact_two_grains_approaching_head_on(rule):
     assert worst >= -1e-9 * R
 
 
+def test_envelope_per_contact_solves_again_when_an_impulse_closes_a_gap():
+    """A sphere at 3 m/s touching a resting one, which rests 0.2 r from a third: the struck sphere's
+    own start speed (zero) gives its pair with the third the base envelope, 0.1 r, so the first solve
+    leaves that pair out, and the perfectly inelastic impact sends the two on at 1.5 m/s, 0.3 r per
+    step: into the third. The step is solved again with the solved speeds as bounds, and nothing
+    overlaps (as with the global rule, which needs no second solve)."""
+    gaps = {}
+    for rule in ("contact", "global"):
+        sim = make_sim("apgd", gravity=(0, 0, 0), dt=2e-4, tolerance=1e-12, max_iterations=500, e=0.0,
+                       envelope_rule=rule)
+        xs = [[-2.0 * R, 0.0, 0.0], [0.0, 0.0, 0.0], [2.2 * R, 0.0, 0.0]]  # A touches B
+        sim.add_particles(xs, R, material="glass", velocities=[[3.0, 0, 0], [0, 0, 0], [0, 0, 0]])
+        sim.max_overlap = 10.0
+        worst = math.inf
+        for _ in range(4):
+            sim.step()
+            x = sim.particles.x
+            worst = min(worst, float(np.linalg.norm(x[2] - x[1])) - 2 * R)
+        gaps[rule] = worst
+        if rule == "contact":
+            assert sim.integrator.n_resolves >= 1
+            assert sim.integrator.summary()["envelope_resolves"] == sim.integrator.n_resolves
+        else:
+            assert sim.integrator.n_resolves == 0
+    assert gaps["contact"] >= -1e-9 * R
+    assert gaps["global"] >= -1e-9 * R
+
+
 def test_envelope_per_contact_ignores_a_distant_fast_grain():
     """A resting row of spheres on a floor and one sphere falling fast far away: with the
     per-contact rule the resting contacts keep the base envelope (0.1 r_min), so a sphere resting

@@ -323,6 +323,63 @@ def assemble_walls(
 
 
 @njit
+def missed_pairs(pi, pj, x, v, r, inv_m, h, envelope, spd, env_base, env_factor):
+    """Pairs that were not in the problem (gap above their envelope at the start of the step, as in
+    :func:`assemble_pairs`) but overlap at the end of it (x + h v, v the solved velocities): the
+    contacts a per-contact envelope missed. Returns their number."""
+    missed = 0
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        if inv_m[i] == 0.0 and inv_m[j] == 0.0:
+            continue
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        env = min(envelope, max(env_base, env_factor * max(spd[i], spd[j])))
+        lim = r[i] + r[j] + env
+        if dx * dx + dy * dy + dz * dz <= lim * lim:
+            continue  # in the problem
+        ex = dx + h * (v[j, 0] - v[i, 0])
+        ey = dy + h * (v[j, 1] - v[i, 1])
+        ez = dz + h * (v[j, 2] - v[i, 2])
+        rs = r[i] + r[j]
+        if ex * ex + ey * ey + ez * ez < rs * rs:
+            missed += 1
+    return missed
+
+
+@njit
+def missed_walls(kinds, params_start, params_end, vel, omega, centre, cstart, cand, x, v, r, inv_m, h,
+                 envelope, wbody, spd, env_base, env_factor):  # fmt: skip
+    """Wall candidates that were not in the problem at the start of the step (as in
+    :func:`assemble_walls`) but overlap the wall where it is at the end of it: the wall contacts a
+    per-contact envelope missed. Returns their number."""
+    missed = 0
+    for k in range(kinds.shape[0]):
+        kind = kinds[k]
+        body = wbody[k]
+        for q in range(cstart[k], cstart[k + 1]):
+            i = cand[q]
+            if i < 0 or (inv_m[i] == 0.0 and body < 0):
+                continue
+            p = params_start[k]
+            gap, nx, ny, nz, px, py, pz = wall_contact(kind, p, x[i, 0], x[i, 1], x[i, 2], r[i])
+            if gap <= envelope:
+                vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
+                sw = spd[body] if body >= 0 else math.sqrt(vwx * vwx + vwy * vwy + vwz * vwz)
+                if gap <= min(envelope, max(env_base, env_factor * max(spd[i], sw))):
+                    continue  # in the problem
+            if body >= 0:
+                continue  # a free body's end position is not known here
+            gap2 = wall_contact(kind, params_end[k], x[i, 0] + h * v[i, 0], x[i, 1] + h * v[i, 1],
+                                x[i, 2] + h * v[i, 2], r[i])[0]  # fmt: skip
+            if gap2 < 0.0:
+                missed += 1
+    return missed
+
+
+@njit
 def speed_bounds(v, n, dv):
     """|v_i| + ``dv`` for bodies [0, n): a bound on each body's speed during the step."""
     out = np.empty(n)

@@ -184,6 +184,7 @@ class Stepper(Integrator):
         self.p = law.params
         self.n_unconverged = 0
         self.n_stalls = 0  # APGD solves stopped by a line search that could not accept a step
+        self.n_resolves = 0  # steps solved again because the per-contact envelope missed a contact
         self.n_steps = 0
         self.total_iterations = 0
         self.max_residual = 0.0
@@ -269,27 +270,36 @@ class Stepper(Integrator):
         # ... with the velocity the walls move at during the step
         sim.advance_walls(h)
         # self.V: the velocities at the start of the step (restitution's pre-impact velocities)
-        if self.p.envelope is None and self.p.envelope_rule == "contact":
-            spd = ck.speed_bounds(self.V, n_tot + nb, float(np.linalg.norm(sim.g)) * h)
+        per_contact = self.p.envelope is None and self.p.envelope_rule == "contact"
+        gh = float(np.linalg.norm(sim.g)) * h
+        if per_contact:
+            spd = ck.speed_bounds(self.V, n_tot + nb, gh)
             env_base, env_factor = self._base_envelope, 2.5 * h
+            v_start, w_start = self.V.copy(), self.W.copy()
         else:
             spd, env_base, env_factor = np.zeros(0), env, 0.0
-        n_pair, flags = ck.assemble_pairs(
-            cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env,
-            v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-            self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor,
-        )  # fmt: skip
-        nc = n_pair
         if walls:
             cs.filter_meshes(p.x, p.r, p.inv_m, env)
-            nc, wflags = ck.assemble_walls(
-                cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
-                cs.wall_hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
-                v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot), spd,
-                env_base, env_factor,
+
+        def assemble(spd):
+            n_pair, flags = ck.assemble_pairs(
+                cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env,
+                v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor,
             )  # fmt: skip
-            flags |= wflags
+            nc = n_pair
+            if walls:
+                nc, wflags = ck.assemble_walls(
+                    cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
+                    cs.wall_hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
+                    v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                    self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot), spd,
+                    env_base, env_factor,
+                )  # fmt: skip
+                flags |= wflags
+            return n_pair, nc, flags
+
+        n_pair, nc, flags = assemble(spd)
         g = sim.g
         v_free = np.empty((n_tot + nb, 3))
         w_free = np.zeros((n_tot + nb, 3))
@@ -306,13 +316,34 @@ class Stepper(Integrator):
             f_ext, t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
         P = np.empty((n_tot + nb, 3))
         L = np.empty((n_tot + nb, 3))
-        solver = self.p.solver
-        if solver == "jacobi":
-            it, res = self._jacobi(nc, v_free, w_free, P, L)
-        elif solver == "gauss_seidel":
-            it, res = self._gauss_seidel(nc, v_free, w_free, P, L)
-        else:
-            it, res = self._apgd(nc, v_free, w_free, P, L)
+        it, res = self._solve(nc, v_free, w_free, P, L)
+        if per_contact and math.isfinite(res):
+            # a grain pushed during the step by its neighbours' impulses can close a gap its own
+            # start speed did not cover: if any pair or wall contact outside the problem overlaps
+            # at the end of the step, solve again with every body's speed bound raised to its solved
+            # speed, and if that misses one too, with the global envelope (the first rule's)
+            wb = self._body_rows(n_tot)[0] if walls else np.zeros(0, dtype=np.int64)
+            for attempt in range(2):
+                missed = ck.missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env, spd, env_base,
+                                         env_factor)  # fmt: skip
+                if walls:
+                    missed += ck.missed_walls(
+                        cs.kinds, w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
+                        p.x, self.V, p.r, p.inv_m, h, env, wb, spd, env_base, env_factor,
+                    )  # fmt: skip
+                if not any_rank(sim.comm, missed > 0):
+                    break
+                self.n_resolves += 1
+                if attempt == 0:
+                    spd = np.maximum(spd, ck.speed_bounds(self.V, n_tot + nb, gh))
+                else:
+                    spd = np.full_like(spd, np.inf)  # every contact at the global envelope
+                self.V[:] = v_start  # the start-of-step velocities (restitution reads them)
+                self.W[:] = w_start
+                n_pair, nc, flags2 = assemble(spd)
+                flags |= flags2
+                it2, res = self._solve(nc, v_free, w_free, P, L)
+                it += it2
         # every solver ends with the velocities (and P, L) of its final impulses, accumulated in
         # contact order (deterministic)
         ck.store_history(self.gam, self.csrc, nc, n_pair, cs.hist, cs.wall_hist)
@@ -344,6 +375,14 @@ class Stepper(Integrator):
         self.max_residual = max(self.max_residual, res)
         self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
         sim.finish_step(flags)
+
+    def _solve(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
+        solver = self.p.solver
+        if solver == "jacobi":
+            return self._jacobi(nc, v_free, w_free, P, L)
+        if solver == "gauss_seidel":
+            return self._gauss_seidel(nc, v_free, w_free, P, L)
+        return self._apgd(nc, v_free, w_free, P, L)
 
     # ------------------------------------------------------------------ rigid-body walls
     def _free_bodies(self) -> list:
@@ -409,7 +448,7 @@ class Stepper(Integrator):
         """Counters for checkpoints (the envelope is saved by the simulation)."""
         return {
             "solver/counters": np.array(
-                [self.n_steps, self.n_unconverged, self.total_iterations, self.n_stalls]
+                [self.n_steps, self.n_unconverged, self.total_iterations, self.n_stalls, self.n_resolves]
             ),
             "solver/max_residual": np.array(self.max_residual),
         }
@@ -419,6 +458,7 @@ class Stepper(Integrator):
             counters = [int(c) for c in state["solver/counters"]]
             self.n_steps, self.n_unconverged, self.total_iterations = counters[:3]
             self.n_stalls = counters[3] if len(counters) > 3 else 0  # older checkpoints: none
+            self.n_resolves = counters[4] if len(counters) > 4 else 0
             self.max_residual = float(state["solver/max_residual"])
 
     def stats(self) -> dict[str, float]:
@@ -449,6 +489,7 @@ class Stepper(Integrator):
             "mean_iterations": self.total_iterations / max(self.n_steps, 1),
             "max_residual": self.max_residual,
             "line_search_stalls": self.n_stalls,
+            "envelope_resolves": self.n_resolves,
         }
 
     # ------------------------------------------------------------------ solvers
