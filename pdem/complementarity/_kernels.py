@@ -594,6 +594,19 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
     return rc, p0, g0, g1, g2, g3, n0, n1, n2, n3
 
 
+@njit(inline="always")
+def _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected):
+    """Contact c's Jacobi update (its rolling rows after its (γ_n, γ_t)); returns its residual."""
+    rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+        c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+    )
+    if croll[c, 2] > 0.0:
+        rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+        if rr > rc or rr != rr:
+            rc = rr
+    return rc
+
+
 @njit
 def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected=True):
     """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
@@ -601,13 +614,7 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, ome
     (γ_n, γ_t). Returns the largest residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
-        )
-        if croll[c, 2] > 0.0:
-            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
-            if rr > rc or rr != rr:
-                rc = rr
+        rc = _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected)
         if rc > res or rc != rc:
             res = rc
     return res
@@ -622,13 +629,7 @@ def jacobi_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omeg
     L[:] = 0.0
     res = 0.0
     for c in range(nc):
-        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
-        )
-        if croll[c, 2] > 0.0:
-            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
-            if rr > rc or rr != rr:
-                rc = rr
+        rc = _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected)
         if rc > res or rc != rc:
             res = rc
         _accumulate_row(c, cb, cn, ca, croll, gam, P, L)
