@@ -42,7 +42,7 @@ instead of u (De Saxcé's change of variable). γ ∈ K, ũ ∈ K*, γ ⊥ ũ is
 u_n ≥ 0, γ_n u_n = 0, and a sliding contact's friction is μ γ_n against the slip, so a sliding
 contact keeps u_n = 0 instead of separating at μ|u_t| (the relaxed cone, ``corrected`` false).
 Every solver takes μ|u_t| from the velocities of the current iterate (Jacobi and Gauss–Seidel at
-each update, APGD at each evaluation of ũ: :func:`correct_normal`): the shift and the impulses
+each update, APGD at each evaluation of ũ: :func:`contact_velocities`): the shift and the impulses
 converge together to the fixed point.
 """
 
@@ -117,6 +117,15 @@ def project_cone_array(g, mu, croll):
     return out
 
 
+@njit(inline="always")
+def _contact_envelope(envelope, env_base, env_factor, s1, s2):
+    """A contact's envelope: min(``envelope``, max(``env_base``, ``env_factor`` × max(s1, s2))),
+    s1, s2 its bodies' speed bounds; ``envelope`` itself when ``env_factor`` is 0."""
+    if env_factor > 0.0:
+        return min(envelope, max(env_base, env_factor * max(s1, s2)))
+    return envelope
+
+
 @njit
 def count_pair_contacts(pi, pj, x, r, inv_m, envelope):
     n = 0
@@ -157,10 +166,7 @@ def assemble_pairs(
         dy = x[j, 1] - x[i, 1]
         dz = x[j, 2] - x[i, 2]
         d2 = dx * dx + dy * dy + dz * dz
-        env = envelope
-        if env_factor > 0.0:
-            env = min(envelope, max(env_base, env_factor * max(spd[i], spd[j])))
-        lim = r[i] + r[j] + env
+        lim = r[i] + r[j] + _contact_envelope(envelope, env_base, env_factor, spd[i], spd[j])
         if d2 > lim * lim or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
             for q in range(hist.shape[1]):
                 hist[k, q] = 0.0
@@ -285,7 +291,7 @@ def assemble_walls(
                 vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
                 if env_factor > 0.0:
                     sw = spd[body] if body >= 0 else math.sqrt(vwx * vwx + vwy * vwy + vwz * vwz)
-                    out = gap > min(envelope, max(env_base, env_factor * max(spd[i], sw)))
+                    out = gap > _contact_envelope(envelope, env_base, env_factor, spd[i], sw)
             if out:
                 for s in range(whist.shape[1]):
                     whist[q, s] = 0.0
@@ -336,8 +342,7 @@ def missed_pairs(pi, pj, x, v, r, inv_m, h, envelope, spd, env_base, env_factor)
         dx = x[j, 0] - x[i, 0]
         dy = x[j, 1] - x[i, 1]
         dz = x[j, 2] - x[i, 2]
-        env = min(envelope, max(env_base, env_factor * max(spd[i], spd[j])))
-        lim = r[i] + r[j] + env
+        lim = r[i] + r[j] + _contact_envelope(envelope, env_base, env_factor, spd[i], spd[j])
         if dx * dx + dy * dy + dz * dz <= lim * lim:
             continue  # in the problem
         ex = dx + h * (v[j, 0] - v[i, 0])
@@ -368,7 +373,7 @@ def missed_walls(kinds, params_start, params_end, vel, omega, centre, cstart, ca
             if gap <= envelope:
                 vwx, vwy, vwz, qx, qy, qz = surface_velocity(kind, p, vel, omega, centre, k, px, py, pz)
                 sw = spd[body] if body >= 0 else math.sqrt(vwx * vwx + vwy * vwy + vwz * vwz)
-                if gap <= min(envelope, max(env_base, env_factor * max(spd[i], sw))):
+                if gap <= _contact_envelope(envelope, env_base, env_factor, spd[i], sw):
                     continue  # in the problem
             if body >= 0:
                 continue  # a free body's end position is not known here
@@ -503,24 +508,6 @@ def _rolling_velocity(c, cb, cn, cvw, croll, w):
     rs = croll[c, 2]
     on = ox * nx + oy * ny + oz * nz
     return rs * (ox - on * nx), rs * (oy - on * ny), rs * (oz - on * nz), rs * on
-
-
-@njit
-def contact_velocities(cb, cn, ca, cvw, cbias, croll, v, w, nc, u):
-    """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off)."""
-    for c in range(nc):
-        u[c, 0], u[c, 1], u[c, 2], u[c, 3] = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
-        if croll[c, 2] > 0.0:
-            u[c, 4], u[c, 5], u[c, 6], u[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
-        else:
-            u[c, 4] = u[c, 5] = u[c, 6] = u[c, 7] = 0.0
-
-
-@njit
-def correct_normal(u, cmu, nc):
-    """u_n += μ_c |u_t|: the corrected cone's velocities ũ (``u`` in place)."""
-    for c in range(nc):
-        u[c, 0] += cmu[c] * math.sqrt(u[c, 1] * u[c, 1] + u[c, 2] * u[c, 2] + u[c, 3] * u[c, 3])
 
 
 @njit(inline="always")
@@ -731,8 +718,9 @@ def project_step(y, gy, t, mu, croll, nc, out):
 
 
 @njit
-def contact_velocities_corrected(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
-    """:func:`contact_velocities`, then (``corrected``) :func:`correct_normal`, in one pass."""
+def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
+    """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off); with
+    ``corrected``, u_n += μ_c |u_t| (the corrected cone's ũ)."""
     for c in range(nc):
         u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
         if corrected:

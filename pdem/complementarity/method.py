@@ -532,10 +532,9 @@ class Stepper(Integrator):
         cone, of the relaxed cone problem (u) otherwise."""
         u = np.empty((nc, 8))
         ck.contact_velocities(
-            self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, u
+            self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.V, self.W, nc, u,
+            self.corrected,
         )  # fmt: skip
-        if self.corrected:
-            ck.correct_normal(u, self.cmu, nc)
         return ck.residual_max(self.gam, u, self.cmu, self.cscale, self.croll, nc)
 
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
@@ -608,7 +607,7 @@ class Stepper(Integrator):
             self.gam[:nc] = gv
             self._sync_velocities(nc, v_free, w_free, P, L)
             u = np.empty((nc, 8))
-            ck.contact_velocities_corrected(
+            ck.contact_velocities(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, u,
                 corrected,
             )  # fmt: skip
