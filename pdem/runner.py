@@ -284,6 +284,7 @@ class Runner:
             sim.materials.set_pair(pair.materials[0], pair.materials[1], **values)
         run = deck.run
         sim.dt = run.dt
+        sim.dt_fraction = run.dt_fraction
         sim.force_dt = run.force_dt
         sim.gravity = tuple(run.gravity)
         sim.skin = run.skin
@@ -865,6 +866,7 @@ class Runner:
             "wall_time_s": wall,
             "particles": sim.count_particles(),
             "dt": sim.dt,
+            "dt_critical": sim.dt_critical if math.isfinite(sim.dt_critical) else None,
             "steps_run": sim.step_count - steps_start,
             "steps_per_second": (sim.step_count - steps_start) / max(wall, 1e-9),
             "completed": not self.stopped_early,

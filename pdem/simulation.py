@@ -99,6 +99,8 @@ class Simulation:
         self.set_law(law, **law_params)
         self.gravity = (0.0, 0.0, 0.0)
         self._dt: float | None = None
+        #: with no dt: the step as this multiple of the law's stability estimate (None: the law's choice)
+        self.dt_fraction: float | None = None
         self.force_dt = False
         self.skin: float | None = None
         self.max_overlap = 0.25
@@ -520,6 +522,13 @@ class Simulation:
             raise InputError("no material defined; add one with add_material()")
         self.coefficients = self.law.coefficients(self.materials)
         self.dt_critical = all_min(self.comm, self.law.critical_dt(self.materials, p.r, p.mat, p.mass))
+        if self._dt is None and self.dt_fraction is not None:
+            if not (self.dt_fraction > 0 and math.isfinite(self.dt_critical)):
+                raise InputError(
+                    f"run.dt_fraction = {self.dt_fraction!r}: law '{self.law.name}' has no finite stability "
+                    f"estimate ({self.dt_critical:.4g} s) to take a fraction of; give run.dt in seconds instead"
+                )
+            self.dt = self.dt_fraction * self.dt_critical
         if self._dt is None:
             dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
             if not math.isfinite(dt):

@@ -651,3 +651,16 @@ def test_source_region_wider_than_the_periodic_box(deck_dir, base):
     probs = problems_of(deck_dir, base)
     msg = expect(probs, "particles.0.region", "along the periodic axis x", "would overlap")
     assert "wider than the periodic box (0.06 m)" in msg
+
+
+def test_run_dt_and_dt_fraction_are_exclusive(tmp_path):
+    deck = tmp_path / "d.toml"
+    deck.write_text(
+        '[run]\ndt = 1e-6\ndt_fraction = 0.2\n[materials.m]\n[[particles]]\nsource = "lattice"\n'
+        'material = "m"\nlattice = "sc"\nspacing = 0.002\nradius = 0.001\n'
+        'region = { type = "box", lo = [0, 0, 0], hi = [0.01, 0.01, 0.01] }\n'
+        '[[stages]]\nname = "s"\nend = { steps = 1 }\n'
+    )
+    with pytest.raises(InputError) as info:
+        load_deck(deck)
+    assert "run.dt_fraction" in str(info.value) and "give one" in str(info.value)

@@ -90,3 +90,29 @@ def test_dt_just_below_estimate_accepted():
     sim.dt = 0.999 * rayleigh_time(rmin)
     sim.run(steps=0)  # prepares without complaint
     assert sim.dt_critical == pytest.approx(rayleigh_time(rmin), rel=1e-12)
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.35])
+def test_dt_fraction_sets_the_step_from_the_estimate(fraction):
+    """``dt_fraction`` takes the step as a multiple of the law's estimate (here the Rayleigh time of
+    the smallest sphere, computed independently)."""
+    sim, rmin = _dense_pile()
+    sim.dt_fraction = fraction
+    sim.run(steps=3)
+    assert sim.dt == pytest.approx(fraction * rayleigh_time(rmin), rel=1e-3)
+    assert sim.dt_critical == pytest.approx(rayleigh_time(rmin), rel=1e-3)
+
+
+def test_dt_fraction_above_one_needs_force_dt():
+    sim, _ = _dense_pile()
+    sim.dt_fraction = 1.5
+    with pytest.raises(pdem.InputError, match="stability estimate"):
+        sim.run(steps=1)
+
+
+def test_dt_fraction_is_refused_without_a_stability_limit():
+    sim, _ = _dense_pile()
+    sim.set_law("complementarity")
+    sim.dt_fraction = 0.2
+    with pytest.raises(pdem.InputError, match=r"run\.dt_fraction = 0\.2.*give run\.dt"):
+        sim.run(steps=1)

@@ -223,6 +223,13 @@ class RunSection(_DeckModel):
         description="time step [s]; default: 0.2 of the contact law's stability estimate "
         "(for Hertz-Mindlin the Rayleigh time of the smallest particle)",
     )
+    dt_fraction: Float | None = Field(
+        None,
+        gt=0,
+        description="time step as a multiple of the contact law's stability estimate (e.g. 0.2; above 1 "
+        "needs force_dt); instead of dt, for step sweeps that follow the material (not for laws without "
+        "a stability limit, such as complementarity)",
+    )
     force_dt: Bool = Field(
         False, description="allow a dt (here or in a stage) above the law's stability estimate"
     )
@@ -261,6 +268,18 @@ class RunSection(_DeckModel):
         description="under MPI, move the cut planes when the slowest rank's force time exceeds the mean "
         "by this factor (measured between neighbour-list rebuilds); omit or set null to never rebalance",
     )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        if _given(data, "dt") and _given(data, "dt_fraction"):
+            return [
+                (
+                    ("dt_fraction",),
+                    f"dt_fraction = {data['dt_fraction']!r} and dt = {data['dt']!r} are both given; give one: "
+                    "dt (seconds) or dt_fraction (a multiple of the law's stability estimate)",
+                )
+            ]
+        return []
 
 
 _AXIS_NAMES = ("x", "y", "z")
