@@ -5,6 +5,7 @@
     pdem resume CHECKPOINT [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
     pdem schema [--output FILE] [--overwrite]
+    pdem study SPEC [--jobs N] [--ranks N] [--output DIR] [--retry-failed] [--report-only] [--dry-run]
 
 Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory, an
 output path that is not or cannot become a directory, a ``run.decomposition`` that does not match
@@ -36,7 +37,7 @@ from .errors import InputError, PdemError
 
 __all__ = ["main"]
 
-SUBCOMMANDS = ("check", "resume", "plugins", "schema")
+SUBCOMMANDS = ("check", "resume", "plugins", "schema", "study")
 
 
 def _run_parser() -> argparse.ArgumentParser:
@@ -368,13 +369,57 @@ def cmd_schema(argv: list[str]) -> int:
     return 0
 
 
+def cmd_study(argv: list[str]) -> int:
+    """``pdem study SPEC``: run a grid of one deck's overrides (resumable) and chart the results."""
+    p = argparse.ArgumentParser(
+        prog="pdem study",
+        description="Run one deck over a grid of --set overrides as separate processes (resumable: "
+        "finished runs are kept), then write study.csv, charts (error against wall time with each "
+        "method's Pareto front, error against each knob, the stability map) and reading.md in "
+        "OUTPUT/report. The spec format: docs/study.md.",
+    )
+    p.add_argument("spec", type=Path, help="the study spec (TOML)")
+    p.add_argument("--jobs", type=int, default=None, metavar="N", help="runs at a time (default: spec's)")
+    p.add_argument("--ranks", type=int, default=None, metavar="N", help="MPI ranks per run (default: spec's)")
+    p.add_argument("--output", type=Path, default=None, metavar="DIR", help="study directory")
+    p.add_argument("--retry-failed", action="store_true", help="run again the runs that did not end ok")
+    p.add_argument("--report-only", action="store_true", help="run nothing; tabulate and chart what is there")
+    p.add_argument("--dry-run", action="store_true", help="list the runs and their commands; run nothing")
+    args = p.parse_args(argv)
+    from .study import Study
+    from .study.launch import command
+
+    study = Study.from_file(args.spec, jobs=args.jobs, ranks=args.ranks, output=args.output)
+    if args.dry_run:
+        for plan in study.plans:
+            cmd = command(study.spec.deck, plan.directory, plan.set_args(), study.spec.ranks)
+            print(f"{plan.name} [{plan.method}]: {' '.join(cmd)}")
+        return 0
+    import signal
+
+    def _terminate(signum, frame):  # a terminated study stops its runs (they are redone on rerun)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminate)
+    if not args.report_only:
+        study.run(retry_failed=args.retry_failed)
+    paths = study.report()
+    print(f"pdem study: {len(study.plans)} runs; table {paths['table']}; reading {paths['reading']}")
+    print(paths["reading"].read_text())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] in SUBCOMMANDS:
-            return {"check": cmd_check, "resume": cmd_resume, "plugins": cmd_plugins, "schema": cmd_schema}[
-                argv[0]
-            ](argv[1:])
+            return {
+                "check": cmd_check,
+                "resume": cmd_resume,
+                "plugins": cmd_plugins,
+                "schema": cmd_schema,
+                "study": cmd_study,
+            }[argv[0]](argv[1:])
         return cmd_run(_run_parser().parse_args(argv))
     except PdemError as exc:
         return _fail(exc.exit_code, f"pdem: error: {exc}")

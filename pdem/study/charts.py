@@ -1,0 +1,234 @@
+"""Charts of a study (matplotlib, off-screen; each as PNG and SVG):
+
+* ``error_vs_time_<quantity>``: error against wall time, log–log, one colour per method, one marker
+  per series, each method's Pareto front (no faster run is more accurate) as a step line, the
+  tolerance as a dashed line;
+* ``error_vs_<knob>_<quantity>``: error against each varied knob, a line per series;
+* ``stability``: the spec's ``[stability]`` map, each run a marker by its class (stable, drift,
+  failed, uncaught, refused, timeout), with ``stability.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .core import Study
+
+__all__ = ["write_charts", "pareto_front"]
+
+COLOURS = {"DEM-P": "#1f77b4", "DEM-C": "#d62728"}
+MARKERS = "osD^v<>pP*hX"
+CLASSES = {
+    "stable": ("#2ca02c", "o"),
+    "drift": ("#ff7f0e", "s"),
+    "failed": ("#d62728", "X"),
+    "uncaught": ("#000000", "*"),
+    "refused": ("#7f7f7f", "x"),
+    "timeout": ("#9467bd", "v"),
+    "no value": ("#bcbd22", "d"),
+    "not run": ("#dddddd", "."),
+}
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The (time, error) points no other point beats on both: sorted by time, each more accurate than
+    every faster one."""
+    front: list[tuple[float, float]] = []
+    best = math.inf
+    for t, e in sorted(points):
+        if e < best:
+            front.append((t, e))
+            best = e
+    return front
+
+
+def _safe(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def write_charts(study: Study, rows: list[dict[str, Any]], out: Path) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    spec = study.spec
+    paths: dict[str, Path] = {}
+    series_marker = {s.name: MARKERS[i % len(MARKERS)] for i, s in enumerate(spec.series)}
+    title = spec.title or spec.deck.name
+
+    def save(fig: Any, stem: str) -> None:
+        for ext in ("png", "svg"):
+            path = out / f"{stem}.{ext}"
+            fig.savefig(path, dpi=130, bbox_inches="tight")
+        paths[stem] = out / f"{stem}.png"
+        plt.close(fig)
+
+    for name, q in spec.quantities.items():
+        ekey = f"{name}_error"
+        fig, ax = plt.subplots(figsize=(6.4, 4.6))
+        floor = _floor(rows, ekey)
+        for method in sorted({r["method"] for r in rows}):
+            colour = COLOURS.get(method, None)
+            pts = []
+            for s in spec.series:
+                sel = [r for r in rows if r["series"] == s.name and r["method"] == method]
+                xs, ys, zs = [], [], []
+                for r in sel:
+                    if _finite(r[ekey]) and _finite(r["wall_s"]):
+                        pts.append((r["wall_s"], max(r[ekey], floor)))
+                        if r[ekey] > 0:
+                            xs.append(r["wall_s"])
+                            ys.append(r[ekey])
+                        else:
+                            zs.append(r["wall_s"])
+                marker = series_marker[s.name]
+                if xs:
+                    ax.scatter(xs, ys, color=colour, marker=marker, label=f"{method}: {s.name}", zorder=3)
+                if zs:  # the reference run itself (error 0): hollow, drawn at the floor
+                    ax.scatter(zs, [floor] * len(zs), facecolors="none", edgecolors=colour, s=90,
+                               marker=marker, label=f"{method}: {s.name}, the reference (error 0)", zorder=3)
+            front = pareto_front(pts)
+            if len(front) > 1:
+                fx, fy = zip(*front, strict=True)
+                ax.step(fx, fy, where="post", color=colour, alpha=0.6, lw=1.5, label=f"{method} Pareto front")
+        ax.axhline(q.tolerance, color="0.4", ls="--", lw=1, label=f"tolerance {q.tolerance:g}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(f"wall time [s] ({spec.time})")
+        ax.set_ylabel(f"{'relative ' if q.relative else ''}error of {name}")
+        ax.set_title(
+            f"{title}\n{name}: error against wall time (error 0 drawn at {floor:.0e})", fontsize=9
+        )
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+        save(fig, f"error_vs_time_{_safe(name)}")
+
+        varied = []
+        for s in spec.series:
+            for k in s.vary:
+                if k not in varied:
+                    varied.append(k)
+        for knob in varied:
+            fig, ax = plt.subplots(figsize=(6.4, 4.6))
+            any_point = False
+            for s in spec.series:
+                if knob not in s.vary:
+                    continue
+                others = [k for k in s.vary if k != knob]
+                groups: dict[tuple, list[dict[str, Any]]] = {}
+                for r in rows:
+                    if r["series"] == s.name:
+                        groups.setdefault(tuple(r[k] for k in others), []).append(r)
+                for key, grp in groups.items():
+                    pts = sorted(
+                        (r[knob], max(r[ekey], floor)) for r in grp if _finite(r[knob]) and _finite(r[ekey])
+                    )
+                    if not pts:
+                        continue
+                    any_point = True
+                    xs, ys = zip(*pts, strict=True)
+                    label = s.name + "".join(
+                        f", {k.split('.')[-1]}={v}" for k, v in zip(others, key, strict=True)
+                    )
+                    ax.plot(
+                        xs,
+                        ys,
+                        marker=series_marker[s.name],
+                        color=COLOURS.get(grp[0]["method"]),
+                        label=label,
+                        alpha=0.85,
+                    )
+            if not any_point:
+                plt.close(fig)
+                continue
+            xs_all = [r[knob] for r in rows if _finite(r[knob]) and r[knob] > 0]
+            if xs_all and max(xs_all) / min(xs_all) > 20:
+                ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.axhline(q.tolerance, color="0.4", ls="--", lw=1)
+            ax.set_xlabel(knob)
+            ax.set_ylabel(f"{'relative ' if q.relative else ''}error of {name}")
+            ax.set_title(f"{title}\n{name}: error against {knob}", fontsize=9)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7)
+            save(fig, f"error_vs_{_safe(knob)}_{_safe(name)}")
+
+    if spec.stability is not None:
+        paths.update(_stability(study, rows, out, save, plt, title))
+    return paths
+
+
+def _floor(rows: list[dict[str, Any]], ekey: str) -> float:
+    pos = [r[ekey] for r in rows if _finite(r[ekey]) and r[ekey] > 0]
+    return min(pos) / 3 if pos else 1e-6
+
+
+def _stability(study: Study, rows, out: Path, save, plt, title: str) -> dict[str, Path]:
+    st = study.spec.stability
+    x_of = (lambda r: r["dt_ratio"]) if st.x in ("dt_ratio",) else (lambda r: r.get(st.x))
+    y_of = (lambda r: r["series"]) if st.y == "series" else (lambda r: r.get(st.y))
+    ys = []
+    for r in rows:
+        y = y_of(r)
+        if y not in ys:
+            ys.append(y)
+    fig, ax = plt.subplots(figsize=(6.8, 0.6 * len(ys) + 2.2))
+    seen = set()
+    for r in rows:
+        x = x_of(r)
+        if not _finite(x):
+            continue
+        cls = r["stability"]
+        colour, marker = CLASSES.get(cls, ("#17becf", "o"))
+        ax.scatter(
+            [x],
+            [ys.index(y_of(r))],
+            color=colour,
+            marker=marker,
+            s=70,
+            label=cls if cls not in seen else None,
+            zorder=3,
+        )
+        seen.add(cls)
+    ax.set_yticks(range(len(ys)))
+    ax.set_yticklabels([str(y) for y in ys])
+    xs = [x_of(r) for r in rows if _finite(x_of(r)) and x_of(r) > 0]
+    if xs and max(xs) / min(xs) > 20:
+        ax.set_xscale("log")
+    if st.x in ("dt_ratio", "run.dt_fraction"):
+        ax.axvline(1.0, color="0.3", ls=":", lw=1, label="stability estimate")
+    ax.set_xlabel("dt / the law's stability estimate" if st.x == "dt_ratio" else st.x)
+    ax.set_ylabel(st.y)
+    ax.set_title(f"{title}\nstability (drift: error above {st.drift:g} against the reference)", fontsize=9)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    save(fig, "stability")
+    path = out / "stability.csv"
+    q = st.quantity or study.spec.primary
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow([st.y, st.x, "stability", "status", "exit_code", f"{q}_error", "nonfinite", "message"])
+        for r in rows:
+            w.writerow(
+                [
+                    y_of(r),
+                    x_of(r),
+                    r["stability"],
+                    r["status"],
+                    r["exit_code"],
+                    r[f"{q}_error"],
+                    r["nonfinite"],
+                    r["message"],
+                ]
+            )
+    return {"stability_table": path}
