@@ -293,7 +293,8 @@ def load_spec(path: str | Path, overrides: dict[str, Any] | None = None) -> Stud
             loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
             given = err.get("input")
             shown = "" if isinstance(given, dict) else f" (given: {given!r})"
-            lines.append(f"  {loc}: {err['msg']}{shown}")
+            msg = err["msg"].removeprefix("Value error, ")
+            lines.append(f"  {loc}: {msg}{shown}")
         raise InputError(f"study spec {path}: {len(lines)} problem(s):\n" + "\n".join(lines)) from None
     deck = spec.deck if spec.deck.is_absolute() else (path.parent / spec.deck)
     if not deck.is_file():
