@@ -525,8 +525,9 @@ class Simulation:
         if self._dt is None and self.dt_fraction is not None:
             if not (self.dt_fraction > 0 and math.isfinite(self.dt_critical)):
                 raise InputError(
-                    f"run.dt_fraction = {self.dt_fraction!r}: law '{self.law.name}' has no finite stability "
-                    f"estimate ({self.dt_critical:.4g} s) to take a fraction of; give run.dt in seconds instead"
+                    f"run.dt_fraction = {self.dt_fraction!r}: law '{self.law.name}' has no finite "
+                    f"stability estimate ({self.dt_critical:.4g} s) to take a fraction of; give run.dt in "
+                    "seconds instead"
                 )
             self.dt = self.dt_fraction * self.dt_critical
         if self._dt is None:

@@ -69,23 +69,23 @@ def _spec(tmp_path: Path, body: str, deck: str = PILE) -> Path:
     return spec
 
 
-STEP_STUDY = """
+STEP_STUDY = f"""
 title = "pile: floor load against the step"
 [quantities.floor_load]
 column = "box.zlo.fz"
 reduce = "mean"
 window = 0.25
-reference = { value = -%r, source = "closed form: the weight of the eight spheres" }
+reference = {{ value = -{WEIGHT!r}, source = "closed form: the weight of the eight spheres" }}
 tolerance = 0.01
 
 [[series]]
 name = "dem_p"
-set = { "run.force_dt" = true }
-vary = { "run.dt_fraction" = [0.1, 0.3, 6.0] }
+set = {{ "run.force_dt" = true }}
+vary = {{ "run.dt_fraction" = [0.1, 0.3, 6.0] }}
 
 [stability]
 x = "run.dt_fraction"
-""" % WEIGHT
+"""
 
 
 def test_spec_errors_name_the_key_and_the_remedy(tmp_path):

@@ -275,8 +275,8 @@ class RunSection(_DeckModel):
             return [
                 (
                     ("dt_fraction",),
-                    f"dt_fraction = {data['dt_fraction']!r} and dt = {data['dt']!r} are both given; give one: "
-                    "dt (seconds) or dt_fraction (a multiple of the law's stability estimate)",
+                    f"dt_fraction = {data['dt_fraction']!r} and dt = {data['dt']!r} are both given; "
+                    "give one: dt (seconds) or dt_fraction (a multiple of the law's stability estimate)",
                 )
             ]
         return []
