@@ -163,8 +163,8 @@ def write_charts(study: Study, rows: list[dict[str, Any]], out: Path) -> dict[st
             ax.legend(fontsize=7)
             save(fig, f"error_vs_{_safe(knob)}_{_safe(name)}")
 
-    if spec.stability is not None:
-        paths.update(_stability(study, rows, out, save, plt, title))
+    for st in spec.maps:
+        paths.update(_stability(study, st, rows, out, save, plt, title))
     return paths
 
 
@@ -173,8 +173,14 @@ def _floor(rows: list[dict[str, Any]], ekey: str) -> float:
     return min(pos) / 3 if pos else 1e-6
 
 
-def _stability(study: Study, rows, out: Path, save, plt, title: str) -> dict[str, Path]:
-    st = study.spec.stability
+def _stability(study: Study, st: Any, rows, out: Path, save, plt, title: str) -> dict[str, Path]:
+    q = st.quantity or study.spec.primary
+    rows = [
+        {**r, "stability": study.stability_class(r["status"], r["nonfinite"] or 0, r[f"{q}_error"], st.drift)}
+        for r in rows
+        if st.series is None or r["series"] in st.series
+    ]
+    stem = f"stability_{_safe(st.name)}" if st.name else "stability"
     x_of = (lambda r: r["dt_ratio"]) if st.x in ("dt_ratio",) else (lambda r: r.get(st.x))
     y_of = (lambda r: r["series"]) if st.y == "series" else (lambda r: r.get(st.y))
     ys = []
@@ -212,9 +218,8 @@ def _stability(study: Study, rows, out: Path, save, plt, title: str) -> dict[str
     ax.set_title(f"{title}\nstability (drift: error above {st.drift:g} against the reference)", fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    save(fig, "stability")
-    path = out / "stability.csv"
-    q = st.quantity or study.spec.primary
+    save(fig, stem)
+    path = out / f"{stem}.csv"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow([st.y, st.x, "stability", "status", "exit_code", f"{q}_error", "nonfinite", "message"])
@@ -231,4 +236,4 @@ def _stability(study: Study, rows, out: Path, save, plt, title: str) -> dict[str
                     r["message"],
                 ]
             )
-    return {"stability_table": path}
+    return {f"{stem}_table": path}

@@ -191,21 +191,20 @@ class Study:
             return abs(value - ref) / abs(ref) if ref != 0 else None
         return abs(value - ref)
 
-    def stability_class(self, res: RunResult, err: float | None) -> str:
-        """stable / drift (error above the spec's drift) / failed (caught: exit 3, nothing non-finite
-        on disk) / uncaught (a crash, or non-finite values left on disk) / refused / timeout /
-        no value / not run."""
-        drift = self.spec.stability.drift if self.spec.stability else 0.01
-        st = res.status
-        if st == "ok":
+    @staticmethod
+    def stability_class(status: str, nonfinite: int, err: float | None, drift: float) -> str:
+        """stable / drift (error above ``drift``) / failed (caught: exit 3, nothing non-finite on
+        disk) / uncaught (a crash, or non-finite values left on disk) / refused / timeout / no value /
+        not run."""
+        if status == "ok":
             if err is None:
                 return "no value"
             return "stable" if err <= drift else "drift"
-        if st == "failed":
-            return "uncaught" if res.record and res.record.nonfinite else "failed"
-        if st == "error":
+        if status == "failed":
+            return "uncaught" if nonfinite else "failed"
+        if status == "error":
             return "uncaught"
-        return st
+        return status
 
     def table(self, results: list[RunResult] | None = None) -> list[dict[str, Any]]:
         """One row per run: series, method, knobs, status, wall times, steps, dt / estimate, solver
@@ -217,7 +216,9 @@ class Study:
             for k in p.knobs:
                 if k not in keys:
                     keys.append(k)
-        stab_q = (self.spec.stability.quantity if self.spec.stability else None) or self.spec.primary
+        first = self.spec.maps[0] if self.spec.maps else None
+        stab_q = (first.quantity if first else None) or self.spec.primary
+        drift = first.drift if first else 0.01
         rows = []
         for r in results:
             s = r.summary or {}
@@ -241,8 +242,9 @@ class Study:
                 v = r.value(q)
                 row[name] = v
                 row[f"{name}_error"] = self.error(name, v, refs[name])
-            row["stability"] = self.stability_class(r, row[f"{stab_q}_error"])
-            row["nonfinite"] = len(r.record.nonfinite) if r.record else ""
+            nonfinite = len(r.record.nonfinite) if r.record else 0
+            row["stability"] = self.stability_class(r.status, nonfinite, row[f"{stab_q}_error"], drift)
+            row["nonfinite"] = nonfinite
             row["message"] = r.message
             rows.append(row)
         return rows

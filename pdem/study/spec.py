@@ -21,7 +21,8 @@ A spec is a TOML file::
     set = { "contact.law" = "hertz_mindlin" }
     vary = { "run.dt_fraction" = [0.05, 0.1, 0.2, 0.4] }
 
-    [stability]                             # optional: a stability map of these two knobs
+    [stability]                             # optional: a stability map of these two knobs (or several,
+                                            #   as [[stability]] with a name each)
     x = "run.dt_fraction"
     y = "series"
     drift = 0.01
@@ -136,8 +137,14 @@ class Series(_Model):
 
 
 class Stability(_Model):
+    """A stability map: each run placed at (x, y) and marked by its class (stable, drift, failed, …).
+    ``x``/``y`` are knobs, ``"series"``, or ``"dt_ratio"`` (dt / the law's stability estimate);
+    ``series`` limits the map to some series; ``name`` names its files (``stability_<name>``)."""
+
+    name: str | None = None
     x: str
     y: str = "series"
+    series: list[str] | None = None
     drift: float = Field(0.01, gt=0, description="relative change from the reference that counts as drift")
     quantity: str | None = None
 
@@ -153,7 +160,7 @@ class StudySpec(_Model):
     set: dict[str, Any] = Field(default_factory=dict)
     quantities: dict[str, Quantity]
     series: list[Series] = Field(min_length=1)
-    stability: Stability | None = None
+    stability: Stability | list[Stability] | None = None
     check_finite: bool = Field(True, description="scan failed runs' HDF5 files for non-finite values")
 
     @model_validator(mode="after")
@@ -178,12 +185,25 @@ class StudySpec(_Model):
                         f"quantities.{qname}.reference.by = {ref.by!r} is not a key set or varied in series "
                         f"{ref.finest!r}"
                     )
-        if self.stability is not None:
-            if self.stability.quantity is not None and self.stability.quantity not in self.quantities:
+        for k, st in enumerate(self.maps):
+            if st.quantity is not None and st.quantity not in self.quantities:
                 raise ValueError(
-                    f"stability.quantity = {self.stability.quantity!r} is not one of {list(self.quantities)}"
+                    f"stability[{k}].quantity = {st.quantity!r} is not one of {list(self.quantities)}"
                 )
+            for name in st.series or []:
+                if name not in names:
+                    raise ValueError(f"stability[{k}].series names {name!r}, which is not one of {names}")
+        stems = [st.name or "" for st in self.maps]
+        if len(set(stems)) != len(stems):
+            raise ValueError("give each [[stability]] map its own name")
         return self
+
+    @property
+    def maps(self) -> list[Stability]:
+        """The stability maps (none, one or several)."""
+        if self.stability is None:
+            return []
+        return self.stability if isinstance(self.stability, list) else [self.stability]
 
     @property
     def primary(self) -> str:
