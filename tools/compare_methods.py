@@ -20,50 +20,26 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from pdem.study import launch
 
 METHODS = {"DEM-P": "hertz_mindlin", "DEM-C": "complementarity"}
 
 
-def _pdem_cmd(ranks: int) -> list[str]:
-    exe = [sys.executable, "-m", "pdem.cli"]
-    if ranks <= 1:
-        return exe
-    mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
-    if mpiexec is None:
-        raise SystemExit("mpiexec not found (pip install mpich)")
-    return [mpiexec, "-n", str(ranks), *exe]
-
-
 def run_method(deck: Path, law: str, sets: list[str], out: Path, ranks: int, steps: int | None) -> dict:
-    cmd = [
-        *_pdem_cmd(ranks),
-        str(deck),
-        "--output",
-        str(out),
-        "--overwrite",
-        "--quiet",
-        "--set",
-        f"contact.law={law}",
-    ]
-    for s in sets:
-        cmd += ["--set", s]
-    if steps is not None:
-        cmd += ["--steps", str(steps)]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    elapsed = time.perf_counter() - t0
+    """One run through ``pdem.study.launch`` (the process, its record and its logs in ``out``)."""
+    extra = ["--steps", str(steps)] if steps is not None else []
+    record, _ = launch(deck, out, [f"contact.law={law}", *sets], ranks=ranks, extra=extra, rerun=True)
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    lines = [ln for ln in record.stderr_tail.splitlines() if ln.strip()]
     return {
         "law": law,
-        "exit_code": proc.returncode,
-        "error": proc.stderr.strip().splitlines()[-1] if proc.returncode else "",
-        "elapsed_s": elapsed,
+        "exit_code": record.exit_code,
+        "error": lines[-1] if record.exit_code and lines else "",
+        "elapsed_s": record.process_wall_s,
         "summary": summary,
     }
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _launch import command, run_once  # noqa: E402
+from pdem.study import command, launch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,9 +81,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             print(" ".join(cmd))
             continue
-        code = run_once(cmd, run_dir, f"[{k + 1}/{len(runs)}]")
-        if code != 0:
-            return code
+        record, ran = launch(args.deck, run_dir, sets, ranks=args.ranks)
+        print(f"[{k + 1}/{len(runs)}] {run_dir}: {record.status}"
+              f" ({f'{record.process_wall_s:.0f} s' if ran else 'done before, kept'})", file=sys.stderr)
+        if record.status != "ok":
+            print(record.stderr_tail, file=sys.stderr)
+            return record.exit_code or 1
         summary = json.loads((run_dir / "summary.json").read_text())
         res = summary["results"]["pen"]
         rows.append({"tip": tip, "H_m": h, "depth_m": res["final_depth"], "total_drop_m": res["total_drop"],

@@ -30,7 +30,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 import mohr_coulomb  # noqa: E402
-from _launch import command, run_once  # noqa: E402
+
+from pdem.study import command, launch  # noqa: E402
 
 TESTS = {
     # test: (boundary type, stress key, default deck, default stresses [Pa])
@@ -84,12 +85,23 @@ def main(argv: list[str] | None = None) -> int:
         if args.dry_run:
             print(" ".join(cmd))
             continue
-        code = run_once(cmd, run_dir, f"[{k + 1}/{len(stresses)}] {s:g} Pa:")
+        tag = f"[{k + 1}/{len(stresses)}] {s:g} Pa:"
+        code = _run(deck, run_dir, [*sets, *args.overrides], args.ranks, tag)
         if code != 0:
             return code
     if args.dry_run:
         return 0
     return mohr_coulomb.main([*map(str, outputs), "--out", str(out / "mohr_coulomb")])
+
+
+def _run(deck: Path, run_dir: Path, sets: list[str], ranks: int, tag: str) -> int:
+    """One run through ``pdem.study.launch``: kept when its record shows the same overrides."""
+    record, ran = launch(deck, run_dir, sets, ranks=ranks)
+    what = f"{record.process_wall_s:.0f} s" if ran else "done before, kept"
+    print(f"{tag} {run_dir}: {record.status} ({what})", file=sys.stderr)
+    if record.status != "ok":
+        print(record.stderr_tail, file=sys.stderr)
+    return 0 if record.status == "ok" else (record.exit_code or 1)
 
 
 if __name__ == "__main__":
