@@ -75,6 +75,8 @@ def test_reads_triaxial_and_shear_outputs(tmp_path):
         ])  # fmt: skip
         res = {"peak_ratio": 0.55, "residual_ratio": 0.45, "peak_displacement": 0.004, "max_dilation": 2e-4}
         (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
+        record = RunRecord([f"boundaries.box.normal_stress={sn!r}"], [], 0, "ok", 1.0)
+        (out / RECORD).write_text(record.to_json())
         outs.append(out)
     prefix = tmp_path / "mc"
     assert mc.main([*map(str, outs), "--out", str(prefix)]) == 0
@@ -95,7 +97,9 @@ def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
     assert len(lines) == 2 and "-n 2" in lines[0]
     assert "boundaries.box.normal_stress=3100.0" in lines[0]
     assert "boundaries.box.normal_stress=6400.0" in lines[1]
-    # finished runs (their summary.json exists) are kept, not run again; then the fit is made
+    # finished runs (a study record with the same overrides) are kept, not run again; then the fit is made
+    from pdem.study.launch import RECORD, RunRecord
+
     for sn, ratio in ((3100.0, 0.5), (6400.0, 0.5)):
         out = tmp_path / f"{sn:g}"
         out.mkdir()
@@ -105,6 +109,8 @@ def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
         ])  # fmt: skip
         res = {"peak_ratio": ratio, "residual_ratio": ratio, "peak_displacement": 0.004, "max_dilation": 0.0}
         (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
+        record = RunRecord([f"boundaries.box.normal_stress={sn!r}"], [], 0, "ok", 1.0)
+        (out / RECORD).write_text(record.to_json())
     code = fs.main(["direct_shear", str(deck), "--stress", "3100", "6400", "--out", str(tmp_path)])
     assert code == 0
     fit = json.loads((tmp_path / "mohr_coulomb.json").read_text())["fits"]["direct_shear"]["peak"]
