@@ -75,8 +75,6 @@ def test_reads_triaxial_and_shear_outputs(tmp_path):
         ])  # fmt: skip
         res = {"peak_ratio": 0.55, "residual_ratio": 0.45, "peak_displacement": 0.004, "max_dilation": 2e-4}
         (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
-        record = RunRecord([f"boundaries.box.normal_stress={sn!r}"], [], 0, "ok", 1.0)
-        (out / RECORD).write_text(record.to_json())
         outs.append(out)
     prefix = tmp_path / "mc"
     assert mc.main([*map(str, outs), "--out", str(prefix)]) == 0
