@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import statistics
 import sys
 import threading
@@ -18,6 +19,8 @@ from .launch import RunRecord, launch, lookup, read_record, series_value, stop_a
 from .spec import Quantity, RunPlan, StudySpec, load_spec, plan_runs
 
 __all__ = ["Study", "RunResult"]
+
+_DT_IN_MESSAGE = re.compile(r"dt = ([0-9.eE+-]+) s, stability estimate ([0-9.eE+-]+) s")
 
 
 @dataclass
@@ -59,7 +62,11 @@ class RunResult:
             if isinstance(dt, int | float) and isinstance(crit, int | float) and crit > 0:
                 return float(dt) / float(crit)
         frac = self.plan.knobs.get("run.dt_fraction")
-        return float(frac) if isinstance(frac, int | float) else None
+        if isinstance(frac, int | float):
+            return float(frac)
+        # a failed run has no summary: its instability message states both
+        m = _DT_IN_MESSAGE.search(self.record.stderr_tail if self.record else "")
+        return float(m.group(1)) / float(m.group(2)) if m else None
 
     @property
     def message(self) -> str:
