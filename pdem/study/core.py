@@ -110,6 +110,8 @@ class Study:
         total, kept = len(self.plans), len(self.plans) - len(todo)
         lock = threading.Lock()
         durations: list[float] = []
+        by_series: dict[str, list[float]] = {}
+        finished: set[str] = set()
         done = [kept]
         t_start = time.perf_counter()
 
@@ -145,9 +147,13 @@ class Study:
                 record = fut.result()
                 with lock:
                     durations.append(record.process_wall_s)
+                    by_series.setdefault(plan.series, []).append(record.process_wall_s)
+                    finished.add(plan.name)
                     done[0] += 1
-                    left = total - done[0]
-                    eta = statistics.median(durations) * math.ceil(left / spec.jobs) if left else 0.0
+                    # each run still to finish at its series' median so far (else the overall one)
+                    left = [p for p in todo if p.name not in finished]
+                    work = sum(statistics.median(by_series.get(p.series, durations)) for p in left)
+                    eta = work / min(spec.jobs, max(len(left), 1))
                 res = RunResult(plan, record, summary_of(plan.directory))
                 q = spec.primary
                 value = res.value(spec.quantities[q])
