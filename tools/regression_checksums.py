@@ -17,6 +17,9 @@ Scenes (each small enough for CI):
 
 A fingerprint is the SHA-256 of the final particle state ordered by id (id, x, v, w, f, t) and of
 the pair history keyed by id pair, as raw bytes: equal fingerprints mean bitwise-equal states.
+Fingerprints are stored per platform (:func:`platform_signature`: CPU, numpy's SIMD level, numpy and
+numba versions): the same code gives other bits on another CPU (numpy's reductions in set-up code
+sum in an order that follows its SIMD dispatch), so each platform has its own entry.
 tests/test_regression_checksums.py compares a checkout with the stored values, which were made on
 the main branch before the engine-seams refactor (issue 10).
 """
@@ -116,11 +119,45 @@ def scenes() -> dict[str, object]:
     }
 
 
+def platform_signature() -> str:
+    """What the fingerprints depend on besides pdem's code: the CPU (vendor, model, the SIMD level
+    numpy dispatches to: its reductions' summation order follows it) and the numpy and numba versions.
+    Bitwise results are reproducible on one platform, not across them."""
+    import numba
+
+    vendor = model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "vendor_id":
+                vendor = value.strip()
+            elif key.strip() == "model name":
+                model = value.strip()
+            if vendor != "unknown" and model != "unknown":
+                break
+    except OSError:
+        pass
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as feats
+    except ImportError:  # numpy < 2
+        from numpy.core._multiarray_umath import __cpu_features__ as feats
+    simd = "AVX512F" if feats.get("AVX512F") else "AVX2" if feats.get("AVX2") else "SSE"
+    return f"{vendor} {model} {simd}; numpy {np.__version__}; numba {numba.__version__}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--write", type=Path, default=None, help="store the fingerprints in this JSON file")
+    ap.add_argument(
+        "--write",
+        type=Path,
+        default=None,
+        help="store the fingerprints under this platform's signature in this JSON file (other platforms' "
+        "entries are kept)",
+    )
     ap.add_argument("--only", nargs="*", default=None, help="scene names (default: all)")
     args = ap.parse_args(argv)
+    sig = platform_signature()
+    print(f"platform: {sig}", flush=True)
     out = {}
     for name, fn in scenes().items():
         if args.only and name not in args.only:
@@ -128,8 +165,10 @@ def main(argv=None) -> int:
         out[name] = fn()
         print(f"{name}: {out[name]}", flush=True)
     if args.write:
+        stored = json.loads(args.write.read_text()) if args.write.is_file() else {}
+        stored.setdefault(sig, {}).update(out)
         args.write.parent.mkdir(parents=True, exist_ok=True)
-        args.write.write_text(json.dumps(out, indent=2) + "\n")
+        args.write.write_text(json.dumps(stored, indent=2) + "\n")
     return 0
 
 
