@@ -179,6 +179,15 @@ def _print_summary(summary: dict, out: Path) -> None:
             f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "
             "on average" + note
         )
+        missed, short = solver.get("missed_contact_steps", 0), solver.get("envelope_short_steps", 0)
+        if missed or short:
+            print(
+                f"pdem: warning: the contact envelope ({solver['envelope']:.3g} m) was shorter than the "
+                f"fastest grain's travel in {short} step(s), and grains overlapped or passed through "
+                f"contacts it had left out after {missed} step(s): grains may tunnel. Leave "
+                "contact.complementarity.envelope out (the per-contact rule), raise it, or take a "
+                "smaller step"
+            )
     if not summary.get("completed", True):
         print(f"pdem: stopped early (--steps); resume with: pdem resume {out / 'checkpoints' / 'latest.h5'}")
     elif "resumed_from_step" in summary and summary.get("steps_run", 1) == 0:

@@ -625,3 +625,44 @@ def test_apgd_stops_on_non_finite_sums_and_the_step_fails():
     assert time.perf_counter() - t0 < 5.0
     assert sim.integrator.n_stalls == 1
     assert sim.integrator.summary()["line_search_stalls"] == 1
+
+
+def test_a_fixed_envelope_reports_grains_that_pass_through_each_other():
+    """A sphere at 20 m/s and a resting one 3 r ahead, h = 1e-3 s (20 r of travel per step). With a
+    fixed envelope of 0.1 r the pair is never in the problem: the fast sphere passes through the
+    other within one step (tunnelling: no overlap at the end of any step, and the pair was never in the
+    neighbour list) and the resting one never moves; every step reports an envelope shorter than the
+    fastest travel (envelope_short_steps). The per-contact rule puts the pair in the problem and the
+    struck sphere moves, with nothing to report."""
+    moved = {}
+    for envelope in (0.1 * R, None):
+        params = {"envelope": envelope} if envelope is not None else {}
+        sim = make_sim("jacobi", gravity=(0, 0, 0), dt=1e-3, tolerance=1e-10, max_iterations=200, e=0.0,
+                       **params)
+        sim.add_particles([[-5.0 * R, 0.0, 0.0], [0.0, 0.0, 0.0]], R, material="glass",
+                          velocities=[[20.0, 0, 0], [0, 0, 0]])
+        for _ in range(3):
+            sim.step()
+        moved[envelope] = float(np.linalg.norm(sim.particles.v[1]))
+        summary = sim.integrator.summary()
+        if envelope is not None:
+            assert summary["envelope_short_steps"] == 3 and moved[envelope] == 0.0
+            assert sim.particles.x[0, 0] > 5 * R  # it went through
+        else:
+            assert summary["envelope_short_steps"] == 0 and summary["missed_contact_steps"] == 0
+            assert moved[envelope] > 1.0
+
+
+def test_a_fixed_envelope_reports_an_overlap_with_a_contact_it_left_out():
+    """Within the neighbour list's reach but outside a fixed 0.1 r envelope: a sphere 0.25 r from a
+    resting one, closing 0.5 r in the step, overlaps it at the end; the step counts it."""
+    sim = make_sim("jacobi", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-10, max_iterations=200, e=0.0,
+                   envelope=0.1 * R)
+    speed = 0.5 * R / 1e-4
+    sim.add_particles([[-2.25 * R, 0.0, 0.0], [0.0, 0.0, 0.0]], R, material="glass",
+                      velocities=[[speed, 0, 0], [0, 0, 0]])
+    sim.max_overlap = 10.0
+    sim.step()
+    summary = sim.integrator.summary()
+    assert summary["missed_contact_steps"] == 1 and summary["envelope_short_steps"] == 1
+    assert float(np.linalg.norm(sim.particles.x[1] - sim.particles.x[0])) < 2 * R  # overlapping

@@ -355,6 +355,39 @@ def missed_pairs(pi, pj, x, v, r, inv_m, h, envelope, spd, env_base, env_factor)
 
 
 @njit
+def swept_missed_pairs(pi, pj, x, v, r, inv_m, h, envelope):
+    """Pairs outside a fixed envelope at the start of the step whose spheres come closer than touching
+    at any time during it, along the solved straight paths x + t h v (0 ≤ t ≤ 1): overlapping at the
+    end, or passed through each other (tunnelling). Returns their number."""
+    missed = 0
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        if inv_m[i] == 0.0 and inv_m[j] == 0.0:
+            continue
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        rs = r[i] + r[j]
+        lim = rs + envelope
+        if dx * dx + dy * dy + dz * dz <= lim * lim:
+            continue  # in the problem
+        sx = h * (v[j, 0] - v[i, 0])
+        sy = h * (v[j, 1] - v[i, 1])
+        sz = h * (v[j, 2] - v[i, 2])
+        ss = sx * sx + sy * sy + sz * sz
+        t = 0.0
+        if ss > 0.0:
+            t = min(1.0, max(0.0, -(dx * sx + dy * sy + dz * sz) / ss))
+        ex = dx + t * sx
+        ey = dy + t * sy
+        ez = dz + t * sz
+        if ex * ex + ey * ey + ez * ez < rs * rs:
+            missed += 1
+    return missed
+
+
+@njit
 def missed_walls(kinds, params_start, params_end, vel, omega, centre, cstart, cand, x, v, r, inv_m, h,
                  envelope, wbody, spd, env_base, env_factor):  # fmt: skip
     """Wall candidates that were not in the problem at the start of the step (as in

@@ -185,6 +185,10 @@ class Stepper(Integrator):
         self.n_unconverged = 0
         self.n_stalls = 0  # APGD solves stopped by a line search that could not accept a step
         self.n_resolves = 0  # steps solved again because the per-contact envelope missed a contact
+        # steps after which a contact left out by a fixed or global envelope overlapped (reported,
+        # not solved again: that envelope is the user's choice)
+        self.n_missed_steps = 0
+        self.n_short_steps = 0  # steps whose fastest grain could close more than a fixed envelope
         self.n_steps = 0
         self.total_iterations = 0
         self.max_residual = 0.0
@@ -344,6 +348,24 @@ class Stepper(Integrator):
                 flags |= flags2
                 it2, res = self._solve(nc, v_free, w_free, P, L)
                 it += it2
+        elif math.isfinite(res):
+            # a fixed or global envelope: the contacts it left out that overlap at the end of the step
+            # (grains too fast for it: tunnelling) are counted, one collective decision per step
+            wb = self._body_rows(n_tot)[0] if walls else np.zeros(0, dtype=np.int64)
+            zero = np.zeros(n_tot + nb)
+            missed = ck.swept_missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env)
+            if walls:
+                missed += ck.missed_walls(
+                    cs.kinds, w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
+                    p.x, self.V, p.r, p.inv_m, h, env, wb, zero, env, 0.0,
+                )  # fmt: skip
+            if any_rank(sim.comm, missed > 0):
+                self.n_missed_steps += 1
+            # the envelope against the largest closing distance of the step, 2 h max|v⁺| (pairs the
+            # neighbour list never held can pass through each other unseen when it is larger)
+            fastest = float(np.max(ck.speed_bounds(self.V, n_tot + nb, 0.0))) if n_tot + nb else 0.0
+            if 2.0 * h * all_max(sim.comm, fastest) > env:
+                self.n_short_steps += 1
         # every solver ends with the velocities (and P, L) of its final impulses, accumulated in
         # contact order (deterministic)
         ck.store_history(self.gam, self.csrc, nc, n_pair, cs.hist, cs.wall_hist)
@@ -448,7 +470,15 @@ class Stepper(Integrator):
         """Counters for checkpoints (the envelope is saved by the simulation)."""
         return {
             "solver/counters": np.array(
-                [self.n_steps, self.n_unconverged, self.total_iterations, self.n_stalls, self.n_resolves]
+                [
+                    self.n_steps,
+                    self.n_unconverged,
+                    self.total_iterations,
+                    self.n_stalls,
+                    self.n_resolves,
+                    self.n_missed_steps,
+                    self.n_short_steps,
+                ]
             ),
             "solver/max_residual": np.array(self.max_residual),
         }
@@ -459,6 +489,8 @@ class Stepper(Integrator):
             self.n_steps, self.n_unconverged, self.total_iterations = counters[:3]
             self.n_stalls = counters[3] if len(counters) > 3 else 0  # older checkpoints: none
             self.n_resolves = counters[4] if len(counters) > 4 else 0
+            self.n_missed_steps = counters[5] if len(counters) > 5 else 0
+            self.n_short_steps = counters[6] if len(counters) > 6 else 0
             self.max_residual = float(state["solver/max_residual"])
 
     def stats(self) -> dict[str, float]:
@@ -490,6 +522,8 @@ class Stepper(Integrator):
             "max_residual": self.max_residual,
             "line_search_stalls": self.n_stalls,
             "envelope_resolves": self.n_resolves,
+            "missed_contact_steps": self.n_missed_steps,
+            "envelope_short_steps": self.n_short_steps,
         }
 
     # ------------------------------------------------------------------ solvers
