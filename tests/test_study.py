@@ -250,3 +250,29 @@ def test_pareto_front_matches_brute_force(seed):
     front = set(pareto_front(pts))
     brute = {p for p in pts if not any(q[0] <= p[0] and q[1] <= p[1] and q != p for q in pts)}
     assert front == brute
+
+
+def test_mpi_runs_give_the_serial_values(tmp_path):
+    """ranks = 2: each run under mpiexec; pdem's results do not depend on the rank count, so the
+    table holds the serial run's value bit for bit."""
+    body = """
+[quantities.floor_load]
+column = "box.zlo.fz"
+reference = { series = "p" }
+[[series]]
+name = "p"
+set = { "stages.settle.end.time" = 0.01 }
+vary = { "run.seed" = [1] }
+"""
+    values = {}
+    for ranks in (1, 2):
+        (tmp_path / str(ranks)).mkdir()
+        spec = _spec(tmp_path / str(ranks), body)
+        study = Study.from_file(spec, ranks=ranks)
+        study.run(progress=None)
+        row = study.table()[0]
+        assert row["status"] == "ok", row
+        values[ranks] = row["floor_load"]
+        cmd = study.results()[0].record.command
+        assert ("-n" in cmd and cmd[cmd.index("-n") + 1] == "2") == (ranks == 2)
+    assert values[1] == values[2]
