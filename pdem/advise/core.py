@@ -17,7 +17,7 @@ from typing import Any
 from ..errors import InputError
 from . import rules
 from .scene import LOOSE_SOURCES as LOOSE
-from .scene import Scene, deck_scene, run_probe
+from .scene import Scene, _push_depth, deck_scene, run_probe
 
 __all__ = ["Finding", "Advice", "advise", "apply"]
 
@@ -332,6 +332,11 @@ class _Advisor:
             ))  # fmt: skip
             return
         waves = [n for n, p in sc.boundaries.items() if getattr(p, "type", None) in ("impulse", "sensors")]
+        drops = [
+            n
+            for n, p in sc.boundaries.items()
+            if getattr(p, "type", None) == "penetrometer" and getattr(p, "mode", "") == "drop"
+        ]
         fastest = max((self._stage_speed(s) for s in sc.stages), key=lambda x: x[0])
         factors = {}
         for name in sc.grain_materials():
@@ -364,12 +369,13 @@ class _Advisor:
             src = ("physics reference §2 (δ/d ≲ 1e-3…1e-2); target calibrated on the triaxial stiffness "
                    "series, docs/experiments/triaxial.md (q_peak ≈ 110 kPa (1 − 4.0 δ/d)); F = π d² σ/(φ Z), "
                    "Rothenburg & Bathurst 1989")  # fmt: skip
-            if waves:
+            if waves or drops:
+                why = (f"boundaries {', '.join(waves)} measure waves, whose speed is set by E (Nesterenko)"
+                       if waves else f"the body dropped by boundaries {', '.join(drops)} sets the "
+                       "overlaps of its impact, which this advice does not estimate")  # fmt: skip
                 self.findings.append(Finding(
                     "overlap", f"materials.{name}", "ok",
-                    f"δ/d = {ratio:.2g}; the stiffness is not softened: boundaries {', '.join(waves)} "
-                    "measure "
-                    "waves, whose speed is set by E (Nesterenko)", src, nums))  # fmt: skip
+                    f"δ/d = {ratio:.2g}; the stiffness is not softened: {why}", src, nums))  # fmt: skip
                 continue
             if ratio > rules.OVERLAP_MAX or impact > 2 * rules.IMPACT_OVERLAP_MAX:
                 e_stiff = rules.round_sig(max(e_static, e_impact), 2, "up")
@@ -403,6 +409,18 @@ class _Advisor:
                     f"{rules.OVERLAP_MAX:g}]: stiff enough, and not more than {rules.CHANGE_FACTOR:g}× "
                     "stiffer "
                     "than needed", src, nums))  # fmt: skip
+        if factors:
+            gain = self._softening_gain(factors)
+            if gain < rules.MIN_GAIN:
+                for f in self.findings:
+                    if f.topic == "overlap" and f.verdict == "change":
+                        f.verdict, f.changes = "ok", {}
+                        f.numbers["run faster by"] = gain
+                        f.reason += (
+                            f". Not proposed: the softer grains would make the run only {gain:.2f}× faster, "
+                            "because the step is set by collisions at the scene's speeds (t_c ∝ E^-2/5)"
+                        )
+                factors = {}
         for name, k in factors.items():
             self.e_new[name] = float(self._material(name).youngs_modulus) * k
         if factors:  # non-rigid wall materials at least as stiff as the grains were keep that ratio
@@ -418,6 +436,28 @@ class _Advisor:
                     f"({float(spec.youngs_modulus):.3g} Pa); "
                     f"softened by the same factor ({1 / k:.3g}×) so that wall contacts keep their ratio",
                     changes={f"materials.{wname}.youngs_modulus": new}))  # fmt: skip
+
+    def _softening_gain(self, factors: dict[str, float]) -> float:
+        """How much faster the run gets with the grains softened by ``factors``: the deck's steps as
+        it stands against the steps at min(0.2 T_R, t_c/20) of the softer grains, weighted by the
+        stages' lengths."""
+        default = rules.RAYLEIGH_FRACTION * self._rayleigh(proposed=False)
+        before = sum((st.duration or 1.0) / (st.dt_given or default) for st in self.scene.stages)
+        saved = dict(self.e_new)
+        for name, k in factors.items():
+            self.e_new[name] = float(self._material(name).youngs_modulus) * k
+        after = self._steps_needed()
+        self.e_new = saved
+        return before / after if after > 0 else 1.0
+
+    def _steps_needed(self) -> float:
+        t_r = self._rayleigh(proposed=True)
+        total = 0.0
+        for st in self.scene.stages:
+            t_c, _ = self._collision(self._stage_speed(st)[0])
+            dt = min(rules.RAYLEIGH_FRACTION * t_r, t_c / rules.STEPS_PER_COLLISION)
+            total += (st.duration or 1.0) / dt
+        return total
 
     # ------------------------------------------------------------------ step
     def step(self) -> None:
@@ -469,7 +509,10 @@ class _Advisor:
             else:
                 new_dt[s] = cur
         for s in via_default:
-            new_dt[s] = default_new
+            if self.e_new and default_new > rules.WARN_FACTOR * need[s]:
+                changes[f"stages.{s}.dt"] = new_dt[s] = rules.round_sig(need[s], 2, "down")
+            else:
+                new_dt[s] = default_new
         for st in sc.stages:
             mysugg: dict[str, Any] = {}
             v, label, t_c, pair, cur = info[st.name]
@@ -499,20 +542,16 @@ class _Advisor:
                     ),
                 )
                 mysugg = {st.dt_key or "run.dt": rules.round_sig(need[st.name], 2, "down")}
-            elif dt > cur * (1 + 1e-9) and dt <= rules.WARN_FACTOR * need[st.name]:
+            elif abs(dt / cur - 1) > 1e-9 and dt <= rules.WARN_FACTOR * need[st.name]:
                 via = st.name in via_run and "run.dt" in changes
-                verdict = (
-                    "change"
-                    if (mine or via or st.name in own and f"stages.{st.name}.dt" in changes)
-                    else "ok"
-                )
+                verdict = "change" if (mine or via) else "ok"
                 why = (f"softer grains (T_R {t_r_old:.3g} → {t_r:.3g} s)" if t_r > t_r_old * 1.001 else
                        "the step was finer than needed")  # fmt: skip
                 limit = ("0.2 T_R" if need[st.name] >= default_new * (1 - 1e-9)
                          else f"{rules.STEPS_PER_COLLISION} steps per collision at {v:.3g} m/s "
                          f"({label})")  # fmt: skip
-                reason = (f"dt {cur:.3g} → {dt:.3g} s ({dt / cur:.3g}× fewer steps): "
-                          f"{why}; the step is now set by {limit}")  # fmt: skip
+                fewer = f"{dt / cur:.3g}× fewer steps" if dt > cur else f"{cur / dt:.3g}× more steps"
+                reason = f"dt {cur:.3g} → {dt:.3g} s ({fewer}): {why}; the step is now set by {limit}"
                 if via and not mine:
                     reason += " (run.dt, changed above)"
                 elif verdict == "ok":
@@ -562,8 +601,8 @@ class _Advisor:
                 key, rate, stage = "speed", p.speed, p.penetration_stage
                 diameter = p.diameter if p.diameter else 2 * math.sqrt(p.base_area / math.pi)
                 shear = rate / diameter
-                depth = self._push_depth(name, p)
-                stress = rules.PACKING_FRACTION * rho * sc.gravity * depth
+                depth = _push_depth(self.deck, name, p, sc.packed_height)
+                stress = rules.CONE_TIP_FACTOR * rules.PACKING_FRACTION * rho * sc.gravity * depth
                 how = (f"I = (v / D_cone) d sqrt(ρ/σ_v), σ_v = φ ρ g z at the deepest tip z = {depth:.3g} m "
                        "(a rule of thumb: the stress near the tip is a few times σ_v)")  # fmt: skip
             elif kind == "hopper":
@@ -621,15 +660,6 @@ class _Advisor:
                     "inertial", f"boundaries.{name}", "ok",
                     f"{how}: I = {inert:.2g}, within {rules.CHANGE_FACTOR:g}× of the target "
                     f"{rules.INERTIAL_TARGET:g} and below {rules.INERTIAL_MAX:g}", src, nums))  # fmt: skip
-
-    def _push_depth(self, name: str, p: Any) -> float:
-        for st in self.deck.stages:
-            if st.end.quantity == f"{name}.depth" and st.end.above is not None:
-                return float(st.end.above)
-        if p.max_depth:
-            return float(p.max_depth)
-        h = self.scene.packed_height
-        return 0.5 * h if math.isfinite(h) else 0.01
 
     # ------------------------------------------------------------------ stage ends
     def stage_lengths(self) -> None:

@@ -58,6 +58,15 @@ INERTIAL_TARGET = 3e-4
 INERTIAL_MAX = 1e-3
 """Quasi-static limit of the inertial number (GDR MiDi 2004; da Cruz et al. 2005)."""
 
+CONE_TIP_FACTOR = 5.0
+"""Stress near a pushed cone's tip as a multiple of the overburden φ ρ g z: pdem's reduced bed
+measured q_c ≈ 1.0 kPa at 1.8–2 cm where φ ρ g z ≈ 0.28 kPa (3.7×, docs/experiments/
+cone_penetration.md); 5 is a rounded-up rule of thumb."""
+
+MIN_GAIN = 1.5
+"""Softer grains are proposed only if they make the run at least this much faster (when the step is
+set by collisions at the scene's speeds, softening gains little: t_c ∝ E^(−2/5))."""
+
 PACKING_FRACTION = 0.6
 """φ of a dense random packing of spheres (random close packing 0.64, loose 0.55–0.6)."""
 

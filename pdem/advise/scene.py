@@ -316,6 +316,14 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
             if stage.name == p.shear_stage:
                 facts.speeds.append((p.shear_speed, f"boundaries.{name}.shear_speed"))
         elif kind == "penetrometer":
+            if k >= names.index(p.penetration_stage) and p.mode == "push" and hydro > 0:
+                z = _push_depth(deck, name, p, scene.packed_height)
+                tip = rules.CONE_TIP_FACTOR * rules.PACKING_FRACTION * scene.density * g * z
+                if tip > facts.stress:
+                    facts.stress = tip
+                    facts.stress_from = (
+                        f"boundaries.{name}: {rules.CONE_TIP_FACTOR:g} × φ ρ g z at the tip (z = {z:.3g} m)"
+                    )
             if k >= names.index(p.penetration_stage):
                 if p.mode == "drop":
                     facts.speeds.append(
@@ -342,6 +350,16 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
         facts.speeds.append((scene.probe["max_speed"], "fastest grain in the probe"))
     facts.duration, facts.duration_from = _duration(stage, facts.dt_given, scene)
     return facts
+
+
+def _push_depth(deck: Any, name: str, p: Any, packed: float) -> float:
+    """The deepest tip depth of a pushed penetrometer: its stage's end depth, max_depth, or half the bed."""
+    for st in deck.stages:
+        if st.end.quantity == f"{name}.depth" and st.end.above is not None:
+            return float(st.end.above)
+    if p.max_depth:
+        return float(p.max_depth)
+    return 0.5 * packed if math.isfinite(packed) else 0.01
 
 
 def _duration(stage: Any, dt: float | None, scene: Scene) -> tuple[float | None, str]:
