@@ -882,8 +882,9 @@ class _Advisor:
             "at 500); "
             f"a column of {layers:.0f} grains needs ~{estimate:,.0f} {solver} iterations cold "
             f"({'~N²' if solver != 'apgd' else '~N'}), a lower bound. Only contact work is counted (lists, "
-            "integration and boundaries add to both) and Z = 5.5 is assumed. Checked against measured wall "
-            "times: hopper predicted 2.7× (measured 3.2×), reduced direct shear 75× (measured 51×); and "
+            "integration and boundaries add to both) and Z = 5.5 is assumed. Given the step counts and "
+            "caps of pdem's measured runs, the model gives DEM-C/DEM-P 2.7× for the hopper (measured "
+            "3.2×) and 75× for the reduced direct shear (measured 51×); and "
             "DEM-C's unconverged solves change the results"
         )
         if unknown:
