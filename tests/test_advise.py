@@ -231,6 +231,32 @@ def test_probe_counts_the_grains_and_agrees_with_the_engine(tmp_path):
     assert 0 < advice.probe["steps"] <= 300
 
 
+def test_probe_budget_is_a_hard_cap(tmp_path):
+    """The probe runs in a child process stopped at the budget, whatever takes the time."""
+    text = SHEAR.format(E="4.0e7", dt="dt = 1e-7", v="0.01", max_time="1.0").replace("n = 350", "n = 60")
+    deck = tmp_path / "slow.toml"
+    deck.write_text(text)
+    advice = advise(deck, probe=True, probe_budget=0.5)
+    assert advice.probe["wall_seconds"] < 0.5 + 4.0
+    assert (not advice.probe["ran"]) or advice.probe["cut"] or advice.probe["steps"] == 300
+
+
+def test_kinetic_energy_end_that_passes_before_the_grains_fall_is_warned(tmp_path):
+    """A fill checked every step: at its first check the grains, released at rest, have not gained
+    the 1e-6 J the stage ends on, so it would end before they fall."""
+    deck = shear_deck(tmp_path)
+    advice = advise(deck, sets=("stages.fill.end.check_every=1",), probe=False)
+    dt = 0.2 * rayleigh(R, RHO, 4e7, NU)  # the deck's default step, unchanged by the advice
+    mass = 350 * RHO * 4 / 3 * math.pi * R**3
+    assert 0.5 * mass * (G * 1 * dt) ** 2 < 1e-6  # the premise, in free fall
+    warn = finding(advice, "stage_ends", "stage fill")
+    assert warn.verdict == "warn"
+    every = warn.suggestions["stages.fill.end.check_every"]
+    assert every > 1 and 0.5 * mass * (G * every * dt) ** 2 >= 1e-6
+    # the deck as written (checks every 100 steps) is not warned
+    assert not [f for f in advise(deck, probe=False).findings if f.topic == "stage_ends"]
+
+
 # ------------------------------------------------------------------ command line
 
 

@@ -411,12 +411,15 @@ def _pluviation_seconds(scene: Scene, first: str) -> float:
 
 def run_probe(resolved: Any, scene: Scene, budget: float = 10.0, steps: int = 300) -> dict[str, Any]:
     """Build the first stage's scene as ``pdem check`` does and step it (at most ``steps`` steps,
-    at most ``budget`` seconds of wall time in all). Returns what it measured, or why it did not run."""
-    from ..runner import Runner
+    at most ``budget`` seconds of wall time in all). Returns what it measured, or why it did not run.
+
+    The probe runs in a forked child process, so that the budget holds whatever takes the time (a
+    first step that compiles DEM-C's solver cold takes tens of seconds): the child reports what it
+    has as it goes, and is stopped at the budget."""
+    import multiprocessing
 
     stages = list(resolved.deck.stages)
-    first = stages[0]
-    predicted = _pluviation_seconds(scene, first.name)
+    predicted = _pluviation_seconds(scene, stages[0].name)
     if predicted > budget:
         return {
             "ran": False,
@@ -424,41 +427,107 @@ def run_probe(resolved: Any, scene: Scene, budget: float = 10.0, steps: int = 30
             f"(budget {budget:g} s); the numbers below are estimated from the deck",
         }
     t0 = time.perf_counter()
+    try:
+        ctx = multiprocessing.get_context("fork")
+    except ValueError:  # pragma: no cover - no fork on this platform: probe in this process
+        return _probe(resolved, budget, steps, lambda msg: None)
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_probe_child, args=(resolved, budget, steps, send), daemon=True)
+    child.start()
+    send.close()
+    out: dict[str, Any] = {"ran": False, "reason": f"the scene was not built within the {budget:g} s budget"}
+    deadline = t0 + budget + 2.0
+    finished = False
+    while True:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            break
+        if receive.poll(min(left, 0.5)):
+            try:
+                msg = receive.recv()
+            except EOFError:
+                break
+            out.update(msg)
+            if msg.get("done"):
+                finished = True
+                break
+        elif not child.is_alive():
+            break
+    child.join(timeout=1.0 if finished else 0.0)
+    if child.is_alive():
+        child.terminate()
+        child.join(timeout=5)
+    if not finished and out.get("ran"):
+        out["cut"] = True
+    out.pop("done", None)
+    out["wall_seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _probe_child(resolved: Any, budget: float, steps: int, send: Any) -> None:
+    try:
+        _probe(resolved, budget, steps, send.send)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which goes on without it
+        send.send({"ran": False, "done": True, "reason": f"the probe failed: {type(exc).__name__}: {exc}"})
+    finally:
+        send.close()
+
+
+def _probe(resolved: Any, budget: float, steps: int, report: Any) -> dict[str, Any]:
+    from ..runner import Runner
+
+    t0 = time.perf_counter()
+    first = resolved.deck.stages[0]
     runner = Runner(resolved, progress=None, dry=True)
     try:
         sim = runner.build()
         runner._insert_particles(first.name, first.name)
         runner._enter_stage(0, first)
     except InputError as exc:
-        return {"ran": False, "reason": f"the scene check refused the deck: {exc}"}
-    built = time.perf_counter() - t0
+        msg = {"ran": False, "done": True, "reason": f"the scene check refused the deck: {exc}"}
+        report(msg)
+        return msg
+
+    def facts(done: int) -> dict[str, Any]:
+        p = sim.get_particles()
+        n = len(p["r"])
+        speeds = np.linalg.norm(p["v"], axis=1) if n else np.zeros(0)
+        contacts = len(sim.contacts()["id_i"]) if n and done else 0
+        return {
+            "ran": True,
+            "particles": n,
+            "r_min": float(p["r"].min()) if n else math.nan,
+            "r_max": float(p["r"].max()) if n else math.nan,
+            "dt": float(sim.dt),
+            "dt_critical": float(sim.dt_critical),
+            "steps": done,
+            "cut": False,
+            "contacts_per_particle": 2.0 * contacts / n if n else 0.0,
+            "max_speed": float(speeds.max()) if n else 0.0,
+            "build_seconds": time.perf_counter() - t0,
+        }
+
+    msg = facts(0)
+    report(msg)
     limit = steps if first.end.steps is None else min(steps, first.end.steps)
-    done, cut = 0, False
+    done = 0
     try:
         while done < limit:
             if time.perf_counter() - t0 > budget:
-                cut = True
+                msg["cut"] = True
                 break
             chunk = min(10, limit - done)
             sim.run(steps=chunk)
             done += chunk
     except Exception as exc:  # noqa: BLE001 - a probe that fails says so and the advice goes on
-        return {"ran": False, "reason": f"the probe stopped at step {done}: {type(exc).__name__}: {exc}"}
-    p = sim.get_particles()
-    n = len(p["r"])
-    speeds = np.linalg.norm(p["v"], axis=1) if n else np.zeros(0)
-    contacts = len(sim.contacts()["id_i"]) if n else 0
-    return {
-        "ran": True,
-        "particles": n,
-        "r_min": float(p["r"].min()) if n else math.nan,
-        "r_max": float(p["r"].max()) if n else math.nan,
-        "dt": float(sim.dt),
-        "dt_critical": float(sim.dt_critical),
-        "steps": done,
-        "cut": cut,
-        "contacts_per_particle": 2.0 * contacts / n if n else 0.0,
-        "max_speed": float(speeds.max()) if n else 0.0,
-        "build_seconds": built,
-        "wall_seconds": time.perf_counter() - t0,
-    }
+        msg = {
+            "ran": False,
+            "done": True,
+            "reason": f"the probe stopped at step {done}: {type(exc).__name__}: {exc}",
+        }
+        report(msg)
+        return msg
+    cut = msg["cut"]
+    msg = {**facts(done), "build_seconds": msg["build_seconds"], "cut": cut, "done": True}
+    report(msg)
+    return msg
