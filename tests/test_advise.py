@@ -299,3 +299,20 @@ def test_json_output_parses(tmp_path, capsys):
     topics = {f["topic"] for f in data["findings"]}
     assert {"step", "overlap", "inertial", "sample_size", "method"} <= topics
     assert all(f["verdict"] in ("ok", "warn", "change") for f in data["findings"])
+
+
+def test_applied_deck_keeps_packing_files_and_loads_from_elsewhere(tmp_path):
+    (tmp_path / "pack.txt").write_text("x y z diameter\n0.01 0.01 0.003 0.006\n0.02 0.01 0.003 0.006\n")
+    deck = tmp_path / "file.toml"
+    deck.write_text(
+        SHEAR.format(E="4.0e9", dt="dt = 2.5e-7", v="0.001", max_time="8.0").replace(
+            'source = "random_fill"', 'source = "file"\npath = "pack.txt"'
+        ).replace('region = { type = "box", lo = [0.003, 0.003, 0.003], hi = [0.045, 0.045, 0.094] }\n', "")
+        .replace('sizes = { type = "single", radius = 0.003 }\nn = 350\n', "")
+    )  # fmt: skip
+    advice = advise(deck, probe=False)
+    assert advice.scene["particles"] == 2
+    (tmp_path / "elsewhere").mkdir()
+    out = apply(advice, tmp_path / "elsewhere" / "advised.toml")
+    resolved = load_deck(out)
+    assert Path(resolved.deck.particles[0].path) == (tmp_path / "pack.txt").resolve()
