@@ -381,7 +381,7 @@ class _Advisor:
                 e_stiff = rules.round_sig(max(e_static, e_impact), 2, "up")
                 self.findings.append(Finding(
                     "overlap", f"materials.{name}", "warn",
-                    f"the grains are too soft: the mean contact overlaps by δ/d = {ratio:.2g} at "
+                    f"the grains are too soft: the mean contact overlaps by δ/d = {ratio:.3g} at "
                     f"{stress:.3g} Pa (above {rules.OVERLAP_MAX:g}, where a quasi-static quantity moves by "
                     f"~{4 * ratio:.0%} from its stiff limit) or an impact at {fastest[0]:.3g} m/s by "
                     f"{impact:.2g} d; E = {e_stiff:.3g} Pa gives δ/d = {rules.OVERLAP_TARGET:g} (costlier: "

@@ -300,8 +300,7 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
         if vel is not None:
             facts.speeds.append((float(np.linalg.norm(vel)), f"boundaries.{name}.motion"))
         if kind == "triaxial":
-            loading = [*p.mould_stages, p.consolidation_stage, p.shear_stage]
-            if stage.name in loading:
+            if stage.name in [*p.mould_stages, p.consolidation_stage]:  # the servo; the shear is driven
                 facts.speeds.append((p.max_speed, f"boundaries.{name}.max_speed (servo)"))
             if stage.name in (p.consolidation_stage, p.shear_stage):
                 facts.stress, facts.stress_from = p.sigma3, f"boundaries.{name}.sigma3"
