@@ -2,6 +2,7 @@
 
     pdem DECK [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem check DECK [--set KEY=VALUE ...] [--deck-only]
+    pdem advise DECK [--set KEY=VALUE ...] [--apply OUT.toml] [--overwrite] [--json] [--no-probe]
     pdem resume CHECKPOINT [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
     pdem schema [--output FILE] [--overwrite]
@@ -37,7 +38,7 @@ from .errors import InputError, PdemError
 
 __all__ = ["main"]
 
-SUBCOMMANDS = ("check", "resume", "plugins", "schema", "study")
+SUBCOMMANDS = ("check", "advise", "resume", "plugins", "schema", "study")
 
 
 def _run_parser() -> argparse.ArgumentParser:
@@ -255,6 +256,40 @@ def cmd_check(argv: list[str]) -> int:
     return 0
 
 
+def cmd_advise(argv: list[str]) -> int:
+    from .advise import advise, apply, dumps_json
+
+    p = argparse.ArgumentParser(
+        prog="pdem advise",
+        description="Advise on a deck: step margins (Rayleigh and Hertz collision times at the scene's "
+        "speeds), the overlap at the scene's stresses, the inertial number of the loading, the sample size "
+        "against published minimums, which method is likely faster, and the --set changes that run it "
+        "faster with its measured quantity unchanged (docs/advise.md). Runs at most a short probe of the "
+        "first stage (about 10 s); writes nothing unless --apply.",
+    )
+    p.add_argument("deck", type=Path)
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--apply", type=Path, default=None, metavar="OUT.toml", help="write the adjusted deck")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.toml")
+    p.add_argument("--json", action="store_true", help="print the advice as JSON")
+    p.add_argument("--no-probe", action="store_true", help="estimate from the deck only (no particles made)")
+    args = p.parse_args(argv)
+    out = args.apply
+    if out is not None and (out.exists() or out.is_symlink()) and not args.overwrite:  # before the probe
+        raise InputError(
+            f"--apply {out} already exists; pass --overwrite to replace it, or choose another file"
+        )
+    advice = advise(args.deck, tuple(args.sets), probe=not args.no_probe)
+    print(dumps_json(advice) if args.json else advice.report())
+    if args.apply is not None:
+        out = apply(advice, args.apply, overwrite=args.overwrite)
+        print(
+            f"pdem advise: wrote {out} ({len(advice.changes)} change(s)); check it with: pdem check {out}",
+            file=sys.stderr if args.json else sys.stdout,
+        )
+    return 0
+
+
 RESUME_DESCRIPTION = """\
 Continue a run from one of its checkpoints, bitwise-identically to an uninterrupted run.
 
@@ -424,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
         if argv and argv[0] in SUBCOMMANDS:
             return {
                 "check": cmd_check,
+                "advise": cmd_advise,
                 "resume": cmd_resume,
                 "plugins": cmd_plugins,
                 "schema": cmd_schema,

@@ -1,0 +1,232 @@
+"""The numbers ``pdem advise`` decides with, each with where it comes from, and the closed forms.
+
+Everything here is plain arithmetic on floats (no scene, no deck), so that the tests can check it
+against their own computations and ``docs/advise.md`` can quote it.
+
+Targets (how much model a quasi-static quantity needs) are calibrated on pdem's own measured series:
+
+* **Overlap.** The triaxial stiffness series (docs/experiments/triaxial.md, *Material*: E = 4e7,
+  1e8, 4e8 Pa at σ₃ = 100 kPa, q_peak 94.4, 101.4, 106.6 kPa) is linear in the mean-contact overlap
+  δ/d of :func:`overlap_ratio` at σ₃: q_peak ≈ 110.0 kPa × (1 − 4.0 δ/d), within 0.3 kPa at all three
+  points (δ/d = 0.0359, 0.0195, 0.0077). So a quantity moves by about 4 δ/d from its rigid limit:
+  :data:`OVERLAP_TARGET` = 3e-3 costs ~1.2 %, :data:`OVERLAP_MAX` = 1e-2 ~4 %. (Physics reference §2:
+  quasi-static results do not depend on E while δ/d ≲ 1e-3…1e-2.)
+* **Loading rate.** Halving the rate moved the peak by +1.0 % at I = 4.6e-4 (direct shear, full box,
+  docs/experiments/direct_shear.md) and by −0.09 % at I = 2.4e-4 (triaxial, full size,
+  docs/experiments/triaxial.md, *Rate check*). Bounding the change linearly by the larger, a
+  quantity moves by at most ~43 I from its quasi-static limit: :data:`INERTIAL_TARGET` = 3e-4 costs
+  ≲ 1.3 %. :data:`INERTIAL_MAX` = 1e-3 is the quasi-static limit of the literature (GDR MiDi, Eur.
+  Phys. J. E 14, 341, 2004; da Cruz et al., Phys. Rev. E 72, 021309, 2005; physics reference §2).
+
+Together the two targets keep a quantity within ~2.5 % of its stiff, slow limit.
+"""
+
+from __future__ import annotations
+
+import math
+
+# ---------------------------------------------------------------------------------------------
+# targets and thresholds
+# ---------------------------------------------------------------------------------------------
+
+RAYLEIGH_FRACTION = 0.2
+"""dt = this × the Rayleigh time (physics reference §2: practice 0.1–0.3; pdem's default)."""
+
+STEPS_PER_COLLISION = 20
+"""Fewest steps per Hertz collision time t_c (physics reference §2: at least ~20–50; the lower end,
+because 0.2 T_R gives more than this at every speed below ~1 m/s for the shipped beads)."""
+
+CHANGE_FACTOR = 3.0
+"""A setting more than this factor more expensive than needed (stiffer, finer, slower) is changed."""
+
+WARN_FACTOR = 1.5
+"""A step more than this factor above the one needed is warned about (not changed)."""
+
+OVERLAP_TARGET = 3e-3
+"""δ/d that the softest proposed stiffness gives at the scene's stress (see the module doc)."""
+
+OVERLAP_MAX = 1e-2
+"""δ/d above which the grains are too soft for a quasi-static quantity (warned, stiffer proposed)."""
+
+IMPACT_OVERLAP_MAX = 0.05
+"""Largest Hertz impact overlap α_max/d allowed when softening (0.1 r, 40 % of pdem's default
+``run.max_overlap`` = 0.25 r, which stops a run as unstable)."""
+
+INERTIAL_TARGET = 3e-4
+"""Inertial number the fastest proposed loading gives (see the module doc)."""
+
+INERTIAL_MAX = 1e-3
+"""Quasi-static limit of the inertial number (GDR MiDi 2004; da Cruz et al. 2005)."""
+
+CONE_TIP_FACTOR = 5.0
+"""Stress near a pushed cone's tip as a multiple of the overburden φ ρ g z: pdem's reduced bed
+measured q_c ≈ 1.0 kPa at 1.8–2 cm where φ ρ g z ≈ 0.28 kPa (3.7×, docs/experiments/
+cone_penetration.md); 5 is a rounded-up rule of thumb."""
+
+MIN_GAIN = 1.5
+"""Softer grains are proposed only if they make the run at least this much faster (when the step is
+set by collisions at the scene's speeds, softening gains little: t_c ∝ E^(−2/5))."""
+
+PACKING_FRACTION = 0.6
+"""φ of a dense random packing of spheres (random close packing 0.64, loose 0.55–0.6)."""
+
+COORDINATION = 5.5
+"""Mean contacts per grain Z of a dense packing (frictional 4.5–5.5, frictionless 6; Agnolin &
+Roux, Phys. Rev. E 76, 061302, 2007). Enters δ/d as (φZ)^(-2/3); the targets above are calibrated
+with the same value, so its choice cancels in the advice."""
+
+HERTZ_COLLISION = 2.868
+"""t_c = 2.868 (m*²/(R* E*² v))^(1/5): duration of an elastic Hertz impact (physics reference §2)."""
+
+# ---------------------------------------------------------------------------------------------
+# cost model: measured on this machine
+# ---------------------------------------------------------------------------------------------
+
+NS_PER_CONTACT_DEM_P = 35.5
+"""DEM-P Hertz–Mindlin pair-force evaluation, ns per contact: ``tools/dem_c_study.py --parts 3``
+(4,000 spheres each overlapping its six neighbours, 11,200 contacts), quiet machine; docs/dem_c.md,
+*The hopper after the per-contact envelope and fused APGD*."""
+
+NS_PER_CONTACT_ITERATION_DEM_C = 57.8
+"""DEM-C fused iteration with its velocity update, ns per contact and iteration: same run and
+document as :data:`NS_PER_CONTACT_DEM_P`."""
+
+PARTICLE_STEPS_PER_SECOND = 1.35e6
+"""Whole DEM-P steps of a small scene, particle-steps per second on one core (the reduced direct
+shear: 350 beads, 40,385 steps in 10.5 s, docs/experiments/direct_shear.md); used only to predict
+whether the probe's pluviation fits its time budget."""
+
+# iterations a cold solve needs for a column of N touching spheres (docs/dem_c.md, *Where it fails*,
+# part 1: h = 1e-4 s, tolerance 1e-8 m/s); interpolated in log-log
+COLUMN_ITERATIONS = {
+    "jacobi": ((2, 97), (4, 372), (8, 1396), (16, 5208), (32, 19302)),
+    "gauss_seidel": ((2, 85), (4, 312), (8, 1162), (16, 4328), (32, 16060)),
+    "apgd": ((2, 15), (4, 30), (8, 74), (16, 141), (32, 197)),
+}
+
+# ---------------------------------------------------------------------------------------------
+# sample-size rules: (minimum, source)
+# ---------------------------------------------------------------------------------------------
+
+SHEAR_BOX_WIDTH = (10.0, "ASTM D3080: box width ≥ 10 × the largest grain diameter")
+SHEAR_BOX_HEIGHT = (6.0, "ASTM D3080: initial specimen thickness ≥ 6 × the largest grain diameter")
+TRIAXIAL_DIAMETER = (6.0, "ASTM D7181 / D4767: specimen diameter ≥ 6 × the largest grain diameter")
+TRIAXIAL_DIAMETER_DEM = (
+    15.0,
+    "DEM practice, a rule of thumb: ≥ ~15 grains across the specimen for a representative peak",
+)
+TRIAXIAL_SLENDERNESS = (2.0, "ASTM D7181 / D4767: specimen height between 2 and 2.5 diameters")
+HOPPER_ORIFICE = (6.0, "Beverloo et al., Chem. Eng. Sci. 15, 260 (1961): the law holds for D/d ≳ 6")
+CONE_GRAIN = (
+    20.0,
+    "a rule of thumb from centrifuge tests (Bolton et al., Géotechnique 49, 543, 1999): cone "
+    "diameter ≥ ~20 grain diameters for a grain-size-free q_c",
+)
+CONE_CHAMBER = (
+    20.0,
+    "a rule of thumb from calibration-chamber studies (e.g. Salgado, Mitchell & Jamiolkowski, "
+    "J. Geotech. Geoenviron. Eng. 124, 878, 1998): chamber width ≥ ~20 cone diameters, wall "
+    "effects persist beyond in dense sand",
+)
+
+# ---------------------------------------------------------------------------------------------
+# closed forms
+# ---------------------------------------------------------------------------------------------
+
+
+def shear_modulus(e: float, nu: float) -> float:
+    return e / (2.0 * (1.0 + nu))
+
+
+def rayleigh_time(radius: float, density: float, e: float, nu: float) -> float:
+    """T_R = π r sqrt(ρ/G) / (0.1631 ν + 0.8766) [s] (physics reference §2)."""
+    return math.pi * radius * math.sqrt(density / shear_modulus(e, nu)) / (0.1631 * nu + 0.8766)
+
+
+def e_star(e1: float, nu1: float, e2: float = math.inf, nu2: float = 0.0) -> float:
+    """1/E* = (1 − ν₁²)/E₁ + (1 − ν₂²)/E₂ (a rigid partner: E₂ = inf)."""
+    inv = (1.0 - nu1 * nu1) / e1 + ((1.0 - nu2 * nu2) / e2 if math.isfinite(e2) else 0.0)
+    return 1.0 / inv
+
+
+def collision_time(m_eff: float, r_eff: float, estar: float, speed: float) -> float:
+    """Hertz contact duration t_c = 2.868 (m*²/(R* E*² v))^(1/5) [s] (inf at v = 0)."""
+    if speed <= 0.0:
+        return math.inf
+    return HERTZ_COLLISION * (m_eff * m_eff / (r_eff * estar * estar * speed)) ** 0.2
+
+
+def impact_overlap(m_eff: float, r_eff: float, estar: float, speed: float) -> float:
+    """Largest overlap of an elastic Hertz impact α_max = (15 m* v²/(16 E* sqrt(R*)))^(2/5) [m]."""
+    return (15.0 * m_eff * speed * speed / (16.0 * estar * math.sqrt(r_eff))) ** 0.4
+
+
+def mean_contact_force(
+    stress: float, d: float, phi: float = PACKING_FRACTION, z: float = COORDINATION
+) -> float:
+    """F = π d² σ / (φ Z): the mean normal force of a packing under mean stress σ, from the
+    Love–Weber stress σ = (1/V) Σ f ⊗ l of isotropic contacts (Rothenburg & Bathurst,
+    Géotechnique 39, 601, 1989)."""
+    return math.pi * d * d * stress / (phi * z)
+
+
+def hertz_overlap(force: float, r_eff: float, estar: float) -> float:
+    """δ = (3 F / (4 E* sqrt(R*)))^(2/3) [m], from F = (4/3) E* sqrt(R*) δ^(3/2)."""
+    return (3.0 * force / (4.0 * estar * math.sqrt(r_eff))) ** (2.0 / 3.0)
+
+
+def overlap_ratio(stress: float, d: float, e: float, nu: float) -> float:
+    """δ/d of the mean contact between two equal grains of diameter d and Young's modulus E under
+    mean stress σ: (3π σ / (2 φ Z E*))^(2/3), with E* = E / (2 (1 − ν²))."""
+    if stress <= 0.0:
+        return 0.0
+    estar = e_star(e, nu, e, nu)
+    return hertz_overlap(mean_contact_force(stress, d), d / 4.0, estar) / d
+
+
+def stiffness_number(e: float, stress: float) -> float:
+    """κ = (E/σ)^(2/3), the definition of docs/experiments/triaxial.md (Agnolin & Roux 2007 write
+    (E/((1 − ν²) P))^(2/3)); δ/d ∝ 1/κ."""
+    return (e / stress) ** (2.0 / 3.0) if stress > 0 else math.inf
+
+
+def modulus_for_overlap(e: float, ratio_now: float, ratio_target: float) -> float:
+    """The E that moves δ/d from ``ratio_now`` (at E) to ``ratio_target``: δ/d ∝ E^(−2/3)."""
+    return e * (ratio_now / ratio_target) ** 1.5
+
+
+def inertial_number(shear_rate: float, d: float, density: float, stress: float) -> float:
+    """I = γ̇ d sqrt(ρ/p) (GDR MiDi 2004)."""
+    return shear_rate * d * math.sqrt(density / stress) if stress > 0 else math.inf
+
+
+def column_iterations(solver: str, layers: float) -> float:
+    """Iterations a cold solve of a column of ``layers`` spheres needs (pdem's measured table,
+    interpolated/extrapolated in log-log)."""
+    table = COLUMN_ITERATIONS.get(solver, COLUMN_ITERATIONS["jacobi"])
+    n = max(float(layers), 1.0)
+    pts = [(math.log(a), math.log(b)) for a, b in table]
+    x = math.log(n)
+    if x <= pts[0][0]:
+        (x0, y0), (x1, y1) = pts[0], pts[1]
+    elif x >= pts[-1][0]:
+        (x0, y0), (x1, y1) = pts[-2], pts[-1]
+    else:
+        k = max(i for i in range(len(pts) - 1) if pts[i][0] <= x)
+        (x0, y0), (x1, y1) = pts[k], pts[k + 1]
+    return math.exp(y0 + (y1 - y0) * (x - x0) / (x1 - x0))
+
+
+def round_sig(value: float, digits: int = 2, direction: str = "nearest") -> float:
+    """``value`` to ``digits`` significant figures, rounded up, down or to the nearest."""
+    if value == 0 or not math.isfinite(value):
+        return value
+    exp = math.floor(math.log10(abs(value))) - digits + 1
+    q = value / 10.0**exp
+    if direction == "up":
+        q = math.ceil(q - 1e-9)
+    elif direction == "down":
+        q = math.floor(q + 1e-9)
+    else:
+        q = round(q)
+    return float(f"{int(q)}e{exp}")

@@ -1,0 +1,532 @@
+"""Scene facts for ``pdem advise``: what the deck says (grains, materials, stages, steps, speeds,
+stresses), and what a short probe of the first stage measures.
+
+The deck-level facts need no particles: counts come from the same estimate as the memory check
+(:mod:`pdem.deck.capacity`), sizes from the sources' size distributions, heights from their regions.
+The probe builds the first stage's scene exactly as ``pdem check`` does (:meth:`Runner.check_scene`,
+nothing written) and steps it for a few hundred steps within a wall-time budget.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from . import rules
+
+LOOSE_SOURCES = ("random_fill", "lattice")  # grains that start apart and may fall; pluviate/file are packed
+
+
+@dataclass
+class GrainGroup:
+    """The grains of one ``[[particles]]`` table."""
+
+    index: int
+    source: str
+    material: str
+    stage: str
+    count: float
+    counted: str
+    r_min: float
+    r_max: float
+    r_mean: float
+    mean_volume: float
+    density: float
+    youngs_modulus: float
+    poisson_ratio: float
+    speed: float  # |initial velocity|
+    bounds: tuple[np.ndarray, np.ndarray] | None
+    footprint: float | None  # horizontal area of its region [m²]
+    params: Any = None
+
+    @property
+    def mass_min(self) -> float:
+        return self.density * 4.0 / 3.0 * math.pi * self.r_min**3
+
+
+@dataclass
+class StageFacts:
+    name: str
+    index: int
+    dt_given: float | None  # the dt the deck gives this stage (its own or run.dt)
+    dt_key: str | None  # the key that gives it
+    speeds: list[tuple[float, str]] = field(default_factory=list)
+    stress: float = 0.0
+    stress_from: str = "none"
+    duration: float | None = None
+    duration_from: str = ""
+
+
+@dataclass
+class Scene:
+    law: str
+    parameterisation: str
+    groups: list[GrainGroup]
+    stages: list[StageFacts]
+    gravity: float
+    g_axis: np.ndarray
+    boundaries: dict[str, Any]  # name -> validated params
+    wall_materials: dict[str, Any]  # name -> MaterialSpec used by boundaries
+    materials: dict[str, Any]
+    run_dt: float | None
+    packed_height: float
+    fall_height: float
+    footprint: float | None
+    probe: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n(self) -> float:
+        return sum(g.count for g in self.groups)
+
+    def mean(self, attr: str) -> float:
+        n = self.n
+        return sum(g.count * getattr(g, attr) for g in self.groups) / n if n else math.nan
+
+    @property
+    def d_mean(self) -> float:
+        return 2.0 * self.mean("r_mean")
+
+    @property
+    def d_max(self) -> float:
+        return 2.0 * max((g.r_max for g in self.groups), default=math.nan)
+
+    @property
+    def density(self) -> float:
+        return self.mean("density")
+
+    def grain_materials(self) -> list[str]:
+        return list(dict.fromkeys(g.material for g in self.groups))
+
+    def r_min_of(self, material: str) -> float:
+        return min(g.r_min for g in self.groups if g.material == material)
+
+
+def _sizes(params: Any) -> tuple[float, float, float, float] | None:
+    """(r_min, r_max, r_mean, mean volume) of a source's ``sizes`` / ``radius`` key."""
+    sizes = getattr(params, "sizes", None)
+    if sizes is not None and hasattr(sizes, "build"):
+        dist = sizes.build()
+        return float(dist.r_min), float(dist.r_max), float(dist.mean_radius()), float(dist.mean_volume())
+    radius = getattr(params, "radius", None)
+    if isinstance(radius, int | float):
+        r = float(radius)
+        return r, r, r, 4.0 / 3.0 * math.pi * r**3
+    return None
+
+
+def _region_footprint(params: Any) -> float | None:
+    region = getattr(params, "region", None)
+    kind = getattr(region, "type", None)
+    if kind == "cylinder":
+        return math.pi * float(region.radius) ** 2
+    if kind == "box":
+        return float((region.hi[0] - region.lo[0]) * (region.hi[1] - region.lo[1]))
+    return None
+
+
+def deck_scene(resolved: Any, raw: dict) -> Scene:
+    """The scene as the deck describes it (no particles made)."""
+    from ..deck.capacity import estimate_source
+    from ..sources import read_spheres
+
+    deck = resolved.deck
+    names = [s.name for s in deck.stages]
+    g = np.asarray(deck.run.gravity, dtype=float)
+    gmag = float(np.linalg.norm(g))
+    axis = g / gmag if gmag > 0 else np.array([0.0, 0.0, -1.0])
+    groups: list[GrainGroup] = []
+    raw_particles = raw.get("particles", []) if isinstance(raw.get("particles"), list) else []
+    for k, (cls, params) in enumerate(zip(resolved.source_classes, deck.particles, strict=True)):
+        mat = deck.materials[params.material]
+        sizes = _sizes(params)
+        count_est = estimate_source(raw_particles[k] if k < len(raw_particles) else None, resolved.base_dir)
+        count, counted = count_est if count_est is not None else (math.nan, "unknown")
+        if getattr(params, "source", None) == "file":
+            try:
+                spheres = read_spheres(resolved.base_dir / params.path)
+                r = np.asarray(spheres["radii"], dtype=float)
+                sizes = (
+                    float(r.min()),
+                    float(r.max()),
+                    float(r.mean()),
+                    float(np.mean(4 / 3 * math.pi * r**3)),
+                )
+                count, counted = float(len(r)), f"file with {len(r):,} rows"
+            except Exception:  # noqa: BLE001 - a file the advice cannot read is left to the run
+                pass
+        if sizes is None:
+            try:
+                rmax = cls(params).r_max()
+            except Exception:  # noqa: BLE001
+                rmax = None
+            if rmax is None:
+                continue
+            sizes = (rmax, rmax, rmax, 4.0 / 3.0 * math.pi * rmax**3)
+        try:
+            bounds = cls(params).bounds()
+        except Exception:  # noqa: BLE001
+            bounds = None
+        vel = getattr(params, "velocity", None) or (0.0, 0.0, 0.0)
+        groups.append(
+            GrainGroup(
+                index=k,
+                source=str(params.source),
+                material=params.material,
+                stage=params.stage or names[0],
+                count=float(count),
+                counted=counted,
+                r_min=sizes[0],
+                r_max=sizes[1],
+                r_mean=sizes[2],
+                mean_volume=sizes[3],
+                density=float(mat.density) if not mat.rigid else math.nan,
+                youngs_modulus=float(mat.youngs_modulus) if not mat.rigid else math.inf,
+                poisson_ratio=float(mat.poisson_ratio) if not mat.rigid else 0.0,
+                speed=float(np.linalg.norm(np.asarray(vel, dtype=float))),
+                bounds=bounds,
+                footprint=_region_footprint(params),
+                params=params,
+            )
+        )
+    boundaries = dict(resolved.boundaries)
+    wall_materials = {}
+    for params in boundaries.values():
+        for key in ("material", "plate_material"):
+            name = getattr(params, key, None)
+            if isinstance(name, str) and name in deck.materials:
+                wall_materials[name] = deck.materials[name]
+    footprint = _footprint(groups, boundaries)
+    volume = sum(g.count * g.mean_volume for g in groups if math.isfinite(g.count))
+    packed = volume / (rules.PACKING_FRACTION * footprint) if footprint else math.nan
+    scene = Scene(
+        law=deck.contact.law,
+        parameterisation=str(getattr(resolved.law_params, "parameterisation", "material")),
+        groups=groups,
+        stages=[],
+        gravity=gmag,
+        g_axis=axis,
+        boundaries=boundaries,
+        wall_materials=wall_materials,
+        materials=dict(deck.materials),
+        run_dt=deck.run.dt,
+        packed_height=packed,
+        fall_height=_fall_height(groups, axis),
+        footprint=footprint,
+    )
+    scene.stages = [_stage_facts(scene, resolved, k) for k in range(len(deck.stages))]
+    return scene
+
+
+def _footprint(groups: list[GrainGroup], boundaries: dict[str, Any]) -> float | None:
+    """The horizontal area the grains pack into: a device's own (shear box, triaxial cell), else the
+    largest source region's."""
+    for params in boundaries.values():
+        kind = getattr(params, "type", None)
+        if kind == "shear_box":
+            return float(params.length * params.width)
+        if kind == "triaxial":
+            return math.pi * float(params.radius) ** 2
+    areas = [g.footprint for g in groups if g.footprint]
+    return max(areas) if areas else None
+
+
+def _fall_height(groups: list[GrainGroup], axis: np.ndarray) -> float:
+    """How far loose grains can fall: from the top of a loose source's region to the lowest point
+    of any region, along gravity."""
+    boxes = [g.bounds for g in groups if g.bounds is not None]
+    loose = [g.bounds for g in groups if g.bounds is not None and g.source in LOOSE_SOURCES]
+    if not loose:
+        return 0.0
+
+    def extent(b: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+        corners = np.array(
+            [[x, y, z] for x in (b[0][0], b[1][0]) for y in (b[0][1], b[1][1]) for z in (b[0][2], b[1][2])]
+        )
+        along = corners @ axis  # grows downwards
+        return float(along.min()), float(along.max())
+
+    top = min(extent(b)[0] for b in loose)
+    bottom = max(extent(b)[1] for b in boxes)
+    return max(bottom - top, 0.0)
+
+
+def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
+    deck = resolved.deck
+    stage = deck.stages[k]
+    if stage.dt is not None:
+        dt, key = stage.dt, f"stages.{stage.name}.dt"
+    elif deck.run.dt is not None:
+        dt, key = deck.run.dt, "run.dt"
+    else:
+        dt, key = None, None
+        for earlier in reversed(deck.stages[:k]):  # "the current step goes on"
+            if earlier.dt is not None:
+                dt, key = earlier.dt, f"stages.{earlier.name}.dt"
+                break
+    facts = StageFacts(name=stage.name, index=k, dt_given=dt, dt_key=key)
+    names = [s.name for s in deck.stages]
+    g = scene.gravity
+    # speeds
+    for grp in scene.groups:
+        if grp.stage == stage.name:
+            if grp.source in LOOSE_SOURCES and g > 0 and scene.fall_height > 0:
+                facts.speeds.append(
+                    (
+                        math.sqrt(2 * g * scene.fall_height),
+                        f"free fall of particles.{grp.index} from {scene.fall_height:.3g} m",
+                    )
+                )
+            if grp.speed > 0:
+                facts.speeds.append((grp.speed, f"particles.{grp.index}.velocity"))
+    hydro = 0.0
+    if g > 0 and math.isfinite(scene.packed_height):
+        hydro = rules.PACKING_FRACTION * scene.density * g * scene.packed_height
+    facts.stress, facts.stress_from = (
+        hydro,
+        (f"grains' weight φ ρ g H (H = {scene.packed_height:.3g} m packed)" if hydro > 0 else "none"),
+    )
+    for name, p in scene.boundaries.items():
+        kind = getattr(p, "type", None)
+        active = getattr(p, "stages", None)
+        if active and stage.name not in active:
+            continue
+        motion = getattr(p, "motion", None)
+        vel = getattr(motion, "velocity", None)
+        if vel is not None:
+            facts.speeds.append((float(np.linalg.norm(vel)), f"boundaries.{name}.motion"))
+        if kind == "triaxial":
+            if stage.name in [*p.mould_stages, p.consolidation_stage]:  # the servo; the shear is driven
+                facts.speeds.append((p.max_speed, f"boundaries.{name}.max_speed (servo)"))
+            if stage.name in (p.consolidation_stage, p.shear_stage):
+                facts.stress, facts.stress_from = p.sigma3, f"boundaries.{name}.sigma3"
+            if stage.name == p.shear_stage:
+                facts.speeds.append((p.strain_rate * p.height, f"boundaries.{name}.strain_rate × height"))
+        elif kind == "shear_box":
+            first = names.index(p.consolidation_stage) if p.consolidation_stage else 0
+            if k >= first:
+                facts.speeds.append((p.max_speed, f"boundaries.{name}.max_speed (servo)"))
+                facts.stress = p.normal_stress + hydro
+                facts.stress_from = f"boundaries.{name}.normal_stress + the grains' weight"
+            if stage.name == p.shear_stage:
+                facts.speeds.append((p.shear_speed, f"boundaries.{name}.shear_speed"))
+        elif kind == "penetrometer":
+            if k >= names.index(p.penetration_stage) and p.mode == "push" and hydro > 0:
+                z = _push_depth(deck, name, p, scene.packed_height)
+                tip = rules.CONE_TIP_FACTOR * rules.PACKING_FRACTION * scene.density * g * z
+                if tip > facts.stress:
+                    facts.stress = tip
+                    facts.stress_from = (
+                        f"boundaries.{name}: {rules.CONE_TIP_FACTOR:g} × φ ρ g z at the tip (z = {z:.3g} m)"
+                    )
+            if k >= names.index(p.penetration_stage):
+                if p.mode == "drop":
+                    facts.speeds.append(
+                        (
+                            math.sqrt(2 * max(g, 9.81) * p.release_height),
+                            f"boundaries.{name}: drop from release_height",
+                        )
+                    )
+                else:
+                    fastest = max(p.speed, p.approach_speed or 0.0)
+                    facts.speeds.append((fastest, f"boundaries.{name}.speed"))
+        elif kind == "impulse":
+            facts.speeds.append((float(np.linalg.norm(p.velocity)), f"boundaries.{name}.velocity"))
+        elif kind == "hopper":
+            if k >= names.index(p.open_at_stage) and g > 0:
+                h = scene.packed_height if math.isfinite(scene.packed_height) else 0.0
+                facts.speeds.append(
+                    (
+                        math.sqrt(2 * g * (h + p.outflow_depth)),
+                        f"boundaries.{name}: grains falling through the orifice",
+                    )
+                )
+    if k == 0 and scene.probe.get("max_speed"):
+        facts.speeds.append((scene.probe["max_speed"], "fastest grain in the probe"))
+    facts.duration, facts.duration_from = _duration(stage, facts.dt_given, scene)
+    return facts
+
+
+def _push_depth(deck: Any, name: str, p: Any, packed: float) -> float:
+    """The deepest tip depth of a pushed penetrometer: its stage's end depth, max_depth, or half the bed."""
+    for st in deck.stages:
+        if st.end.quantity == f"{name}.depth" and st.end.above is not None:
+            return float(st.end.above)
+    if p.max_depth:
+        return float(p.max_depth)
+    return 0.5 * packed if math.isfinite(packed) else 0.01
+
+
+def _duration(stage: Any, dt: float | None, scene: Scene) -> tuple[float | None, str]:
+    """Simulated time of a stage, when the deck tells it (an upper bound for a stage that may end
+    early on kinetic energy, a quantity or its max_time)."""
+    end = stage.end
+    q = end.quantity
+    if q and end.above is not None:
+        name, key = q.split(".", 1)
+        p = scene.boundaries.get(name)
+        kind = getattr(p, "type", None)
+        if kind == "shear_box" and key == "displacement" and stage.name == p.shear_stage:
+            return end.above / p.shear_speed, f"{q} to {end.above:g} at shear_speed"
+        if kind == "triaxial" and key == "eps_a" and stage.name == p.shear_stage:
+            return end.above / p.strain_rate, f"{q} to {end.above:g} at strain_rate"
+        if kind == "penetrometer" and key == "depth" and p.mode == "push":
+            return (end.above + p.start_gap) / p.speed, f"{q} to {end.above:g} at speed"
+    if end.time is not None:
+        return end.time, "end.time" + (" (or earlier)" if end.kinetic_energy_below or q else "")
+    if end.steps is not None and dt is not None:
+        return end.steps * dt, "end.steps × dt"
+    if end.max_time is not None:
+        return end.max_time, "end.max_time (an upper bound)"
+    return None, "not known from the deck"
+
+
+# ---------------------------------------------------------------------------------------------
+# the probe
+# ---------------------------------------------------------------------------------------------
+
+
+def _pluviation_seconds(scene: Scene, first: str) -> float:
+    """Predicted wall time of the first stage's pluviated packings (they settle with pdem itself)."""
+    total = 0.0
+    for grp in scene.groups:
+        if grp.source != "pluviate" or grp.stage != first:
+            continue
+        p = grp.params
+        t_r = rules.rayleigh_time(grp.r_min, grp.density, grp.youngs_modulus, grp.poisson_ratio)
+        dt = rules.RAYLEIGH_FRACTION * t_r
+        area = grp.footprint or 1.0
+        column = (
+            grp.count * grp.mean_volume / (float(getattr(p, "fill_fraction", 0.3)) * area) + 2 * grp.r_max
+        )
+        t = math.sqrt(2 * column / 9.81) + 0.3
+        total += t / dt * grp.count / rules.PARTICLE_STEPS_PER_SECOND
+    return total
+
+
+def run_probe(resolved: Any, scene: Scene, budget: float = 10.0, steps: int = 300) -> dict[str, Any]:
+    """Build the first stage's scene as ``pdem check`` does and step it (at most ``steps`` steps,
+    at most ``budget`` seconds of wall time in all). Returns what it measured, or why it did not run.
+
+    The probe runs in a forked child process, so that the budget holds whatever takes the time (a
+    first step that compiles DEM-C's solver cold takes tens of seconds): the child reports what it
+    has as it goes, and is stopped at the budget."""
+    import multiprocessing
+
+    stages = list(resolved.deck.stages)
+    predicted = _pluviation_seconds(scene, stages[0].name)
+    if predicted > budget:
+        return {
+            "ran": False,
+            "reason": f"the first stage's pluviated packing would take ~{predicted:.0f} s to settle "
+            f"(budget {budget:g} s); the numbers below are estimated from the deck",
+        }
+    t0 = time.perf_counter()
+    try:
+        ctx = multiprocessing.get_context("fork")
+    except ValueError:  # pragma: no cover - no fork on this platform: probe in this process
+        return _probe(resolved, budget, steps, lambda msg: None)
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_probe_child, args=(resolved, budget, steps, send), daemon=True)
+    child.start()
+    send.close()
+    out: dict[str, Any] = {"ran": False, "reason": f"the scene was not built within the {budget:g} s budget"}
+    deadline = t0 + budget + 2.0
+    finished = False
+    while True:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            break
+        if receive.poll(min(left, 0.5)):
+            try:
+                msg = receive.recv()
+            except EOFError:
+                break
+            out.update(msg)
+            if msg.get("done"):
+                finished = True
+                break
+        elif not child.is_alive():
+            break
+    child.join(timeout=1.0 if finished else 0.0)
+    if child.is_alive():
+        child.terminate()
+        child.join(timeout=5)
+    if not finished and out.get("ran"):
+        out["cut"] = True
+    out.pop("done", None)
+    out["wall_seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _probe_child(resolved: Any, budget: float, steps: int, send: Any) -> None:
+    try:
+        _probe(resolved, budget, steps, send.send)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which goes on without it
+        send.send({"ran": False, "done": True, "reason": f"the probe failed: {type(exc).__name__}: {exc}"})
+    finally:
+        send.close()
+
+
+def _probe(resolved: Any, budget: float, steps: int, report: Any) -> dict[str, Any]:
+    from ..runner import Runner
+
+    t0 = time.perf_counter()
+    first = resolved.deck.stages[0]
+    runner = Runner(resolved, progress=None, dry=True)
+    try:
+        sim = runner.build()
+        runner._insert_particles(first.name, first.name)
+        runner._enter_stage(0, first)
+    except InputError as exc:
+        msg = {"ran": False, "done": True, "reason": f"the scene check refused the deck: {exc}"}
+        report(msg)
+        return msg
+
+    def facts(done: int) -> dict[str, Any]:
+        p = sim.get_particles()
+        n = len(p["r"])
+        speeds = np.linalg.norm(p["v"], axis=1) if n else np.zeros(0)
+        contacts = len(sim.contacts()["id_i"]) if n and done else 0
+        return {
+            "ran": True,
+            "particles": n,
+            "r_min": float(p["r"].min()) if n else math.nan,
+            "r_max": float(p["r"].max()) if n else math.nan,
+            "dt": float(sim.dt),
+            "dt_critical": float(sim.dt_critical),
+            "steps": done,
+            "cut": False,
+            "contacts_per_particle": 2.0 * contacts / n if n else 0.0,
+            "max_speed": float(speeds.max()) if n else 0.0,
+            "build_seconds": time.perf_counter() - t0,
+        }
+
+    msg = facts(0)
+    report(msg)
+    limit = steps if first.end.steps is None else min(steps, first.end.steps)
+    done = 0
+    try:
+        while done < limit:
+            if time.perf_counter() - t0 > budget:
+                msg["cut"] = True
+                break
+            chunk = min(10, limit - done)
+            sim.run(steps=chunk)
+            done += chunk
+    except Exception as exc:  # noqa: BLE001 - a probe that fails says so and the advice goes on
+        msg = {
+            "ran": False,
+            "done": True,
+            "reason": f"the probe stopped at step {done}: {type(exc).__name__}: {exc}",
+        }
+        report(msg)
+        return msg
+    cut = msg["cut"]
+    msg = {**facts(done), "build_seconds": msg["build_seconds"], "cut": cut, "done": True}
+    report(msg)
+    return msg

@@ -1,0 +1,318 @@
+"""``pdem advise``: the reported numbers against closed forms computed here, the changes an
+over-modelled deck gets (and the deck ``--apply`` writes), no change for a well-set deck, warnings for
+a too-coarse step and too-soft grains, and the command line's refusals and JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pdem.advise import advise, apply
+from pdem.cli import main
+from pdem.deck import load_deck
+from pdem.errors import InputError
+
+# the reduced direct shear (inputs/examples/direct_shear_small.toml), trimmed
+SHEAR = """\
+title = "small direct shear"
+[run]
+gravity = [0.0, 0.0, -9.81]
+seed = 1
+{dt}
+[contact]
+law = "hertz_mindlin"
+[contact.complementarity]
+solver = "apgd"
+max_iterations = 1000
+[materials.glass]
+density = 2550.0
+youngs_modulus = {E}
+poisson_ratio = 0.22
+restitution = 0.87
+friction = 0.18
+[materials.wall]
+rigid = true
+friction = 0.1
+[[particles]]
+source = "random_fill"
+material = "glass"
+region = {{ type = "box", lo = [0.003, 0.003, 0.003], hi = [0.045, 0.045, 0.094] }}
+sizes = {{ type = "single", radius = 0.003 }}
+n = 350
+[boundaries.box]
+type = "shear_box"
+material = "wall"
+corner = [0.0, 0.0, 0.0]
+length = 0.048
+width = 0.048
+lower_height = 0.014
+upper_height = 0.082
+gap = 0.0015
+normal_stress = 3100.0
+shear_speed = {v}
+max_displacement = 0.004
+max_speed = 0.3
+consolidation_stage = "consolidate"
+shear_stage = "shear"
+[[stages]]
+name = "fill"
+[stages.end]
+kinetic_energy_below = 1.0e-6
+time = 0.4
+[[stages]]
+name = "consolidate"
+[stages.end]
+time = 0.35
+[[stages]]
+name = "shear"
+[stages.end]
+quantity = "box.displacement"
+above = 0.00399
+max_time = {max_time}
+[output]
+directory = "out/shear"
+series_every_steps = 40
+"""
+
+RHO, NU, R, D = 2550.0, 0.22, 0.003, 0.006
+PHI, Z, G = 0.6, 5.5, 9.81
+
+
+def shear_deck(tmp_path: Path, name: str = "deck.toml", E: float = 4.0e7, dt: float | None = None,
+               v: float = 0.01, max_time: float = 1.0) -> Path:  # fmt: skip
+    path = tmp_path / name
+    path.write_text(
+        SHEAR.format(E=repr(E), dt=f"dt = {dt!r}" if dt else "", v=repr(v), max_time=repr(max_time))
+    )
+    return path
+
+
+# ------------------------------------------------------------------ closed forms, written out here
+
+
+def rayleigh(r: float, rho: float, e: float, nu: float) -> float:
+    g_mod = e / (2 * (1 + nu))
+    return math.pi * r * math.sqrt(rho / g_mod) / (0.1631 * nu + 0.8766)
+
+
+def hertz_tc(m_eff: float, r_eff: float, estar: float, v: float) -> float:
+    return 2.868 * (m_eff**2 / (r_eff * estar**2 * v)) ** 0.2
+
+
+def shear_numbers(e: float) -> dict[str, float]:
+    """The reduced box's numbers, from the deck's values only."""
+    m = RHO * 4 / 3 * math.pi * R**3
+    estar_gg = 1 / (2 * (1 - NU**2) / e)
+    estar_gw = e / (1 - NU**2)  # a rigid wall
+    v_servo = 0.3  # the plate's servo, the fastest thing in the consolidation and shear stages
+    t_c = min(hertz_tc(m / 2, R / 2, estar_gg, v_servo), hertz_tc(m, R, estar_gw, v_servo))
+    height = 350 * (4 / 3 * math.pi * R**3) / (PHI * 0.048 * 0.048)  # packed sample
+    sigma = 3100.0 + PHI * RHO * G * height  # plate + the grains' weight at the bottom
+    force = math.pi * D**2 * sigma / (PHI * Z)  # Love–Weber, mean contact
+    delta = (3 * force / (4 * estar_gg * math.sqrt(D / 4))) ** (2 / 3)
+    return {"T_R": rayleigh(R, RHO, e, NU), "t_c": t_c, "sigma": sigma, "delta/d": delta / D}
+
+
+def finding(advice, topic: str, where: str):
+    hits = [f for f in advice.findings if f.topic == topic and where in f.where]
+    assert hits, f"no {topic} finding for {where}: {[(f.topic, f.where) for f in advice.findings]}"
+    return hits[0]
+
+
+# ------------------------------------------------------------------ numbers
+
+
+def test_reported_numbers_match_closed_forms(tmp_path):
+    advice = advise(shear_deck(tmp_path), probe=False)
+    ref = shear_numbers(4.0e7)
+    step = finding(advice, "step", "stage shear").numbers
+    assert step["T_R [s]"] == pytest.approx(ref["T_R"], rel=1e-9)
+    assert step["t_c [s]"] == pytest.approx(ref["t_c"], rel=1e-9)
+    assert step["dt [s]"] == pytest.approx(0.2 * ref["T_R"], rel=1e-9)  # pdem's default
+    over = finding(advice, "overlap", "materials.glass").numbers
+    assert over["stress [Pa]"] == pytest.approx(ref["sigma"], rel=1e-9)
+    assert over["delta/d"] == pytest.approx(ref["delta/d"], rel=1e-9)
+    inertial = finding(advice, "inertial", "boundaries.box").numbers
+    # the box's own definition: a shear band of 10 grains, I = (v / 10 d) d sqrt(rho / sigma_n)
+    assert inertial["I"] == pytest.approx(0.01 / (10 * D) * D * math.sqrt(RHO / 3100.0), rel=1e-9)
+    # and the engine's own stability estimate is the same Rayleigh time
+    from pdem.materials import Material, rayleigh_time
+
+    assert rayleigh_time(
+        R, Material("g", density=RHO, youngs_modulus=4e7, poisson_ratio=NU)
+    ) == pytest.approx(ref["T_R"], rel=1e-12)
+
+
+def test_triaxial_inertial_number_and_stage_ends_in_steps(tmp_path):
+    """A triaxial deck whose stages end on steps: a faster loading and a larger dt keep each stage's
+    simulated time (the loading stage: its strain) by scaling the step counts."""
+    text = Path(__file__).with_name("data").joinpath("triaxial_small.toml").read_text()
+    text = text.replace("youngs_modulus = 5.0e7", "youngs_modulus = 5.0e9")
+    text = text.replace("dt = 2e-6", "dt = 2e-7").replace("strain_rate = 2.0", "strain_rate = 0.02")
+    deck = tmp_path / "tri.toml"
+    deck.write_text(text)
+    advice = advise(deck, probe=False)
+    num = finding(advice, "inertial", "boundaries.cell").numbers
+    d = 2 * 0.5e-3  # uniform radii 0.45-0.55 mm: mean diameter 1 mm
+    assert num["I"] == pytest.approx(0.02 * d * math.sqrt(2500.0 / 2.0e4), rel=1e-9)
+    ch = advice.changes
+    assert ch["boundaries.cell.strain_rate"] > 3 * 0.02
+    k = ch["boundaries.cell.strain_rate"] / 0.02
+    dt_new = ch["run.dt"]
+    assert ch["stages.shear.end.steps"] == math.ceil(600 * 2e-7 / dt_new / k)
+    assert ch["stages.consolidate.end.steps"] == math.ceil(800 * 2e-7 / dt_new)
+    assert ch["stages.settle.end.steps"] == math.ceil(200 * 2e-7 / dt_new)
+
+
+# ------------------------------------------------------------------ changes
+
+
+def test_over_modelled_deck_gets_the_three_changes_and_applies(tmp_path):
+    """E 100× the deck's, dt 10× finer than 0.2 T_R at that E, shear 10× slower."""
+    e = 4.0e9
+    t_r = rayleigh(R, RHO, e, NU)
+    deck = shear_deck(tmp_path, E=e, dt=0.1 * 0.2 * t_r, v=0.001, max_time=8.0)
+    advice = advise(deck, probe=False)
+    ch = advice.changes
+    # softer grains, at most the factor that keeps delta/d at the target, and still stiff enough
+    e_new = ch["materials.glass.youngs_modulus"]
+    assert e / 100 < e_new < e / 3
+    assert shear_numbers(e_new)["delta/d"] <= 3e-3 * 1.0001
+    assert shear_numbers(e_new)["delta/d"] > 1e-3
+    # a step at most 0.2 T_R of the softer grains and at least 3x the deck's
+    assert 3 * 0.1 * 0.2 * t_r < ch["run.dt"] <= 0.2 * rayleigh(R, RHO, e_new, NU)
+    # the faster shear keeps I at or below the target and is at least 3x the deck's
+    v_new = ch["boundaries.box.shear_speed"]
+    assert v_new >= 0.003 and 0.1 * v_new * math.sqrt(RHO / 3100.0) <= 3e-4 * 1.0001
+    # the stage's safety cap in time shrinks with the faster loading; the displacement end needs nothing
+    assert ch["stages.shear.end.max_time"] == pytest.approx(8.0 * 0.001 / v_new, rel=1e-3)
+    assert not any(k.startswith("stages.shear.end.above") for k in ch)
+    out = apply(advice, tmp_path / "advised.toml")
+    resolved = load_deck(out)
+    assert resolved.deck.materials["glass"].youngs_modulus == e_new
+    assert resolved.deck.run.dt == ch["run.dt"]
+    assert resolved.boundaries["box"].shear_speed == v_new
+    assert resolved.deck.output.directory == "out/shear_advised"
+    assert main(["check", str(out)]) == 0
+
+
+def test_well_set_deck_gets_no_stiffness_or_step_change(tmp_path):
+    advice = advise(shear_deck(tmp_path), probe=False)
+    assert not [k for k in advice.changes if "youngs_modulus" in k or k.endswith(".dt")], advice.changes
+    assert finding(advice, "overlap", "materials.glass").verdict == "ok"
+    assert finding(advice, "step", "stage shear").verdict == "ok"
+
+
+def test_too_coarse_step_and_too_soft_grains_are_warned(tmp_path):
+    t_r = rayleigh(R, RHO, 4e7, NU)
+    coarse = advise(shear_deck(tmp_path, dt=0.6 * t_r), probe=False)
+    step = finding(coarse, "step", "stage shear")
+    assert step.verdict == "warn" and step.suggestions
+    assert next(iter(step.suggestions.values())) < 0.6 * t_r
+    soft = advise(shear_deck(tmp_path, "soft.toml", E=1.5e6), probe=False)
+    assert shear_numbers(1.5e6)["delta/d"] > 1e-2  # the premise
+    over = finding(soft, "overlap", "materials.glass")
+    assert over.verdict == "warn"
+    assert over.suggestions["materials.glass.youngs_modulus"] > 1.5e6
+    assert "materials.glass.youngs_modulus" not in soft.changes  # stiffer costs time: suggested only
+
+
+def test_probe_counts_the_grains_and_agrees_with_the_engine(tmp_path):
+    text = SHEAR.format(E="4.0e7", dt="", v="0.01", max_time="1.0").replace("n = 350", "n = 60")
+    deck = tmp_path / "probe.toml"
+    deck.write_text(text)
+    advice = advise(deck, probe=True, probe_budget=20.0)
+    assert advice.probe["ran"], advice.probe
+    assert advice.probe["particles"] == 60
+    assert advice.probe["dt_critical"] == pytest.approx(rayleigh(R, RHO, 4e7, NU), rel=1e-12)
+    assert 0 < advice.probe["steps"] <= 300
+
+
+def test_probe_budget_is_a_hard_cap(tmp_path):
+    """The probe runs in a child process stopped at the budget, whatever takes the time."""
+    text = SHEAR.format(E="4.0e7", dt="dt = 1e-7", v="0.01", max_time="1.0").replace("n = 350", "n = 60")
+    deck = tmp_path / "slow.toml"
+    deck.write_text(text)
+    advice = advise(deck, probe=True, probe_budget=0.5)
+    assert advice.probe["wall_seconds"] < 0.5 + 4.0
+    assert (not advice.probe["ran"]) or advice.probe["cut"] or advice.probe["steps"] == 300
+
+
+def test_kinetic_energy_end_that_passes_before_the_grains_fall_is_warned(tmp_path):
+    """A fill checked every step: at its first check the grains, released at rest, have not gained
+    the 1e-6 J the stage ends on, so it would end before they fall."""
+    deck = shear_deck(tmp_path)
+    advice = advise(deck, sets=("stages.fill.end.check_every=1",), probe=False)
+    dt = 0.2 * rayleigh(R, RHO, 4e7, NU)  # the deck's default step, unchanged by the advice
+    mass = 350 * RHO * 4 / 3 * math.pi * R**3
+    assert 0.5 * mass * (G * 1 * dt) ** 2 < 1e-6  # the premise, in free fall
+    warn = finding(advice, "stage_ends", "stage fill")
+    assert warn.verdict == "warn"
+    every = warn.suggestions["stages.fill.end.check_every"]
+    assert every > 1 and 0.5 * mass * (G * every * dt) ** 2 >= 1e-6
+    # the deck as written (checks every 100 steps) is not warned
+    assert not [f for f in advise(deck, probe=False).findings if f.topic == "stage_ends"]
+
+
+# ------------------------------------------------------------------ command line
+
+
+def test_apply_refuses_to_overwrite(tmp_path, capsys):
+    deck = shear_deck(tmp_path, E=4e9, v=0.001, max_time=8.0)
+    out = tmp_path / "advised.toml"
+    out.write_text("keep me\n")
+    advice = advise(deck, probe=False)
+    with pytest.raises(InputError, match="--overwrite"):
+        apply(advice, out)
+    assert out.read_text() == "keep me\n"
+    code = main(["advise", str(deck), "--no-probe", "--apply", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and str(out) in err and "--overwrite" in err and "Traceback" not in err
+    assert out.read_text() == "keep me\n"
+    assert main(["advise", str(deck), "--no-probe", "--apply", str(out), "--overwrite"]) == 0
+    assert load_deck(out).deck.materials["glass"].youngs_modulus < 4e9
+
+
+def test_bad_decks_exit_2_naming_the_key(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[run\ndt = 1\n")
+    assert main(["advise", str(bad), "--no-probe"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid TOML at line 1" in err and "Traceback" not in err
+    deck = shear_deck(tmp_path)
+    assert main(["advise", str(deck), "--no-probe", "--set", "materials.glass.densty=2500"]) == 2
+    err = capsys.readouterr().err
+    assert "materials.glass.densty" in err and "density" in err and "Traceback" not in err
+    assert main(["advise", str(deck), "--no-probe", "--set", "boundaries.box.shear_speed=-1"]) == 2
+    err = capsys.readouterr().err
+    assert "boundaries.box.shear_speed" in err and "-1" in err and "Traceback" not in err
+
+
+def test_json_output_parses(tmp_path, capsys):
+    deck = shear_deck(tmp_path, E=4e9, v=0.001, max_time=8.0)
+    assert main(["advise", str(deck), "--no-probe", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["changes"]["boundaries.box.shear_speed"] > 0.001
+    topics = {f["topic"] for f in data["findings"]}
+    assert {"step", "overlap", "inertial", "sample_size", "method"} <= topics
+    assert all(f["verdict"] in ("ok", "warn", "change") for f in data["findings"])
+
+
+def test_applied_deck_keeps_packing_files_and_loads_from_elsewhere(tmp_path):
+    (tmp_path / "pack.txt").write_text("x y z diameter\n0.01 0.01 0.003 0.006\n0.02 0.01 0.003 0.006\n")
+    deck = tmp_path / "file.toml"
+    deck.write_text(
+        SHEAR.format(E="4.0e9", dt="dt = 2.5e-7", v="0.001", max_time="8.0").replace(
+            'source = "random_fill"', 'source = "file"\npath = "pack.txt"'
+        ).replace('region = { type = "box", lo = [0.003, 0.003, 0.003], hi = [0.045, 0.045, 0.094] }\n', "")
+        .replace('sizes = { type = "single", radius = 0.003 }\nn = 350\n', "")
+    )  # fmt: skip
+    advice = advise(deck, probe=False)
+    assert advice.scene["particles"] == 2
+    (tmp_path / "elsewhere").mkdir()
+    out = apply(advice, tmp_path / "elsewhere" / "advised.toml")
+    resolved = load_deck(out)
+    assert Path(resolved.deck.particles[0].path) == (tmp_path / "pack.txt").resolve()
