@@ -168,7 +168,8 @@ def test_study_errors_against_a_closed_form_and_failures_are_caught(tmp_path):
     assert "DEM-P: fastest run within 0.01" in reading and "dt_fraction=6.0" in reading
 
 
-def test_killed_study_keeps_finished_runs_and_leaves_no_run_behind(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_killed_study_keeps_finished_runs_and_leaves_no_run_behind(tmp_path, sig):
     spec = _spec(tmp_path, "jobs = 1\n" + STEP_STUDY.replace("[0.1, 0.3, 6.0]", "[0.3, 0.01, 6.0]"))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "pdem", "study", str(spec)], stderr=subprocess.PIPE,
@@ -182,7 +183,7 @@ def test_killed_study_keeps_finished_runs_and_leaves_no_run_behind(tmp_path):
         time.sleep(0.05)
     time.sleep(0.5)
     assert _pdem_runs_for(tmp_path), "the second run should be under way"
-    os.kill(proc.pid, signal.SIGKILL)  # the study dies without any chance to clean up
+    os.kill(proc.pid, sig)  # SIGKILL: the study dies without any chance to clean up
     proc.wait()
     record = first.read_text()
     mtime = first.stat().st_mtime_ns

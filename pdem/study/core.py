@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from .launch import RunRecord, launch, lookup, read_record, series_value, stop_all, summary_of
+from .launch import RunRecord, launch, lookup, read_record, reset_stop, series_value, stop_all, summary_of
 from .spec import Quantity, RunPlan, StudySpec, load_spec, plan_runs
 
 __all__ = ["Study", "RunResult"]
@@ -99,6 +99,7 @@ class Study:
         """Run every planned run that has no record yet (and, with ``retry_failed``, those that did
         not end ``ok``), ``spec.jobs`` at a time. Progress and a time estimate go to ``progress``."""
         spec = self.spec
+        reset_stop()
         todo = []
         for plan in self.plans:
             rec = read_record(plan.directory)

@@ -154,6 +154,8 @@ def launch(
             _LIVE.add(proc)
         try:
             code: int | None = proc.wait(timeout=timeout)
+            if _STOPPING.is_set():  # stopped with the study: not a result, run again next time
+                raise KeyboardInterrupt
             status = STATUS_BY_CODE.get(code, "error")
         except subprocess.TimeoutExpired:
             _kill(proc)
@@ -189,8 +191,18 @@ _LIVE: set[subprocess.Popen] = set()
 _LIVE_LOCK = threading.Lock()
 
 
+_STOPPING = threading.Event()
+
+
+def reset_stop() -> None:
+    """Allow runs again after :func:`stop_all` (a new :meth:`Study.run` in the same process)."""
+    _STOPPING.clear()
+
+
 def stop_all() -> None:
-    """Stop every run this process has under way (the study was interrupted)."""
+    """Stop every run this process has under way (the study was interrupted); their ends are not
+    recorded, so a rerun does them again."""
+    _STOPPING.set()
     with _LIVE_LOCK:
         live = list(_LIVE)
     for proc in live:
