@@ -6,6 +6,7 @@ SI units throughout. Start with :class:`pdem.Simulation`; see README.md and ARCH
 from __future__ import annotations
 
 from . import errors
+from .boundaries import shapes
 from .errors import (
     DeckError,
     GeometryError,
@@ -24,6 +25,7 @@ __all__ = [
     "Simulation",
     "Material",
     "errors",
+    "shapes",
     "PdemError",
     "InputError",
     "DeckError",

@@ -167,6 +167,15 @@ def _print_summary(summary: dict, out: Path) -> None:
             f"{k} = {v:.6g}" for k, v in res.items() if isinstance(v, int | float) and not isinstance(v, bool)
         )
         print(f"pdem: {name}: {items}")
+    bound = summary.get("stiffness_bound")
+    if bound and bound.get("checks_exceeded"):
+        print(
+            f"pdem: warning: dt = {summary['dt']:.4g} s exceeded the step the contact network bore "
+            f"(smallest {bound['dt_min']:.4g} s, at step {bound['at_step']}) at {bound['checks_exceeded']} "
+            f"of "
+            f"{bound['checks']} checks, by up to {bound['dt_over_bound']:.3g}x; the bound is conservative, "
+            "but results past it can drift: compare with a run at dt below it"
+        )
     solver = summary.get("solver")
     if solver:
         note = (

@@ -286,6 +286,7 @@ class Runner:
         sim.dt = run.dt
         sim.dt_fraction = run.dt_fraction
         sim.force_dt = run.force_dt
+        sim.stiffness_limit = run.stiffness_limit
         sim.gravity = tuple(run.gravity)
         sim.skin = run.skin
         sim.max_overlap = run.max_overlap
@@ -875,6 +876,16 @@ class Runner:
         }
         if self.resume is not None:
             summary["resumed_from_step"] = self.resume_step
+        rec = sim.stiffness
+        if rec["checks"] and math.isfinite(rec["min_dt"]):
+            # rounded: the per-particle sums may differ in the last bit between rank counts
+            summary["stiffness_bound"] = {
+                "dt_min": float(f"{rec['min_dt']:.6g}"),
+                "at_step": int(rec["step"]),
+                "dt_over_bound": float(f"{sim.dt / rec['min_dt']:.4g}"),
+                "checks": int(rec["checks"]),
+                "checks_exceeded": int(rec["exceeded"]),
+            }
         solver = sim.integrator.summary() if sim.integrator is not None else None
         if solver is not None:
             summary["solver"] = solver

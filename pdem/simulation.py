@@ -38,6 +38,7 @@ import numpy as np
 from .boundaries.walls import Controlled, Motion, Wall
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP
 from .contact.law import ContactLaw
+from .contact.stability import STIFFNESS_LIMIT
 from .contact.store import ContactStore
 from .domain import PeriodicBox
 from .errors import GeometryError, InputError, InstabilityError, PdemError
@@ -59,6 +60,12 @@ def _history(saved, hsize: int) -> np.ndarray:
     if h.ndim == 2 and h.shape[1] < hsize:
         return np.concatenate([h, np.zeros((h.shape[0], hsize - h.shape[1]))], axis=1)
     return h.reshape(-1, hsize)
+
+
+def _fresh_stiffness() -> dict[str, float]:
+    """The live step bound's record over a run: the smallest bound [s], the step it was met, how
+    many checks were made and at how many the step exceeded the bound."""
+    return {"min_dt": math.inf, "step": -1.0, "checks": 0.0, "exceeded": 0.0}
 
 
 def _bor():
@@ -111,6 +118,12 @@ class Simulation:
         self._prepared = False
         self._force_rebuild = False
         self.dt_critical = math.nan
+        #: live step bound from the contacts' stiffness (pdem.contact.stability), checked every this
+        #: many steps for penalty laws that support it (0: never)
+        self.stiffness_every = 100
+        #: stop (InstabilityError) when dt exceeds this multiple of the live bound; 0: never
+        self.stiffness_limit = STIFFNESS_LIMIT
+        self.stiffness = _fresh_stiffness()
         self.integrator = None  # made by the law at preparation (velocity Verlet, DEM-C stepper, …)
         self.envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
         self._force_time = 0.0
@@ -699,6 +712,8 @@ class Simulation:
         out["scalars/step"] = np.array(self.step_count)
         out["scalars/dt"] = np.array(self.dt)
         out["scalars/next_id"] = np.array(self._next_id)
+        for name, value in self.stiffness.items():
+            out[f"stiffness/{name}"] = np.array(value)
         out.update(self.integrator.state())  # e.g. DEM-C solver counters
         if self.box is not None:
             out.update(self.box.state())
@@ -772,6 +787,10 @@ class Simulation:
         self.step_count = int(state["scalars/step"])
         self.dt = float(state["scalars/dt"])
         self._next_id = int(state["scalars/next_id"])
+        self.stiffness = _fresh_stiffness()
+        for name in self.stiffness:
+            if f"stiffness/{name}" in state:  # checkpoints before the live bound: start afresh
+                self.stiffness[name] = float(state[f"stiffness/{name}"])
         self._restored = {k: v for k, v in state.items() if k.startswith("solver/")}
         self._started = True
         self._prepare()
@@ -1082,6 +1101,36 @@ class Simulation:
         self.time += self._dt
         self.step_count += 1
         self.check_flags(flags)
+        if self.stiffness_every and self.step_count % self.stiffness_every == 0:
+            self.check_stiffness()
+
+    def check_stiffness(self) -> float:
+        """The step the contact network bears now (:func:`pdem.contact.stability.step_bound`),
+        recorded in :attr:`stiffness` (collective; ``nan`` for laws without the bound)."""
+        from .contact.stability import step_bound, supported
+
+        if not supported(self.law):
+            return math.nan
+        bound = step_bound(self)
+        rec = self.stiffness
+        rec["checks"] += 1
+        if bound < rec["min_dt"]:
+            rec["min_dt"], rec["step"] = bound, float(self.step_count)
+        if self._dt > bound:
+            rec["exceeded"] += 1
+            if self.stiffness_limit > 0 and self._dt > self.stiffness_limit * bound:
+                raise InstabilityError(
+                    f"the step is too large for the contacts at step {self.step_count} "
+                    f"(t = {self.time:.6g} s): dt = {self._dt:.4g} s is {self._dt / bound:.3g} times the "
+                    "step the contact network bears "
+                    f"now ({bound:.4g} s, from the contacts' stiffness, coordination and friction; the law's "
+                    f"estimate {self.dt_critical:.4g} s does not see them), above run.stiffness_limit = "
+                    f"{self.stiffness_limit:g}. Runs past it can end wrong without blowing up. Take dt ≤ "
+                    f"{0.8 * bound:.3g} s (0.8 of the bound: it moves with the packing; run.dt, or "
+                    f"run.dt_fraction = {0.8 * bound / self.dt_critical:.3g}), or soften the material; "
+                    "run.stiffness_limit = 0 lets the run go on"
+                )
+        return bound
 
     def advance_walls(self, dt: float) -> None:
         """Move the walls with prescribed motion over [t, t + dt] (positions and velocities)."""

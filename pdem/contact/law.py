@@ -105,6 +105,23 @@ class ContactLaw:
         """Largest time step [s] the law considers stable for these particles."""
         raise NotImplementedError
 
+    def contact_stiffness(
+        self,
+        coef: np.ndarray,
+        mi: np.ndarray,
+        mj: np.ndarray,
+        r_eff: np.ndarray,
+        m_eff: np.ndarray,
+        overlap: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Optional, penalty laws: the linearised contacts, for the live step bound
+        (:mod:`pdem.contact.stability`). Arrays per touching contact: the coefficient table from
+        :meth:`coefficients`, the two material indices, R* [m], m* [kg] and the overlap δ > 0 [m].
+        Returns (S_n = dF_n/dδ [N/m], k_t the tangential spring [N/m], 0 where the contact carries
+        no tangential force, e.g. μ = 0). A law that does not implement it gets no live bound; its
+        runs are unaffected."""
+        raise NotImplementedError
+
     def suggested_dt(
         self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray
     ) -> float:

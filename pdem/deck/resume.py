@@ -13,6 +13,7 @@ What a resume may change is what decides *how the run goes on*, never the scene 
 * ``output.*`` (snapshot cadence, formats, fields, series, checkpoints) except ``output.directory``
   (``pdem resume --output DIR`` chooses where the continuation goes);
 * ``run.dt`` (the stability limit is checked when the run starts), ``run.force_dt``,
+  ``run.stiffness_limit``,
   ``run.max_particles``, ``run.balance_threshold``, ``run.decomposition``; and ``title``.
 
 Everything else (materials, the contact law, particle sources, boundaries, the domain, gravity, skin,
@@ -36,12 +37,15 @@ from .problems import Loc, make_deck_error
 __all__ = ["ResumePoint", "resume_deck", "resume_changes", "RESUMABLE_RUN_KEYS"]
 
 #: keys of [run] a resume may change
-RESUMABLE_RUN_KEYS = frozenset({"dt", "force_dt", "max_particles", "balance_threshold", "decomposition"})
+RESUMABLE_RUN_KEYS = frozenset(
+    {"dt", "force_dt", "stiffness_limit", "max_particles", "balance_threshold", "decomposition"}
+)
 
 ALLOWED = (
     "a resume may change the current stage's end conditions, dt and output (stages.<name>.end.*, "
     "stages.<name>.dt, stages.<name>.output.*), anything in later stages, stages added at the end, "
-    "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.max_particles, "
+    "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.stiffness_limit, "
+    "run.max_particles, "
     "run.balance_threshold, run.decomposition and title; to change anything else start a new run"
 )
 

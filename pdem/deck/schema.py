@@ -46,6 +46,7 @@ from pydantic import (
 from pydantic_core import InitErrorDetails, PydanticCustomError
 from pydantic_core.core_schema import ErrorType
 
+from ..contact.stability import STIFFNESS_LIMIT
 from ..errors import PdemError
 from ..materials import Material
 
@@ -232,6 +233,14 @@ class RunSection(_DeckModel):
     )
     force_dt: Bool = Field(
         False, description="allow a dt (here or in a stage) above the law's stability estimate"
+    )
+    stiffness_limit: Float = Field(
+        STIFFNESS_LIMIT,
+        ge=0,
+        description="DEM-P: stop the run with an instability error when dt exceeds this multiple of the "
+        "step the contact network bears, bounded every 100 steps from the contacts' stiffness, "
+        "coordination and friction (docs/deck.md, 'Live step bound'); 0: never stop (the bound is still "
+        "recorded in summary.json and a step above it is warned of)",
     )
     gravity: Vec3 = Field(
         (0.0, 0.0, 0.0),

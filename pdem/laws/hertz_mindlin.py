@@ -237,6 +237,18 @@ class HertzMindlin(ContactLaw):
             )
         return np.array([1.0, p.kn, p.kt, p.cn, p.ct, mu, mu_r, clamp, mu_s])
 
+    def contact_stiffness(self, coef, mi, mj, r_eff, m_eff, overlap):
+        """S_n = dF_n/dδ and k_t of the kernel's formulas at these overlaps (k_t = 0 where μ = 0:
+        the Coulomb cap then holds the tangential force at zero)."""
+        c = coef[mi, mj]
+        a = np.sqrt(r_eff * overlap)
+        material = c[:, 0] == 0.0
+        # material form: S_n = 2 E* a, k_t = 8 G* a; coefficient form: F_n = K_n sqrt(R*) δ^1.5 →
+        # S_n = 1.5 a K_n, k_t = a K_t
+        s_n = np.where(material, 2.0 * c[:, 1] * a, 1.5 * a * c[:, 1])
+        k_t = np.where(material, 8.0 * c[:, 2] * a, a * c[:, 2])
+        return s_n, np.where(c[:, 5] > 0.0, k_t, 0.0)
+
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Material form: the Rayleigh time min T_R. Coefficient form: 2 sqrt(m*/S_n) with the
         contact stiffness S_n = 1.5 K_n sqrt(R* δ) at δ = 0.1 r for two equal spheres (for the material

@@ -201,6 +201,11 @@ class LinearSpring(ContactLaw):
         return max((-damping_ratio(materials.mixed(a, b, "restitution")) for a in range(m) for b in range(m)),
                    default=0.0)
 
+    def contact_stiffness(self, coef, mi, mj, r_eff, m_eff, overlap):
+        """Constant springs, for pdem's live step bound: S_n = k_n, k_t (0 where μ = 0)."""
+        c = coef[mi, mj]
+        return c[:, 0], np.where(c[:, 4] > 0.0, c[:, 1], 0.0)
+
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Stability limit of an FCC crystal of the lightest spheres (module docstring)."""
         if len(masses) == 0:

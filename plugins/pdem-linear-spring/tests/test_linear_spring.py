@@ -243,6 +243,31 @@ def test_oblique_impact_gross_sliding():
     assert p["w"][0, 1] == pytest.approx(2.5 * mu * jn / R, rel=5e-3)
 
 
+@pytest.mark.parametrize("pair", [(0, 0), (0, 1), (1, 1)])
+def test_contact_stiffness_matches_the_twin(pair):
+    """The live step bound's input (pdem.contact.stability): S_n and k_t as the twin's force
+    differentiated in the overlap and in the spring history."""
+    law = LinearSpring(kn=KN)
+    coef = law.coefficients(_table())
+    a, b = pair
+    m_eff, delta = 0.5 * MASS, 1e-6
+    s_n, k_t = (q[0] for q in law.contact_stiffness(
+        coef, np.array([a]), np.array([b]), np.array([R / 2]), np.array([m_eff]), np.array([delta])
+    ))
+    n = np.array([0.0, 0.0, 1.0])
+    z = np.zeros(3)
+
+    def force(d, vrel=z, hist=None):
+        h0 = np.zeros(3) if hist is None else hist
+        return force_numpy(d, n, vrel, z, R / 2, m_eff, 1.0, coef[a, b], h0, 1.0)[0]
+
+    assert s_n == pytest.approx((force(2 * delta)[2] - force(delta)[2]) / delta, rel=1e-9)
+    s = 1e-9
+    vt = np.array([s, 0.0, 0.0])
+    f1, f2 = force(delta, vt, np.zeros(3))[0], force(delta, vt, vt.copy())[0]
+    assert k_t == pytest.approx(-(f2 - f1) / s, rel=1e-6)
+
+
 def test_critical_dt_formula():
     """critical_dt is the FCC-crystal limit of stable_dt; the undamped normal-mode bound alone would
     be sqrt(m*/k_n) (half the two-body limit); with ρ = 2/7 the rotation mode is stiffer."""

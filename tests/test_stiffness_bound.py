@@ -1,0 +1,270 @@
+"""The live step bound from the contacts' stiffness (pdem.contact.stability).
+
+Checked against independent references: the law's force differentiated numerically (S_n, k_t),
+the largest eigenvalue of the assembled mass-weighted stiffness matrix of small packings (the bound
+must lie above it: it is a Gershgorin-type bound), and a linear oscillator's stability limit under
+pdem's own velocity Verlet.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pdem
+from pdem.contact.stability import network_bound, step_bound, supported
+from pdem.errors import InstabilityError
+from pdem.laws.hertz_mindlin import force_numpy
+from pdem.materials import effective_moduli
+
+
+def _glass(sim, **kw):
+    props = dict(density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.6, friction=0.5)
+    props.update(kw)
+    sim.add_material("glass", **props)
+
+
+@pytest.mark.parametrize("form", ["material", "coefficients"])
+def test_contact_stiffness_is_the_derivative_of_the_kernels_force(form):
+    """S_n = dF_n/dδ and k_t = dF_t/dξ of the law's own force (plain-Python twin), at several
+    overlaps, for both parameterisations."""
+    params = {} if form == "material" else dict(
+        parameterisation="coefficients", kn=2e7, kt=1.5e7, cn=40.0, ct=20.0
+    )
+    sim = pdem.Simulation(law="hertz_mindlin", **params)
+    _glass(sim)
+    sim.add_particles([[0, 0, 0]], [1e-3], material="glass")
+    sim.prepare()
+    law, coef = sim.law, sim.coefficients
+    r_eff, m_eff = 5e-4, 4e-6
+    for delta in (1e-7, 1e-6, 1e-5):
+        s_n, k_t = law.contact_stiffness(
+            coef, np.array([0]), np.array([0]), np.array([r_eff]), np.array([m_eff]), np.array([delta])
+        )
+        n = np.array([0.0, 0.0, 1.0])
+        z = np.zeros(3)
+
+        def force(d, vrel=z, hist=None, n=n, z=z):
+            h0 = np.zeros(3) if hist is None else hist
+            return force_numpy(d, n, vrel, z, r_eff, m_eff, 1e-12, coef[0, 0], h0, 1.0)[0]
+
+        h = delta * 1e-6
+        assert s_n[0] == pytest.approx((force(delta + h)[2] - force(delta - h)[2]) / (2 * h), rel=1e-5)
+        # the tangential spring: a slip speed s over dt = 1 from a spring at ξ0 gives
+        # F_t = −k_t (ξ0 + s) − c_t s: two springs at the same speed give k_t
+        s = 1e-9  # below the Coulomb cap at every δ here
+        vt = np.array([s, 0.0, 0.0])
+        f1 = force(delta, vt, np.zeros(3))[0]
+        f2 = force(delta, vt, vt.copy())[0]
+        assert k_t[0] == pytest.approx(-(f2 - f1) / s, rel=1e-4)
+
+
+def test_frictionless_contact_has_no_tangential_spring():
+    sim = pdem.Simulation()
+    _glass(sim, friction=0.0)
+    sim.add_particles([[0, 0, 0]], [1e-3], material="glass")
+    sim.prepare()
+    _, k_t = sim.law.contact_stiffness(
+        sim.coefficients, np.array([0]), np.array([0]), np.array([5e-4]), np.array([1e-6]), np.array([1e-6])
+    )
+    assert k_t[0] == 0.0
+
+
+def _packing(seed: int, n_side: int = 3, squeeze: float = 0.985):
+    """A jittered simple-cubic cluster of slightly different spheres, squeezed into contact."""
+    rng = np.random.default_rng(seed)
+    r = 1e-3 * (1.0 + 0.1 * rng.random(n_side**3))
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = g * 2e-3 * squeeze + 1e-5 * rng.standard_normal(g.shape)
+    return x, r
+
+
+def _exact_top(sim) -> float:
+    """Largest eigenvalue of M^-1/2 K M^-1/2 for the touching pairs, assembled from scratch."""
+    p = sim.get_particles()
+    x, r, m = p["x"], p["r"], p["mass"]
+    mat = sim.materials[0]
+    e_star, g_star = effective_moduli(mat, mat)
+    n = len(r)
+    inertia = 0.4 * m * r * r
+    k = np.zeros((6 * n, 6 * n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = x[j] - x[i]
+            dist = np.linalg.norm(d)
+            delta = r[i] + r[j] - dist
+            if delta <= 0:
+                continue
+            nv = d / dist
+            a = math.sqrt(r[i] * r[j] / (r[i] + r[j]) * delta)
+            c = 2 * e_star * a * np.outer(nv, nv) + 8 * g_star * a * (np.eye(3) - np.outer(nv, nv))
+            # relative displacement of the contact point: u_j + φ_j × (−r_j n) − u_i − φ_i × (r_i n)
+            def skew(v):
+                return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+            b = np.zeros((3, 6 * n))
+            b[:, 6 * j : 6 * j + 3] = np.eye(3)
+            b[:, 6 * j + 3 : 6 * j + 6] = skew(r[j] * nv)  # φ × (−r n) = (r n) × φ
+            b[:, 6 * i : 6 * i + 3] = -np.eye(3)
+            b[:, 6 * i + 3 : 6 * i + 6] = skew(r[i] * nv)  # −φ × (r n) = (r n) × φ
+            k += b.T @ c @ b
+    w = np.repeat(np.stack([m, m, m, inertia, inertia, inertia], 1).reshape(-1), 1)
+    s = 1.0 / np.sqrt(w)
+    return float(np.linalg.eigvalsh(s[:, None] * k * s[None, :]).max())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bound_lies_above_the_networks_largest_eigenvalue(seed):
+    """The bound's Ω² is ≥ the exact largest eigenvalue of the linearised network (rigorous), and
+    not absurdly above it (≤ 4×: Ω within 2×)."""
+    sim = pdem.Simulation()
+    _glass(sim, restitution=1.0)
+    x, r = _packing(seed)
+    sim.add_particles(x, r, material="glass")
+    sim.dt = 1e-9
+    sim.max_overlap = 1.0
+    sim.run(steps=1)
+    top = network_bound(sim)
+    exact = _exact_top(sim)
+    assert exact > 0
+    assert top >= exact * (1 - 1e-9)
+    assert top <= 4.0 * exact
+    assert step_bound(sim) == pytest.approx(2.0 / math.sqrt(top))
+
+
+def test_sphere_on_floor_closed_form():
+    """One sphere pressed into a floor, frictionless: Ω² = S_n/m exactly (the dashpot of e = 0.5
+    does not enter)."""
+    sim = pdem.Simulation()
+    _glass(sim, friction=0.0, restitution=0.5)
+    r = 1e-3
+    delta = 2e-6
+    sim.add_particles([[0, 0, r - delta]], [r], material="glass")
+    sim.add_wall(pdem.shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
+    sim.dt = 1e-9
+    sim.run(steps=1)
+    p = sim.get_particles()
+    m = float(p["mass"][0])
+    ov = r - float(p["x"][0, 2])
+    mat = sim.materials[0]
+    e_star, _ = effective_moduli(mat, mat)  # the wall is glass too
+    s_n = 2 * e_star * math.sqrt(r * ov)
+    expect = 2 / math.sqrt(s_n / m)
+    assert step_bound(sim) == pytest.approx(expect, rel=1e-9)
+
+
+def _squeezed(frac_of_bound: float | None, bound: float = 0.0):
+    """A sphere between a floor and a ceiling 2 (r − 1e-5) apart, started 5e-6 off centre: a
+    frictionless, undamped nonlinear oscillator whose stiffest state is the start."""
+    sim = pdem.Simulation()
+    _glass(sim, friction=0.0, restitution=1.0)
+    r = 1e-3
+    gap = 1e-5
+    sim.add_particles([[0, 0, r - gap - 5e-6]], [r], material="glass")
+    sim.add_wall(pdem.shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
+    sim.add_wall(pdem.shapes.Plane((0, 0, 2 * (r - gap)), (0, 0, -1)), material="glass", name="ceiling")
+    sim.max_overlap = 0.5
+    sim.stiffness_every = 1
+    if frac_of_bound is None:
+        sim.dt = 1e-10
+    else:
+        sim.force_dt = True
+        sim.dt = frac_of_bound * bound
+    return sim
+
+
+def test_oscillator_is_stable_below_the_bound_and_not_far_above():
+    """pdem's velocity Verlet on the squeezed sphere: at 0.9 of the bound (taken at the stiffest
+    state) the motion stays bounded over many periods; at 2.5× it grows without bound or is caught."""
+    probe = _squeezed(None)
+    probe.run(steps=1)
+    bound = probe.stiffness["min_dt"]
+    assert math.isfinite(bound)
+
+    def amplitude(frac):
+        sim = _squeezed(frac, bound)
+        top = 0.0
+        try:
+            for _ in range(40):
+                sim.run(steps=25)
+                top = max(top, abs(float(sim.get_particles()["v"][0, 2])))
+        except InstabilityError:
+            return math.inf
+        return top
+
+    stable = amplitude(0.9)
+    assert math.isfinite(stable) and stable < 1.0
+    assert amplitude(2.5) > 10 * stable
+
+
+def test_supported_laws():
+    sim = pdem.Simulation()
+    assert supported(sim.law)
+    sim_c = pdem.Simulation(law="complementarity")
+    assert not supported(sim_c.law)
+
+
+# ---------------------------------------------------------------------------------------------
+# through the CLI: a step the contacts cannot bear is stopped, or warned of when allowed
+# ---------------------------------------------------------------------------------------------
+
+DECK = Path(__file__).parent / "data" / "triaxial_small.toml"  # 300 beads, E = 5e7 Pa, dt = 2e-6 s
+
+
+def _pdem(*args):
+    return subprocess.run([sys.executable, "-m", "pdem", *map(str, args)], capture_output=True, text=True,
+                          timeout=600)
+
+
+def test_run_below_the_bound_records_it(tmp_path):
+    proc = _pdem(DECK, "--output", tmp_path / "ok", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads((tmp_path / "ok" / "summary.json").read_text())
+    b = s["stiffness_bound"]
+    assert b["checks"] == 16 and b["checks_exceeded"] == 0
+    # the bound is below the Rayleigh estimate in this dense, frictional sample, and the deck's
+    # step is below the bound
+    assert s["dt"] < b["dt_min"] < s["dt_critical"]
+    assert "warning" not in proc.stdout
+
+
+def test_step_above_the_limit_stops_with_exit_3_and_keeps_the_output(tmp_path):
+    out = tmp_path / "big"
+    proc = _pdem(DECK, "--output", out, "--set", "run.dt=1e-5")
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    msg = proc.stderr
+    assert "run.stiffness_limit = 1.3" in msg and "dt = 1e-05 s" in msg and "run.dt_fraction" in msg
+    assert "Traceback" not in msg
+    # what was written before the stop stays readable
+    series = np.genfromtxt(out / "series_settle.csv", delimiter=",", names=True)
+    assert series.size > 0 and np.all(np.isfinite(series["time"]))
+    assert (out / "checkpoints" / "latest.h5").exists()
+
+
+def test_limit_zero_lets_the_run_go_on_with_a_warning(tmp_path):
+    out = tmp_path / "allowed"
+    proc = _pdem(DECK, "--output", out, "--set", "run.dt=1e-5", "--set", "run.stiffness_limit=0")
+    assert proc.returncode == 0, proc.stderr
+    b = json.loads((out / "summary.json").read_text())["stiffness_bound"]
+    assert b["checks_exceeded"] > 0 and b["dt_over_bound"] > 1.3
+    assert "warning: dt = 1e-05 s exceeded the step the contact network bore" in proc.stdout
+
+
+def test_resumed_run_keeps_the_record(tmp_path):
+    """The smallest bound and its counts survive a checkpoint: a run stopped after 700 steps and
+    resumed reports what the uninterrupted run reports."""
+    whole = _pdem(DECK, "--output", tmp_path / "whole", "--quiet")
+    assert whole.returncode == 0, whole.stderr
+    part = _pdem(DECK, "--output", tmp_path / "part", "--quiet", "--steps", "700")
+    assert part.returncode == 0, part.stderr
+    res = _pdem("resume", tmp_path / "part" / "checkpoints" / "latest.h5", "--quiet")
+    assert res.returncode == 0, res.stderr
+    a = json.loads((tmp_path / "whole" / "summary.json").read_text())["stiffness_bound"]
+    b = json.loads((tmp_path / "part" / "summary.json").read_text())["stiffness_bound"]
+    assert a == b
