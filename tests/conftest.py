@@ -1,6 +1,16 @@
-"""Shared pytest configuration: long runs are opt-in with --runslow."""
+"""Shared pytest configuration: long runs are opt-in with --runslow.
+
+The MPI tests run 3-4 ranks on 2-core machines. MPICH's ranks busy-poll while they wait, so an
+oversubscribed rank waits for a descheduled one at every exchange; letting idle ranks sleep a
+microsecond (MPIR_CVAR_CH4_PROGRESS_THROTTLE) made a 4-rank DEM-C hopper run 1.4-1.6x faster on
+such a machine. It changes timing only, never results. The launched processes inherit it.
+"""
+
+import os
 
 import pytest
+
+os.environ.setdefault("MPIR_CVAR_CH4_PROGRESS_THROTTLE", "1")
 
 
 def pytest_addoption(parser):
