@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..contact.stability import STIFFNESS_LIMIT
 from ..errors import InputError
 from . import rules
 from .scene import LOOSE_SOURCES as LOOSE
@@ -305,6 +306,28 @@ class _Advisor:
                     best, what = t, f"{name}–wall"
         return best, what
 
+    def _live_bound(self) -> tuple[float, float]:
+        """(predicted live step bound [s], the δ/d it is predicted at): the smallest over the grain
+        materials, at the proposed stiffness, from the larger of the static overlap at the scene's
+        largest stress and the overlap of its fastest impact (rules.live_bound_ratio)."""
+        sc = self.scene
+        stress, _ = self._max_stress()
+        fastest = max((self._stage_speed(s)[0] for s in sc.stages), default=0.0)
+        best, at = math.inf, 0.0
+        for name in sc.grain_materials():
+            mat = self._material(name)
+            e, nu, rho = self._e(name), float(mat.poisson_ratio), float(mat.density)
+            r = sc.r_min_of(name)
+            ratio = rules.overlap_ratio(stress, 2 * r, e, nu)
+            if fastest > 0:
+                m = rho * 4.0 / 3.0 * math.pi * r**3
+                hit = rules.impact_overlap(m / 2, r / 2, rules.e_star(e, nu, e, nu), fastest)
+                ratio = max(ratio, hit / (2 * r))
+            bound = rules.live_bound_ratio(ratio) * rules.rayleigh_time(r, rho, e, nu)
+            if bound < best:
+                best, at = bound, ratio
+        return best, at
+
     def _rayleigh(self, proposed: bool = True) -> float:
         best = math.inf
         for name in self.scene.grain_materials():
@@ -513,6 +536,7 @@ class _Advisor:
                 changes[f"stages.{s}.dt"] = new_dt[s] = rules.round_sig(need[s], 2, "down")
             else:
                 new_dt[s] = default_new
+        live, live_at = self._live_bound()
         for st in sc.stages:
             mysugg: dict[str, Any] = {}
             v, label, t_c, pair, cur = info[st.name]
@@ -526,6 +550,8 @@ class _Advisor:
             if dt != cur:
                 nums["dt advised [s]"] = dt
                 nums["dt advised/T_R"] = dt / t_r
+            nums["live bound predicted [s]"] = live
+            nums["live bound at delta/d"] = live_at
             key = st.dt_key or "default (0.2 T_R)"
             src = ("physics reference §2: dt ≈ 0.1–0.3 T_R, at least ~20–50 steps per collision "
                    f"(here {rules.STEPS_PER_COLLISION}); t_c = 2.868 (m*²/(R* E*² v))^(1/5)")  # fmt: skip
@@ -570,6 +596,16 @@ class _Advisor:
                 reason = (f"dt = {cur:.3g} s ({key}) = {cur / t_r_old:.2g} T_R, {t_c / cur:.3g} steps per "
                           f"collision at {v:.3g} m/s ({label}): neither too coarse nor more than "
                           f"{rules.CHANGE_FACTOR:g}× finer than needed")  # fmt: skip
+            if dt > STIFFNESS_LIMIT * live:
+                verdict = "warn"
+                safe = rules.round_sig(0.8 * live, 2, "down")
+                reason += (
+                    f"; but dt = {dt:.3g} s is {dt / live:.3g}× the live step bound predicted at δ/d = "
+                    f"{live_at:.2g} ({live:.3g} s): the run would likely stop at run.stiffness_limit = "
+                    f"{STIFFNESS_LIMIT:g}; take {safe:.3g} s"
+                )
+                mysugg = {st.dt_key or "run.dt": safe}
+                src += "; live bound ≈ 0.092 T_R (δ/d)^(-1/4), docs/study/stability.md"
             self.findings.append(
                 Finding("step", f"stage {st.name}", verdict, reason, src, nums, mine, mysugg)
             )

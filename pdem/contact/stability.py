@@ -50,7 +50,7 @@ __all__ = ["STIFFNESS_LIMIT", "network_bound", "step_bound", "supported"]
 
 #: default ``run.stiffness_limit``: a run stops when dt exceeds this multiple of the bound (the
 #: bound is conservative; docs/study/stability.md gives the measured failures it was chosen from)
-STIFFNESS_LIMIT = 1.3
+STIFFNESS_LIMIT = 1.25
 
 
 def supported(law: Any) -> bool:
