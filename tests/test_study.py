@@ -277,3 +277,27 @@ vary = { "run.seed" = [1] }
         cmd = study.results()[0].record.command
         assert ("-n" in cmd and cmd[cmd.index("-n") + 1] == "2") == (ranks == 2)
     assert values[1] == values[2]
+
+
+def test_live_bound_columns_and_a_run_it_stops(tmp_path):
+    """study.csv carries the live step bound (its smallest value and dt over it); a run the bound
+    stops is 'failed' (exit 3) and still placed on the step axis from its message."""
+    deck = (Path(__file__).parent / "data" / "triaxial_small.toml").read_text()
+    spec = _spec(tmp_path, """
+[quantities.eps_v]
+path = "results.cell.eps_v_final"
+reference = { finest = "dem_p", by = "run.dt" }
+tolerance = 0.05
+
+[[series]]
+name = "dem_p"
+vary = { "run.dt" = [2e-6, 1e-5] }
+""", deck=deck)
+    study = Study.from_file(spec, jobs=2)
+    study.run(progress=None)
+    rows = {r["run.dt"]: r for r in study.table()}
+    ok, stopped = rows[2e-6], rows[1e-5]
+    assert ok["status"] == "ok" and ok["bound_dt"] > 2e-6 and 0 < ok["dt_over_bound"] < 1
+    assert stopped["status"] == "failed" and stopped["exit_code"] == 3
+    assert "run.stiffness_limit" in stopped["message"]
+    assert stopped["dt_ratio"] == pytest.approx(1e-5 / ok["dt"] * ok["dt_ratio"], rel=1e-3)

@@ -20,7 +20,11 @@ from .spec import Quantity, RunPlan, StudySpec, load_spec, plan_runs
 
 __all__ = ["Study", "RunResult"]
 
-_DT_IN_MESSAGE = re.compile(r"dt = ([0-9.eE+-]+) s, stability estimate ([0-9.eE+-]+) s")
+# the overlap check's message ("dt = X s, stability estimate Y s") and the live bound's ("dt = X s
+# is … the law's estimate Y s does not see them")
+_DT_IN_MESSAGE = re.compile(
+    r"dt = ([0-9.eE+-]+) s(?:, stability estimate| is .*?the law's estimate) ([0-9.eE+-]+) s"
+)
 
 
 @dataclass
@@ -249,6 +253,9 @@ class Study:
                 "steps": s.get("steps"),
                 "dt": s.get("dt"),
                 "dt_ratio": r.dt_ratio,
+                # the live step bound (DEM-P laws that support it): smallest over the run, and dt / it
+                "bound_dt": (s.get("stiffness_bound") or {}).get("dt_min"),
+                "dt_over_bound": (s.get("stiffness_bound") or {}).get("dt_over_bound"),
                 "mean_iterations": solver.get("mean_iterations"),
                 "unconverged_steps": solver.get("unconverged_steps"),
             }
