@@ -81,19 +81,20 @@ class Advice:
     raw: dict = field(repr=False, default_factory=dict)
     resolved: Any = field(repr=False, default=None)
 
-    @property
-    def changes(self) -> dict[str, Any]:
+    def _merged(self, kind: str) -> dict[str, Any]:
+        """Every finding's ``changes`` or ``suggestions``, later findings winning."""
         out: dict[str, Any] = {}
         for f in self.findings:
-            out.update(f.changes)
+            out.update(getattr(f, kind))
         return out
 
     @property
+    def changes(self) -> dict[str, Any]:
+        return self._merged("changes")
+
+    @property
     def suggestions(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for f in self.findings:
-            out.update(f.suggestions)
-        return out
+        return self._merged("suggestions")
 
     def set_args(self, which: str = "changes") -> list[str]:
         """The changes (or suggestions) as ``--set KEY=VALUE`` texts."""
