@@ -19,8 +19,8 @@ Boundaries (``pdem.boundaries``)
     :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
     :class:`Motion`, :class:`Fixed`, :class:`ConstantVelocity`, :class:`VelocityFunction`,
     :class:`PositionFunction`, :class:`Controlled` (velocities set by a controller),
-    :class:`Rotation`, :class:`Resize` (named sizes: radius, length, …), :class:`RigidBody` (a wall
-    moved by its load), :func:`rotation_matrix`.
+    :class:`Rotation`, :class:`Resize` (named sizes: radius, length, …), :class:`Follow` (moves with
+    another wall), :class:`RigidBody` (a wall moved by its load), :func:`rotation_matrix`.
 Writers (``pdem.writers``)
     :class:`Writer`, :class:`Frame`, :class:`WallState`, :class:`Piece`, :func:`atomic_write_text`,
     :func:`piece_name`, :func:`safe_key`, :data:`KIND_NAMES`, :func:`wall_triangles`.
@@ -48,6 +48,7 @@ from .boundaries.walls import (
     ConstantVelocity,
     Controlled,
     Fixed,
+    Follow,
     Motion,
     PositionFunction,
     Resize,
@@ -90,7 +91,7 @@ __all__ = [
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
-    "Controlled", "Rotation", "Resize", "RigidBody", "rotation_matrix",
+    "Controlled", "Rotation", "Resize", "RigidBody", "Follow", "rotation_matrix",
     "Writer", "Frame", "WallState", "Piece", "atomic_write_text", "piece_name", "safe_key",
     "wall_triangles",
     "Field", "dof_mask", "FREE", "FIXED", "PRESCRIBED", "REMOVED",

@@ -28,7 +28,7 @@ def packing():
     return x, r
 
 
-def _cell(packing, law="hertz_mindlin", rate=2.0, smoothing=0.1, mat=MAT):
+def _cell(packing, law="hertz_mindlin", rate=2.0, smoothing=0.1, mat=MAT, **extra):
     x, r = packing
     sim = pdem.Simulation(law=law)
     sim.add_material("glass", **mat)
@@ -37,7 +37,7 @@ def _cell(packing, law="hertz_mindlin", rate=2.0, smoothing=0.1, mat=MAT):
     cell = TriaxialCell("cell", TriaxialParams(
         type="triaxial", material="glass", base_center=(0, 0, 0), radius=R0, height=top + 1e-5,
         sigma3=SIGMA3, strain_rate=rate, consolidation_stage="consolidate", shear_stage="shear",
-        membrane_smoothing=smoothing))  # fmt: skip
+        membrane_smoothing=smoothing, **extra))  # fmt: skip
     sim.add_boundary(cell)
     sim.dt = 2e-6 if law == "hertz_mindlin" else 1e-4
     return sim, cell
@@ -300,3 +300,64 @@ def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):
     deck = tmp_path / "deck.toml"
     deck.write_text(text.replace('mould_stages = ["settle"]', 'mould_stages = ["setle"]'))
     assert main(["check", str(deck), "--deck-only"]) == 2
+
+
+def test_tied_membrane_ends_hold_the_end_grains_and_follow_the_platen(packing, tmp_path):
+    """``membrane_ends = "tied"``: a ring of the platen radius stands on each platen while the
+    membrane acts; the top one follows the top platen. No grain near a platen reaches past the ring,
+    the rings' radial loads enter the grains' own stress (σ_rr against σ₃ plus the rings' radial
+    load over the lateral area: equilibrium), and a resumed run continues bit for bit."""
+    sim, cell = _cell(packing, membrane_ends="tied")
+    low, high = sim.walls["cell.tie_bottom"], sim.walls["cell.tie_top"]
+    sim.set_stage("consolidate")
+    sim.run(until=0.012)
+    sim.set_stage("shear")
+    sim.run(until=sim.time + 0.03)  # ε_a ≈ 6 % at 2 /s
+    assert low.active and high.active
+    length = high.sizes["length"]
+    assert length == pytest.approx(cell._mean_diameter(sim), rel=1e-12)
+    assert low.sizes["length"] == length
+    top_z = cell.top.reference_point[2]
+    assert high.shape.base_center[2] + high.offset[2] + length == pytest.approx(top_z, abs=1e-12)
+    p = sim.particles
+    x, r = p.x[: p.n_owned], p.r[: p.n_owned]
+    s = np.hypot(x[:, 0], x[:, 1]) + r
+    ends = (x[:, 2] < length) | (x[:, 2] > top_z - length)
+    assert ends.sum() > 10
+    assert s[ends].max() < R0 + 0.05 * r.max()  # within the ring, up to a contact's overlap
+    wc = sim.wall_contacts()
+    names = list(sim.walls)
+    rings = np.isin(wc["wall"], [names.index("cell.tie_bottom"), names.index("cell.tie_top")])
+    assert rings.sum() > 0
+    order = np.argsort(p.id[: p.n_owned])
+    k = order[np.searchsorted(p.id[: p.n_owned][order], wc["id"][rings])]
+    d = x[k, :2]
+    rhat = d / np.hypot(d[:, 0], d[:, 1])[:, None]
+    radial = np.einsum("ij,ij->i", wc["force"][rings][:, :2], rhat)  # on the rings, outwards
+    m = cell.measurements(sim)
+    ring_pressure = R0 * radial.sum() / (2 * m["volume"])
+    assert ring_pressure > 0.003 * m["sigma3"]  # the rings carry load (~1 % here)
+    assert m["lw_srr"] == pytest.approx(m["sigma3"] + ring_pressure, rel=0.03)
+
+
+def test_tied_membrane_ends_resume_bitwise(tmp_path):
+    import sys
+    from pathlib import Path
+
+    from pdem.cli import main
+    from pdem.io.checkpoint import read_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tools"))
+    from determinism import compare
+
+    deck = root / "tests" / "data" / "triaxial_small.toml"
+    tied = ["--set", "boundaries.cell.membrane_ends=tied", "--quiet"]
+    assert main([str(deck), "--output", str(tmp_path / "full"), *tied]) == 0
+    ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
+    for stop in (600, 1300):  # consolidation (the rings sized), shear
+        out = tmp_path / f"stop{stop}"
+        assert main([str(deck), "--output", str(out), "--steps", str(stop), *tied]) == 0
+        assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]) == 0
+        got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+        assert compare(ref, got) is None, stop

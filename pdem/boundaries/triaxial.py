@@ -33,6 +33,13 @@ during consolidation (a velocity servo for soft grains; for rigid grains, ``cont
 free plate under the load σ₃ A, solved with the grains by DEM-C), then driven down at a constant
 axial strain rate during shearing (v = ε̇ H₀).
 
+**Membrane ends**: ``membrane_ends = "free"`` (default) leaves them open on infinite platens; with
+frictionless platens the end grains then slide outwards and the specimen flares at its ends (an
+hourglass). ``"tied"`` seals the membrane to the platens as in a laboratory cell: a rigid ring of
+the platen radius, ``tie_length`` high (one mean diameter by default), stands on each platen while
+the membrane acts (the top one follows the top platen); the specimen barrels instead, and the rings'
+radial loads are part of the grains' own stress (Love–Weber), not of σ₃.
+
 **Preparation**: an optional rigid mould (a cylinder wall of the specimen's radius) is active in the
 stages listed in ``mould_stages`` (e.g. while grains are poured and settle), while the top platen is
 servoed down to a small seating stress; the membrane takes over in ``consolidation_stage`` (its
@@ -59,7 +66,7 @@ from ..parallel.comm import all_max, all_max_array, all_sum_int_array
 from . import _membrane as _mb
 from . import shapes
 from .api import Boundary, BoundaryParams, Vec3
-from .walls import Controlled, RigidBody
+from .walls import Controlled, Follow, RigidBody
 
 __all__ = ["TriaxialCell", "TriaxialParams"]
 
@@ -96,6 +103,19 @@ class TriaxialParams(BoundaryParams):
         description="the membrane's (θ, z) cell counts: 'stage' fixes them at the first step of each "
         "stage (cells then stretch with the specimen); 'step' recomputes them every step from the "
         "current height and outer radius (a count that changes moves every cell's load at once)",
+    )
+    membrane_ends: str = Field(
+        "free", pattern="^(free|tied)$",
+        description="'tied': the membrane is sealed to the platens, as in a laboratory cell: a rigid ring "
+        "of the platen radius (``radius``) and ``tie_length`` high stands on each platen while the "
+        "membrane acts, so the end grains cannot spread past the platens' edges (with frictionless "
+        "platens they otherwise slide outwards and the specimen flares at its ends); 'free': the "
+        "membrane's ends are open and the platens are infinite planes",
+    )
+    tie_length: float | None = Field(
+        default=None, gt=0,
+        description="height of the rings of tied membrane ends above and below the platens [m]; "
+        "default one mean grain diameter",
     )
     control: str = Field(
         "auto", pattern="^(auto|velocity|force)$",
@@ -153,6 +173,13 @@ class TriaxialCell(Boundary):
         self.top = self.add_wall(sim, top, "top", motion=self.motion)
         mould = shapes.Cylinder(c, (0, 0, 1), p.radius)
         self.mould = self.add_wall(sim, mould, "mould") if p.mould_stages else None
+        self.rings: tuple = ()
+        if p.membrane_ends == "tied":  # sized when the membrane starts (one mean diameter by default)
+            length = p.tie_length or 0.1 * p.radius
+            low = self.add_wall(sim, shapes.CylinderTube(c, (0, 0, 1), p.radius, length), "tie_bottom")
+            tube = shapes.CylinderTube(c + (0, 0, p.height - length), (0, 0, 1), p.radius, length)
+            high = self.add_wall(sim, tube, "tie_top", motion=Follow(self.top))
+            self.rings = (low, high)
         self._comm = sim.comm
 
     def on_stage(self, sim: Any, stage: str) -> None:
@@ -169,6 +196,11 @@ class TriaxialCell(Boundary):
             sim.set_wall_active(wall.name, self.active)
         if self.mould is not None:
             sim.set_wall_active(self.mould.name, self.active and stage in p.mould_stages)
+        membrane = self.active and stage in (p.consolidation_stage, p.shear_stage)
+        for ring in self.rings:
+            sim.set_wall_active(ring.name, membrane)
+        if membrane and self.rings:
+            self._tie(sim)
         if not self.active:
             self.phase = "off"
             return
@@ -207,6 +239,21 @@ class TriaxialCell(Boundary):
             self._stage_t0 = resumed["stage_t0"]
             self.h0, self.v0 = resumed["h0"], resumed["v0"]
         self._stage = stage
+
+    def _tie(self, sim: Any) -> None:
+        """Size the tied ends' rings (``tie_length``, default one mean diameter) and stand the top
+        one on the top platen, which it follows from then on."""
+        length = self.params.tie_length or self._mean_diameter(sim)
+        low, high = self.rings
+        for ring in self.rings:
+            if ring.sizes["length"] != length:
+                ring.resize("length", length)
+        # the top ring spans [h − L, h]: its base is L below the platen, wherever the platen stands
+        # (from the built poses alone, so a resumed stage finds the same bits)
+        delta = np.array([0.0, 0.0, self.top.shape.reference_point[2] - length - high.shape.base_center[2]])
+        high.motion = Follow(self.top, delta)
+        high.set_offset(self.top.offset + delta)
+        sim.set_wall_motion(high.name, high.motion)
 
     def _seat_body(self, sim: Any, resumed: dict | None = None) -> None:
         """Force control while seating: the top platen becomes a free plate (mass: its load / 10
@@ -565,6 +612,22 @@ class TriaxialCell(Boundary):
             rr = r[np.searchsorted(ids, wc["id"][sel])] - 0.5 * wc["overlap"][sel]
             lever = np.zeros((rr.size, 3))
             lever[:, 2] = sign * rr
+            s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
+        for ring in self.rings:  # tied ends: the lever points to the nearest point of the ring
+            sel = wc["wall"] == names.index(ring.name)
+            if not (ring.active and sel.any()):
+                continue
+            k = np.searchsorted(ids, wc["id"][sel])
+            xc = x[k]
+            d = xc[:, :2] - self.axis_xy
+            rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-300)
+            zb = ring.shape.base_center[2] + ring.offset[2]
+            near = np.empty_like(xc)
+            near[:, :2] = self.axis_xy + d * (ring.sizes["radius"] / rho)[:, None]
+            near[:, 2] = np.clip(xc[:, 2], zb, zb + ring.sizes["length"])
+            n = near - xc
+            n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+            lever = n * (r[k] - 0.5 * wc["overlap"][sel])[:, None]
             s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
         _f, terms, _vir = getattr(self, "_applied", (None, np.zeros((0, 9)), None))
         # membrane forces act on owned grains: every rank's terms, summed exactly (any rank count)

@@ -42,6 +42,7 @@ __all__ = [
     "Rotation",
     "Resize",
     "RigidBody",
+    "Follow",
     "rotation_matrix",
 ]
 
@@ -287,6 +288,24 @@ class RigidBody(Motion):
         if "velocity" in state:
             self._v = np.array(state["velocity"], float)
             self._w = np.array(state["angular_velocity"], float)
+
+
+class Follow(Motion):
+    """Moves with another wall, ``leader``, at a fixed ``delta`` [m] from its offset (a ring tied to a
+    platen). Translation only: the follower takes the leader's offset + ``delta`` and its velocity
+    each step. The leader must have been added before the follower (walls advance in that order), so
+    the follower stands where the leader stands now; a leader moved by the DEM-C solve (a free
+    :class:`RigidBody`) moves after the walls advance, and the follower catches up a step later."""
+
+    def __init__(self, leader: Wall, delta=(0.0, 0.0, 0.0)) -> None:
+        self.leader = leader
+        self.delta = np.asarray(delta, dtype=float)
+
+    def move(self, wall, t, dt):
+        wall.velocity = np.asarray(self.leader.velocity, float).copy()
+        wall.omega = np.zeros(3)
+        wall.size_rate = 0.0
+        wall.set_offset(self.leader.offset + self.delta)
 
 
 # ---------------------------------------------------------------------------------------------
