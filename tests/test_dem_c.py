@@ -287,6 +287,31 @@ def test_solvers_reach_the_same_velocities_on_a_packing():
         assert np.max(np.abs(states[s] - states["apgd"])) < 1e-6, s
 
 
+def test_apgd_warm_start_on_a_resting_packing():
+    """``apgd_start = "warm"`` starts from the last step's impulses: on a packing at rest under
+    gravity they hardly change, so at the same iteration cap a warm solve ends much nearer the
+    solution (measured: 8× lower residual at 100 iterations), and solved to the tolerance both reach
+    the same velocities (the CCP's are unique)."""
+    base = _packing("apgd", tolerance=1e-10, max_iterations=5000)
+    base.run(steps=400)  # settled: a resting packing
+    state = base.state_dict()
+
+    def one_step(start, **kw):
+        sim = _packing("apgd", add=False, apgd_start=start, **kw)
+        sim.load_state(state)
+        sim.step()
+        return sim
+
+    capped = {s: one_step(s, tolerance=1e-12, max_iterations=100).integrator.last_residual for s in ("cold", "warm")}
+    assert capped["warm"] < 0.25 * capped["cold"], capped
+    solved = {s: one_step(s, tolerance=1e-9, max_iterations=20000) for s in ("cold", "warm")}
+    for s, sim in solved.items():
+        assert sim.integrator.last_residual <= 1e-9, s
+    assert solved["warm"].integrator.log[-1][3] > 60  # contacts
+    v = {s: sim.get_particles()["v"] for s, sim in solved.items()}
+    assert np.max(np.abs(v["warm"] - v["cold"])) < 1e-6
+
+
 def test_gauss_seidel_refuses_mpi_and_apgd_accepts_it(monkeypatch):
     """Gauss–Seidel is sequential across the packing: refused under MPI, with an error naming the key
     and the solvers that do run there. APGD and Jacobi run (tests/test_mpi.py: bitwise identical on
