@@ -82,11 +82,10 @@ PHI, Z, G = 0.6, 5.5, 9.81
 
 
 def shear_deck(tmp_path: Path, name: str = "deck.toml", E: float = 4.0e7, dt: float | None = None,
-               v: float = 0.01, max_time: float = 1.0) -> Path:  # fmt: skip
+               v: float = 0.01, max_time: float = 1.0, dt_fraction: float | None = None) -> Path:  # fmt: skip
     path = tmp_path / name
-    path.write_text(
-        SHEAR.format(E=repr(E), dt=f"dt = {dt!r}" if dt else "", v=repr(v), max_time=repr(max_time))
-    )
+    step = f"dt = {dt!r}" if dt else (f"dt_fraction = {dt_fraction!r}" if dt_fraction else "")
+    path.write_text(SHEAR.format(E=repr(E), dt=step, v=repr(v), max_time=repr(max_time)))
     return path
 
 
@@ -197,6 +196,29 @@ def test_over_modelled_deck_gets_the_three_changes_and_applies(tmp_path):
     assert resolved.boundaries["box"].shear_speed == v_new
     assert resolved.deck.output.directory == "out/shear_advised"
     assert main(["check", str(out)]) == 0
+
+
+def test_a_step_given_as_a_fraction_of_t_r_is_read_and_changed_as_one(tmp_path):
+    """run.dt_fraction steps the stages that give no dt: a fraction 10× finer than 0.2 T_R is seen
+    as such (advise once read it as pdem's default 0.2 T_R and changed nothing), changed through
+    run.dt_fraction (a deck may not give run.dt with it), and a too coarse one is warned with a
+    suggestion in the same key."""
+    t_r = rayleigh(R, RHO, 4e7, NU)
+    fine = advise(shear_deck(tmp_path, dt_fraction=0.02), probe=False)
+    step = finding(fine, "step", "stage shear")
+    assert step.numbers["dt [s]"] == pytest.approx(0.02 * t_r, rel=1e-9)
+    frac = fine.changes["run.dt_fraction"]
+    assert 3 * 0.02 <= frac <= 0.2
+    assert not [k for k in fine.changes if k.endswith(".dt")]
+    out = apply(fine, tmp_path / "advised.toml")
+    resolved = load_deck(out)
+    assert resolved.deck.run.dt_fraction == frac and resolved.deck.run.dt is None
+    coarse = advise(shear_deck(tmp_path, "coarse.toml", dt_fraction=0.6), probe=False)
+    step = finding(coarse, "step", "stage shear")
+    assert step.verdict == "warn"
+    assert step.suggestions and 0 < step.suggestions["run.dt_fraction"] < 0.6
+    same = advise(shear_deck(tmp_path, "same.toml", dt_fraction=0.2), probe=False)
+    assert "run.dt_fraction" not in same.changes
 
 
 def test_well_set_deck_gets_no_stiffness_or_step_change(tmp_path):

@@ -465,7 +465,7 @@ class _Advisor:
         """How much faster the run gets with the grains softened by ``factors``: the deck's steps as
         it stands against the steps at min(0.2 T_R, t_c/20) of the softer grains, weighted by the
         stages' lengths."""
-        default = rules.RAYLEIGH_FRACTION * self._rayleigh(proposed=False)
+        default = self._default_fraction() * self._rayleigh(proposed=False)
         before = sum((st.duration or 1.0) / (st.dt_given or default) for st in self.scene.stages)
         saved = dict(self.e_new)
         for name, k in factors.items():
@@ -473,6 +473,11 @@ class _Advisor:
         after = self._steps_needed()
         self.e_new = saved
         return before / after if after > 0 else 1.0
+
+    def _default_fraction(self) -> float:
+        """The fraction of T_R at which stages that give no dt step: run.dt_fraction, else 0.2."""
+        frac = self.scene.dt_fraction
+        return float(frac) if frac is not None else rules.RAYLEIGH_FRACTION
 
     def _steps_needed(self) -> float:
         t_r = self._rayleigh(proposed=True)
@@ -495,14 +500,16 @@ class _Advisor:
             return
         t_r_old = self._rayleigh(proposed=False)
         t_r = self._rayleigh(proposed=True)
-        default_old = rules.RAYLEIGH_FRACTION * t_r_old
-        default_new = rules.RAYLEIGH_FRACTION * t_r
+        frac = self._default_fraction()
+        by_fraction = sc.dt_fraction is not None
+        default_old = frac * t_r_old
+        default_new = frac * t_r
         need: dict[str, float] = {}
         info: dict[str, tuple] = {}
         for st in sc.stages:
             v, label = self._stage_speed(st)
             t_c, pair = self._collision(v)
-            n = min(default_new, t_c / rules.STEPS_PER_COLLISION)
+            n = min(rules.RAYLEIGH_FRACTION * t_r, t_c / rules.STEPS_PER_COLLISION)
             need[st.name] = n
             cur = st.dt_given if st.dt_given is not None else default_old
             self.dt_old[st.name] = cur
@@ -532,7 +539,17 @@ class _Advisor:
                 changes[f"stages.{s}.dt"] = new_dt[s] = rules.round_sig(need[s], 2, "down")
             else:
                 new_dt[s] = cur
-        for s in via_default:
+        if by_fraction and via_default:
+            # run.dt_fraction steps these stages: too fine (or, with softer grains, too coarse) a
+            # fraction is changed as a fraction, the key the deck uses
+            group = min(need[s] for s in via_default)
+            if group / default_new >= rules.CHANGE_FACTOR or (
+                self.e_new and default_new > rules.WARN_FACTOR * group
+            ):
+                changes["run.dt_fraction"] = rules.round_sig(group / t_r, 2, "down")
+            for s in via_default:
+                new_dt[s] = changes.get("run.dt_fraction", frac) * t_r
+        for s in via_default if not by_fraction else ():
             if self.e_new and default_new > rules.WARN_FACTOR * need[s]:
                 changes[f"stages.{s}.dt"] = new_dt[s] = rules.round_sig(need[s], 2, "down")
             else:
@@ -553,12 +570,14 @@ class _Advisor:
                 nums["dt advised/T_R"] = dt / t_r
             nums["live bound predicted [s]"] = live
             nums["live bound at delta/d"] = live_at
-            key = st.dt_key or "default (0.2 T_R)"
+            key = st.dt_key or (f"run.dt_fraction = {frac:g}" if by_fraction else "default (0.2 T_R)")
             src = ("physics reference §2: dt ≈ 0.1–0.3 T_R, at least ~20–50 steps per collision "
                    f"(here {rules.STEPS_PER_COLLISION}); t_c = 2.868 (m*²/(R* E*² v))^(1/5)")  # fmt: skip
             mine = {k: v2 for k, v2 in changes.items() if k == f"stages.{st.name}.dt"}
             if "run.dt" in changes and st.name in via_run and st.name == via_run[0]:
                 mine["run.dt"] = changes["run.dt"]
+            if "run.dt_fraction" in changes and st.name in via_default and st.name == via_default[0]:
+                mine["run.dt_fraction"] = changes["run.dt_fraction"]
             if cur > t_r_old * (1 + 1e-12) and not self.deck.run.force_dt:
                 verdict, reason = (
                     "warn",
@@ -568,21 +587,24 @@ class _Advisor:
                         f"(unless run.force_dt); use {need[st.name]:.3g} s"
                     ),
                 )
-                mysugg = {st.dt_key or "run.dt": rules.round_sig(need[st.name], 2, "down")}
+                mysugg = self._dt_setting(st, need[st.name], t_r)
             elif abs(dt / cur - 1) > 1e-9 and dt <= rules.WARN_FACTOR * need[st.name]:
-                via = st.name in via_run and "run.dt" in changes
+                via = (st.name in via_run and "run.dt" in changes) or (
+                    st.name in via_default and "run.dt_fraction" in changes
+                )
                 verdict = "change" if (mine or via) else "ok"
                 why = (f"softer grains (T_R {t_r_old:.3g} → {t_r:.3g} s)" if t_r > t_r_old * 1.001 else
                        "the step was finer than needed")  # fmt: skip
-                limit = ("0.2 T_R" if need[st.name] >= default_new * (1 - 1e-9)
+                limit = ("0.2 T_R" if need[st.name] >= rules.RAYLEIGH_FRACTION * t_r * (1 - 1e-9)
                          else f"{rules.STEPS_PER_COLLISION} steps per collision at {v:.3g} m/s "
                          f"({label})")  # fmt: skip
                 fewer = f"{dt / cur:.3g}× fewer steps" if dt > cur else f"{cur / dt:.3g}× more steps"
                 reason = f"dt {cur:.3g} → {dt:.3g} s ({fewer}): {why}; the step is now set by {limit}"
                 if via and not mine:
-                    reason += " (run.dt, changed above)"
+                    reason += " (run.dt_fraction, changed above)" if by_fraction else " (run.dt, changed above)"
                 elif verdict == "ok":
-                    reason += " (the deck gives no dt: pdem's default follows the stiffness)"
+                    reason += (" (run.dt_fraction follows the stiffness)" if by_fraction else
+                               " (the deck gives no dt: pdem's default follows the stiffness)")  # fmt: skip
             elif dt > rules.WARN_FACTOR * need[st.name]:
                 verdict = "warn"
                 reason = (
@@ -591,7 +613,8 @@ class _Advisor:
                     f"{rules.RAYLEIGH_FRACTION:g} "
                     f"T_R; {need[st.name]:.3g} s would resolve it"
                 )
-                mysugg = {f"stages.{st.name}.dt": rules.round_sig(need[st.name], 2, "down")}
+                mysugg = (self._dt_setting(st, need[st.name], t_r) if by_fraction and st.dt_key is None
+                          else {f"stages.{st.name}.dt": rules.round_sig(need[st.name], 2, "down")})  # fmt: skip
             else:
                 verdict = "ok"
                 reason = (f"dt = {cur:.3g} s ({key}) = {cur / t_r_old:.2g} T_R, {t_c / cur:.3g} steps per "
@@ -605,11 +628,19 @@ class _Advisor:
                     f"{live_at:.2g} ({live:.3g} s): the run would likely stop at run.stiffness_limit = "
                     f"{STIFFNESS_LIMIT:g}; take {safe:.3g} s"
                 )
-                mysugg = {st.dt_key or "run.dt": safe}
+                mysugg = self._dt_setting(st, safe, t_r)
                 src += "; live bound ≈ 0.092 T_R (δ/d)^(-1/4), docs/study/stability.md"
             self.findings.append(
                 Finding("step", f"stage {st.name}", verdict, reason, src, nums, mine, mysugg)
             )
+
+    def _dt_setting(self, st, dt: float, t_r: float) -> dict[str, float]:
+        """The key and value that give stage ``st`` the step ``dt`` [s] in the deck's own terms:
+        its stage or run dt, or run.dt_fraction (a fraction of T_R, rounded down) when that steps it
+        (a deck may not give both run.dt and run.dt_fraction)."""
+        if st.dt_key is None and self.scene.dt_fraction is not None:
+            return {"run.dt_fraction": rules.round_sig(dt / t_r, 2, "down")}
+        return {st.dt_key or "run.dt": rules.round_sig(dt, 2, "down")}
 
     # ------------------------------------------------------------------ inertial number
     def inertial(self) -> None:
@@ -876,7 +907,7 @@ class _Advisor:
             k = self.rate_factor.get(st.name, 1.0)
             t = st.duration / k
             t_total += t
-            dt_p = self.dt_new.get(st.name) or rules.RAYLEIGH_FRACTION * t_r
+            dt_p = self.dt_new.get(st.name) or self._default_fraction() * t_r
             steps_p += t / dt_p
             steps_p_old += st.duration / (self.dt_old.get(st.name) or dt_p)
             steps_c += t / h_c

@@ -78,6 +78,8 @@ class Scene:
     fall_height: float
     footprint: float | None
     probe: dict[str, Any] = field(default_factory=dict)
+    #: run.dt_fraction: stages that give no dt step at this fraction of the law's critical step (T_R)
+    dt_fraction: float | None = None
 
     @property
     def n(self) -> float:
@@ -214,6 +216,7 @@ def deck_scene(resolved: Any, raw: dict) -> Scene:
         wall_materials=wall_materials,
         materials=dict(deck.materials),
         run_dt=deck.run.dt,
+        dt_fraction=deck.run.dt_fraction,
         packed_height=packed,
         fall_height=_fall_height(groups, axis),
         footprint=footprint,
