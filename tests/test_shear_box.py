@@ -158,7 +158,7 @@ def test_low_stress_servo_at_a_larger_step(monkeypatch, capped):
     """150 beads of 2 mm under 50 Pa with the small deck's max_speed = 0.3 m/s (gain 6e-3 m/(s Pa)):
     held to 0.09 % at dt = 5e-6 s, but at dt = 1e-5 s the loop gain gain (K dt + 2 C) / A of the
     plate's contacts passes 2; without the gain cap (pdem.contact.stability.servo_gain) the plate
-    chattered, 235 % off the target (measured), capped 0.3 %."""
+    chattered, 235 % off the target over the last third of 0.15 s (measured), capped 0.7 %."""
     if not capped:
         monkeypatch.setattr("pdem.contact.stability.SERVO_LOOP_GAIN", math.inf)
     sim = pdem.Simulation()
@@ -174,7 +174,7 @@ def test_low_stress_servo_at_a_larger_step(monkeypatch, capped):
     sim.dt = 1e-5
     sim.set_stage("consolidate")
     rows = []
-    sim.run(until=0.1, callback=lambda s: rows.append((box.normal_force() / box.area, box.loop_gain)),
+    sim.run(until=0.15, callback=lambda s: rows.append((box.normal_force() / box.area, box.loop_gain)),
             every=10)  # fmt: skip
     sigma, loop = np.array(rows).T
     assert loop.max() > 2.0  # the given gain is unstable here

