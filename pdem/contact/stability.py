@@ -35,6 +35,11 @@ step at which each experiment fails.
 
 A law opts in by implementing :meth:`ContactLaw.contact_stiffness`; for laws that do not, the bound
 is not computed.
+
+The same linearisation, summed over one wall's contacts with the dashpots this time
+(:meth:`ContactLaw.contact_damping`), caps the gain of the velocity servos that hold a wall's load
+(:func:`wall_stiffness`, :func:`servo_gain`; the triaxial platen, the shear box plate, the
+servo-plate plugin): there the dashpots see the wall's velocity directly and matter most.
 """
 
 from __future__ import annotations
