@@ -20,7 +20,9 @@ Boundaries (``pdem.boundaries``)
     :class:`Motion`, :class:`Fixed`, :class:`ConstantVelocity`, :class:`VelocityFunction`,
     :class:`PositionFunction`, :class:`Controlled` (velocities set by a controller),
     :class:`Rotation`, :class:`Resize` (named sizes: radius, length, …), :class:`Follow` (moves with
-    another wall), :class:`RigidBody` (a wall moved by its load), :func:`rotation_matrix`.
+    another wall), :class:`RigidBody` (a wall moved by its load), :func:`rotation_matrix`; velocity
+    servos: :func:`servo_gain` (a proportional gain capped so the loop stays stable at the step,
+    from :func:`wall_stiffness`, the stiffness of a wall's contacts).
 Writers (``pdem.writers``)
     :class:`Writer`, :class:`Frame`, :class:`WallState`, :class:`Piece`, :func:`atomic_write_text`,
     :func:`piece_name`, :func:`safe_key`, :data:`KIND_NAMES`, :func:`wall_triangles`.
@@ -61,6 +63,7 @@ from .boundaries.walls import (
 from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, pair_forces, wall_forces
 from .contact._tangential import tangential_spring
 from .contact.law import ContactLaw, LawParams
+from .contact.stability import servo_gain, wall_stiffness
 from .contact.store import ContactStore
 from .errors import (
     CheckpointError,
@@ -92,6 +95,7 @@ __all__ = [
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
     "Controlled", "Rotation", "Resize", "RigidBody", "Follow", "rotation_matrix",
+    "servo_gain", "wall_stiffness",
     "Writer", "Frame", "WallState", "Piece", "atomic_write_text", "piece_name", "safe_key",
     "wall_triangles",
     "Field", "dof_mask", "FREE", "FIXED", "PRESCRIBED", "REMOVED",

@@ -96,6 +96,7 @@ TRIAXIAL = textwrap.dedent(
     from pdem.boundaries.triaxial import TriaxialCell, TriaxialParams
 
     pack, out = sys.argv[1], sys.argv[2]
+    max_speed = float(sys.argv[3]) if len(sys.argv) > 3 else 0.05
     comm = MPI.COMM_WORLD
     d = np.load(pack)
     sim = pdem.Simulation(comm=comm)
@@ -105,24 +106,24 @@ TRIAXIAL = textwrap.dedent(
     top = float((d["x"][:, 2] + d["r"]).max())
     cell = TriaxialCell("cell", TriaxialParams(
         type="triaxial", material="glass", base_center=(0, 0, 0), radius=3.5e-3, height=top + 1e-5,
-        sigma3=2e4, strain_rate=2.0, consolidation_stage="c", shear_stage="s"))
+        sigma3=2e4, strain_rate=2.0, consolidation_stage="c", shear_stage="s", max_speed=max_speed))
     sim.add_boundary(cell)
     sim.dt = 2e-6
     sim.set_stage("c")
-    sim.run(steps=1000)
+    loops = []
+    sim.run(steps=1000, callback=lambda s: loops.append(cell.loop_gain))
     sim.set_stage("s")
     sim.run(steps=800)
     p = sim.get_particles()
     m = cell.measurements(sim)
     if comm.rank == 0:
-        np.savez(out, x=p["x"], v=p["v"], f=p["f"], m=np.array([m[k] for k in sorted(m)]))
+        np.savez(out, x=p["x"], v=p["v"], f=p["f"], m=np.array([m[k] for k in sorted(m)]),
+                 loop=np.array(loops))
     """
 )
 
 
-def test_triaxial_identical_on_1_2_3_ranks(tmp_path):
-    """The membrane's outermost grains are a global maximum and its forces act on owned grains: the
-    triaxial test is bitwise identical on any number of ranks."""
+def _triaxial_on(tmp_path, ranks_list, *args):
     import pdem
     from pdem.sources import CylinderRegion, Uniform, pluviate
 
@@ -134,15 +135,30 @@ def test_triaxial_identical_on_1_2_3_ranks(tmp_path):
     script = tmp_path / "triaxial.py"
     script.write_text(TRIAXIAL)
     res = {}
-    for ranks in (1, 2, 3):
+    for ranks in ranks_list:
         out = tmp_path / f"t{ranks}.npz"
-        proc = subprocess.run([MPIEXEC, "-n", str(ranks), sys.executable, str(script), str(pack), str(out)],
-                              capture_output=True, text=True, timeout=600)
+        proc = subprocess.run([MPIEXEC, "-n", str(ranks), sys.executable, str(script), str(pack), str(out),
+                               *args], capture_output=True, text=True, timeout=600)  # fmt: skip
         assert proc.returncode == 0, proc.stderr[-3000:]
         res[ranks] = dict(np.load(out))
-    for ranks in (2, 3):
+    for ranks in ranks_list[1:]:
         for key in res[1]:
             assert np.array_equal(res[1][key], res[ranks][key]), (ranks, key)
+    return res[1]
+
+
+def test_triaxial_identical_on_1_2_3_ranks(tmp_path):
+    """The membrane's outermost grains are a global maximum and its forces act on owned grains: the
+    triaxial test is bitwise identical on any number of ranks."""
+    _triaxial_on(tmp_path, (1, 2, 3))
+
+
+def test_capped_platen_servo_identical_on_1_and_3_ranks(tmp_path):
+    """max_speed = 1 m/s: the platen servo's gain is capped (its loop gain from the stiffness and
+    dashpots of the platen's contacts, exact sums over ranks) in most steps, with the same bits on
+    any number of ranks."""
+    res = _triaxial_on(tmp_path, (1, 3), "1.0")
+    assert np.count_nonzero(res["loop"] > 1.0) > 300  # the cap acted
 
 
 def test_triaxial_deck_identical_on_1_and_4_ranks(tmp_path):

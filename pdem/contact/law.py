@@ -122,6 +122,23 @@ class ContactLaw:
         runs are unaffected."""
         raise NotImplementedError
 
+    def contact_damping(
+        self,
+        coef: np.ndarray,
+        mi: np.ndarray,
+        mj: np.ndarray,
+        r_eff: np.ndarray,
+        m_eff: np.ndarray,
+        overlap: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Optional, penalty laws: the contacts' dashpots, with the arguments of
+        :meth:`contact_stiffness`. Returns (c_n = −dF_n/dv_n [N s/m] ≥ 0, the normal dashpot at
+        these overlaps; c_t the tangential one, 0 where the contact carries no tangential force).
+        Velocity servos (:func:`pdem.contact.stability.servo_gain`) need it: a wall moved at v feels
+        c_n v at once, which with a large gain makes the servo chatter. A law that does not implement
+        it is taken as undamped there."""
+        raise NotImplementedError
+
     def suggested_dt(
         self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray
     ) -> float:

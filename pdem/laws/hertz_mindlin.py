@@ -249,6 +249,18 @@ class HertzMindlin(ContactLaw):
         k_t = np.where(material, 8.0 * c[:, 2] * a, a * c[:, 2])
         return s_n, np.where(c[:, 5] > 0.0, k_t, 0.0)
 
+    def contact_damping(self, coef, mi, mj, r_eff, m_eff, overlap):
+        """c_n and c_t of the kernel's formulas at these overlaps (c_t = 0 where μ = 0)."""
+        c = coef[mi, mj]
+        a = np.sqrt(r_eff * overlap)
+        material = c[:, 0] == 0.0
+        # material form: c_n = −2 sqrt(5/6) β sqrt(S_n m*), c_t = c_n sqrt(4 G*/E*); coefficients:
+        # c_n = a C_n m*, c_t = a C_t m*
+        c_mat = -2.0 * SQRT56 * c[:, 3] * np.sqrt(2.0 * c[:, 1] * a * m_eff)
+        c_n = np.where(material, c_mat, a * c[:, 3] * m_eff)
+        c_t = np.where(material, c_mat * c[:, 4], a * c[:, 4] * m_eff)
+        return c_n, np.where(c[:, 5] > 0.0, c_t, 0.0)
+
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Material form: the Rayleigh time min T_R. Coefficient form: 2 sqrt(m*/S_n) with the
         contact stiffness S_n = 1.5 K_n sqrt(R* δ) at δ = 0.1 r for two equal spheres (for the material

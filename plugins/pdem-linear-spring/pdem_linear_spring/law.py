@@ -206,6 +206,13 @@ class LinearSpring(ContactLaw):
         c = coef[mi, mj]
         return c[:, 0], np.where(c[:, 4] > 0.0, c[:, 1], 0.0)
 
+    def contact_damping(self, coef, mi, mj, r_eff, m_eff, overlap):
+        """The dashpots, for pdem's velocity servos: c_n = −2 β sqrt(k_n m*), c_t = c_n sqrt(k_t/k_n)
+        (0 where μ = 0)."""
+        c = coef[mi, mj]
+        c_n = -2.0 * c[:, 2] * np.sqrt(c[:, 0] * m_eff)
+        return c_n, np.where(c[:, 4] > 0.0, c_n * c[:, 3], 0.0)
+
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Stability limit of an FCC crystal of the lightest spheres (module docstring)."""
         if len(masses) == 0:

@@ -268,6 +268,29 @@ def test_contact_stiffness_matches_the_twin(pair):
     assert k_t == pytest.approx(-(f2 - f1) / s, rel=1e-6)
 
 
+
+@pytest.mark.parametrize("pair", [(0, 0), (0, 1), (1, 1)])
+def test_contact_damping_matches_the_twin(pair):
+    """pdem's velocity servos read the dashpots (pdem.contact.stability.servo_gain): c_n and c_t
+    as minus the twin's force differentiated in the normal and tangential velocity (zero step: the
+    tangential spring left out)."""
+    law = LinearSpring(kn=KN)
+    coef = law.coefficients(_table())
+    a, b = pair
+    m_eff, delta = 0.5 * MASS, 1e-6
+    c_n, c_t = (q[0] for q in law.contact_damping(
+        coef, np.array([a]), np.array([b]), np.array([R / 2]), np.array([m_eff]), np.array([delta])
+    ))
+    n = np.array([0.0, 0.0, 1.0])
+    z = np.zeros(3)
+
+    def force(v):
+        return force_numpy(delta, n, v, z, R / 2, m_eff, 1.0, coef[a, b], np.zeros(3), 0.0)[0]
+
+    s = 1e-9
+    assert c_n == pytest.approx(-(force(s * n)[2] - force(-s * n)[2]) / (2 * s), rel=1e-6)
+    assert c_t == pytest.approx(-force(np.array([s, 0.0, 0.0]))[0] / s, rel=1e-6)
+
 def test_critical_dt_formula():
     """critical_dt is the FCC-crystal limit of stable_dt; the undamped normal-mode bound alone would
     be sqrt(m*/k_n) (half the two-body limit); with ρ = 2/7 the rotation mode is stiffer."""
