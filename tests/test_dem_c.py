@@ -302,7 +302,8 @@ def test_apgd_warm_start_on_a_resting_packing():
         sim.step()
         return sim
 
-    capped = {s: one_step(s, tolerance=1e-12, max_iterations=100).integrator.last_residual for s in ("cold", "warm")}
+    capped = {s: one_step(s, tolerance=1e-12, max_iterations=100).integrator.last_residual
+              for s in ("cold", "warm")}  # fmt: skip
     assert capped["warm"] < 0.25 * capped["cold"], capped
     solved = {s: one_step(s, tolerance=1e-9, max_iterations=20000) for s in ("cold", "warm")}
     for s, sim in solved.items():

@@ -601,7 +601,7 @@ class _Advisor:
                 fewer = f"{dt / cur:.3g}× fewer steps" if dt > cur else f"{cur / dt:.3g}× more steps"
                 reason = f"dt {cur:.3g} → {dt:.3g} s ({fewer}): {why}; the step is now set by {limit}"
                 if via and not mine:
-                    reason += " (run.dt_fraction, changed above)" if by_fraction else " (run.dt, changed above)"
+                    reason += f" ({'run.dt_fraction' if by_fraction else 'run.dt'}, changed above)"
                 elif verdict == "ok":
                     reason += (" (run.dt_fraction follows the stiffness)" if by_fraction else
                                " (the deck gives no dt: pdem's default follows the stiffness)")  # fmt: skip
@@ -613,8 +613,9 @@ class _Advisor:
                     f"{rules.RAYLEIGH_FRACTION:g} "
                     f"T_R; {need[st.name]:.3g} s would resolve it"
                 )
-                mysugg = (self._dt_setting(st, need[st.name], t_r) if by_fraction and st.dt_key is None
-                          else {f"stages.{st.name}.dt": rules.round_sig(need[st.name], 2, "down")})  # fmt: skip
+                mysugg = {f"stages.{st.name}.dt": rules.round_sig(need[st.name], 2, "down")}
+                if by_fraction and st.dt_key is None:
+                    mysugg = self._dt_setting(st, need[st.name], t_r)
             else:
                 verdict = "ok"
                 reason = (f"dt = {cur:.3g} s ({key}) = {cur / t_r_old:.2g} T_R, {t_c / cur:.3g} steps per "
