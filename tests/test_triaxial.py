@@ -384,3 +384,28 @@ def test_tied_membrane_ends_resume_bitwise(tmp_path):
         assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]) == 0
         got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
         assert compare(ref, got) is None, stop
+
+
+def test_radial_membrane_load_keeps_the_pressure_and_drops_the_rest(packing):
+    """``membrane_load = "radial"``: every grain keeps only the radial part of its gradient load
+    (no tangential or axial component), rescaled so that the loads' radial virial is σ₃ × 2V, and
+    the grains' own σ_rr still matches σ₃."""
+    out = {}
+    for load in ("gradient", "radial"):
+        sim, cell = _cell(packing, membrane_load=load)
+        sim.set_stage("consolidate")
+        sim.run(until=0.002)
+        f = _membrane_only(sim, cell)
+        p = sim.particles
+        x = p.x[: p.n_owned]
+        u = x[:, :2] / np.hypot(x[:, 0], x[:, 1])[:, None]
+        radial = np.einsum("ij,ij->i", f[:, :2], u)
+        tangential = f[:, 1] * u[:, 0] - f[:, 0] * u[:, 1]
+        out[load] = (radial, tangential, f[:, 2])
+        assert cell._membrane_pressure(sim) == pytest.approx(SIGMA3, rel=1e-12)
+        assert cell.measurements(sim)["lw_srr"] == pytest.approx(SIGMA3, rel=0.03)
+    r_g, t_g, z_g = out["gradient"]
+    r_r, t_r, z_r = out["radial"]
+    assert np.abs(t_g).max() > 1e-3 * np.abs(r_g).max()  # the gradient has tangential parts ...
+    assert np.abs(t_r).max() <= 1e-12 * np.abs(r_r).max() and not np.any(z_r)  # ... the radial load none
+    assert np.all(r_r <= 0.0) and np.count_nonzero(r_r) > 20  # pushes inwards, on the surface grains

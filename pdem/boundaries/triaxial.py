@@ -119,6 +119,13 @@ class TriaxialParams(BoundaryParams):
         "platens they otherwise slide outwards and the specimen flares at its ends); 'free': the "
         "membrane's ends are open and the platens are infinite planes",
     )
+    membrane_load: str = Field(
+        "gradient", pattern="^(gradient|radial)$",
+        description="'gradient' (default): each grain's load is −σ₃ ∂V/∂x, along the membrane's normal "
+        "(conservative); 'radial': only its radial part, scaled to the same pressure (the membrane as a "
+        "locally straight cylinder; not conservative). For DEM-C, whose large step turns the gradient's "
+        "tangential parts on protruding grains into runaway speeds (docs/experiments/triaxial.md)",
+    )
     tie_length: float | None = Field(
         default=None, gt=0,
         description="height of the rings of tied membrane ends above and below the platens [m]; "
@@ -482,6 +489,15 @@ class TriaxialCell(Boundary):
         self._volume, self._lateral_area, self._radius = geometry
         self._cells = (nz, nt, int(filled.sum()))
         f, mom, vir = _mb.loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, dth, wrow, nt)  # σ₃ = 1
+        if self.params.membrane_load == "radial":
+            # each grain keeps the radial part of its load, acting through its centre at ρ + r
+            u = np.stack([dx, dy], axis=1) / np.maximum(rho, 1e-300)[:, None]
+            fr = np.einsum("ij,ij->i", f[:, :2], u)
+            f = np.zeros_like(f)
+            f[:, :2] = fr[:, None] * u
+            mom = np.zeros_like(mom)
+            mom[:, :2, :2] = (r * fr)[:, None, None] * np.einsum("ia,ib->iab", u, u)
+            vir = (rho + r) * fr
         loaded = np.flatnonzero(np.any(e > 0.0, axis=1))
         # the pressure the grains feel is the loads' radial virial over 2V, slightly less than the
         # pressure on V (the smooth maximum stands a little outside the grains); scale to σ₃ there
