@@ -409,3 +409,13 @@ def test_radial_membrane_load_keeps_the_pressure_and_drops_the_rest(packing):
     assert np.abs(t_g).max() > 1e-3 * np.abs(r_g).max()  # the gradient has tangential parts ...
     assert np.abs(t_r).max() <= 1e-12 * np.abs(r_r).max() and not np.any(z_r)  # ... the radial load none
     assert np.all(r_r <= 0.0) and np.count_nonzero(r_r) > 20  # pushes inwards, on the surface grains
+
+
+def test_a_tie_length_over_half_the_height_is_a_deck_error(tmp_path):
+    from pathlib import Path
+
+    from pdem.cli import main
+
+    deck = Path(__file__).resolve().parent / "data" / "triaxial_small.toml"
+    bad = ["--set", "boundaries.cell.membrane_ends=\"tied\"", "--set", "boundaries.cell.tie_length=0.01"]
+    assert main(["check", str(deck), *bad]) == 2

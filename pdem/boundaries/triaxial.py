@@ -158,6 +158,11 @@ class TriaxialParams(BoundaryParams):
     def _stages(self):
         if self.consolidation_stage == self.shear_stage:
             raise ValueError("consolidation_stage and shear_stage must be different stages")
+        if self.tie_length is not None and self.tie_length >= 0.5 * self.height:
+            raise ValueError(
+                f"tie_length = {self.tie_length!r} m must be below half the height "
+                f"({0.5 * self.height!r} m): the rings stand on the platens, about one grain diameter high (the default)"
+            )
         return self
 
 
