@@ -161,7 +161,8 @@ class TriaxialParams(BoundaryParams):
         if self.tie_length is not None and self.tie_length >= 0.5 * self.height:
             raise ValueError(
                 f"tie_length = {self.tie_length!r} m must be below half the height "
-                f"({0.5 * self.height!r} m): the rings stand on the platens, about one grain diameter high (the default)"
+                f"({0.5 * self.height!r} m): the rings stand on the platens, about one grain diameter "
+                "high (the default)"
             )
         return self
 
