@@ -38,8 +38,8 @@ def _box_with_plate(law: str, control: str = "velocity"):
 
 
 @pytest.mark.parametrize("law, control, dt, settle, hold", [
-    ("hertz_mindlin", "velocity", 2e-6, 0.2, 0.05),
-    ("complementarity", "force", 2e-4, 0.25, 0.1),
+    ("hertz_mindlin", "velocity", 1e-5, 0.2, 0.05),  # 0.15 of the Rayleigh time
+    ("complementarity", "force", 2e-4, 0.1, 0.05),
 ])  # fmt: skip
 def test_plate_holds_target_stress(law, control, dt, settle, hold):
     sim, plate = _box_with_plate(law, control)
@@ -106,14 +106,16 @@ def _run_deck(tmp_path, dt: float) -> dict:
     return json.loads((out / "summary.json").read_text())["results"]["lid"]
 
 
-def test_plugin_is_registered_and_runs_from_a_deck(tmp_path):
+def test_plugin_is_registered():
+    """Installed with pip, the plugin is found by its entry point (its deck runs in the tests
+    below)."""
     assert "servo_plate" in available("boundaries")
-    assert _run_deck(tmp_path, 2e-6)["mean_abs_error"] < 0.02
 
 
 @pytest.mark.parametrize("capped", [True, False])
 def test_deck_at_a_five_times_larger_step(tmp_path, monkeypatch, capped):
-    """dt = 1e-5 s: the plate's dashpots alone give a loop gain 2 gain C / A ≈ 1.9, its springs
+    """The plugin runs from a deck (through the CLI). dt = 1e-5 s, five times the step the deck
+    was first written for: the plate's dashpots alone give a loop gain 2 gain C / A ≈ 1.9, its springs
     0.15 more, past the limit 2: without the gain cap the plate chatters (its velocity alternating
     every step) and held 500 Pa with a mean error of 75 %; with it, 0.5 % (measured)."""
     if not capped:
