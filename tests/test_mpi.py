@@ -200,7 +200,8 @@ def test_failure_on_one_rank_ends_every_rank(tmp_path):
 
 
 def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
-    """n -> m resume: 2 ranks to step 4000, checkpoint, 3 ranks to 9000 == 1 rank to 9000, bitwise."""
+    """n -> m resume: 2 ranks to step 2500, checkpoint, 3 ranks to 5000 (mid-discharge at the
+    determinism tests' step) == 1 rank to 5000, bitwise."""
     sys.path.insert(0, str(ROOT / "tools"))
     from determinism import compare
 
@@ -211,14 +212,14 @@ def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
 
-    sets = [a for s in HOPPER_SETS for a in ("--set", s)]
+    sets = [a for s in HOPPER_SETS + HOPPER_DT for a in ("--set", s)]
     deck = ROOT / "inputs" / "hopper.toml"
-    pdem(1, deck, "--steps", 9000, "--output", "full", *sets)
-    pdem(2, deck, "--steps", 4000, "--output", "part", *sets)
-    pdem(3, "resume", "part/checkpoints/latest.h5", "--steps", 9000, "--output", "resumed")
+    pdem(1, deck, "--steps", 5000, "--output", "full", *sets)
+    pdem(2, deck, "--steps", 2500, "--output", "part", *sets)
+    pdem(3, "resume", "part/checkpoints/latest.h5", "--steps", 5000, "--output", "resumed")
     full, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
     resumed, _ = read_checkpoint(tmp_path / "resumed" / "checkpoints" / "latest.h5")
-    assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == 9000
+    assert int(full["scalars/step"]) == int(resumed["scalars/step"]) == 5000
     assert compare(full, resumed) is None
 
 
