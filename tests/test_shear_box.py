@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -41,9 +42,25 @@ def _run_small(tmp_path: Path, name: str, *overrides: str) -> tuple[dict, dict[s
 
 
 @pytest.fixture(scope="module")
-def dem_p(tmp_path_factory):
-    """The reduced deck as shipped (DEM-P, mu = 0.18 grains, 0.1 walls), 4 mm of shear."""
-    return _run_small(tmp_path_factory.mktemp("shear"), "dem_p")
+def dem_p_run(tmp_path_factory):
+    """The reduced deck as shipped (DEM-P, mu = 0.18 grains, 0.1 walls), 4 mm of shear: its output
+    directory, summary and shear series."""
+    tmp = tmp_path_factory.mktemp("shear")
+    return tmp / "dem_p", *_run_small(tmp, "dem_p")
+
+
+@pytest.fixture(scope="module")
+def dem_p(dem_p_run):
+    return dem_p_run[1:]
+
+
+def _shear_start(out: Path) -> Path:
+    """The checkpoint written where the shear stage begins (consolidated, not yet sheared)."""
+    for path in sorted((out / "checkpoints").glob("step_*.h5")):
+        with h5py.File(path, "r") as fh:
+            if fh.attrs["stage_name"] == "shear" and not fh.attrs["stage_started"]:
+                return path
+    raise AssertionError(f"no checkpoint at the start of the shear stage in {out}")
 
 
 def test_registered_and_decks_validate():
@@ -114,15 +131,24 @@ def test_dilation_measured_and_no_grain_escapes(dem_p):
     assert summary["particles"] == 350
 
 
-def test_friction_orders_the_strength(tmp_path, dem_p):
+def test_friction_orders_the_strength(tmp_path, dem_p_run):
     """Frictionless grains and walls resist little (geometric interlocking only); mu = 0.5 more than
-    the shipped mu = 0.18."""
-    short = ["boundaries.box.max_displacement=0.003", "stages.shear.end.above=0.00299"]
-    smooth, _ = _run_small(tmp_path, "smooth", "materials.glass.friction=0.0", "materials.wall.friction=0.0",
-                           *short)  # fmt: skip
-    rough, _ = _run_small(tmp_path, "rough", "materials.glass.friction=0.5", *short)
+    the shipped mu = 0.18. The same consolidated sample (the shipped run's checkpoint where its shear
+    begins) sheared 3 mm with the shear stage's friction changed."""
+    out, summary, _ = dem_p_run
+
+    def shear(name: str, *sets: str) -> dict:
+        args = ["resume", str(_shear_start(out)), "--output", str(tmp_path / name), "--quiet",
+                "--set", "stages.shear.end.above=0.00299"]  # fmt: skip
+        for s in sets:
+            args += ["--set", f"stages.shear.materials.{s}"]
+        assert main(args) == 0
+        return json.loads((tmp_path / name / "summary.json").read_text())
+
+    smooth = shear("smooth", "glass.friction=0.0", "wall.friction=0.0")
+    rough = shear("rough", "glass.friction=0.5")
     r0 = smooth["results"]["box"]["peak_ratio"]
-    r18 = dem_p[0]["results"]["box"]["peak_ratio"]
+    r18 = summary["results"]["box"]["peak_ratio"]
     r5 = rough["results"]["box"]["peak_ratio"]
     assert r0 < 0.4  # measured 0.34 (4 mm), residual 0.16
     assert r0 < r18 < r5
