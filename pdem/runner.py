@@ -1004,6 +1004,7 @@ class Runner:
         every_steps = out.every_steps
         every_time = out.every_time
         series_every = out.series_every_steps
+        series_dt = out.series_every_time  # replaces series_every when given
         ckpt_every = out.checkpoint_every_steps
         check_every = getattr(end, "check_every", None) or 100
         if resumed and self._resume_dt is not None and sim.dt != self._resume_dt:
@@ -1063,9 +1064,15 @@ class Runner:
                 self._write_frame(stage.name)
                 self._checkpoint(index, stage_start)
                 return False
+            t_before = sim.time
             sim.step()  # runs the boundaries' hooks
             in_stage = sim.step_count - stage_start[1]
-            if in_stage % series_every == 0:
+            if series_dt is not None:
+                if _intervals(sim.time, stage_start[0], series_dt, sim.dt) > _intervals(
+                    t_before, stage_start[0], series_dt, sim.dt
+                ):
+                    self._series_row(stage.name)
+            elif in_stage % series_every == 0:
                 self._series_row(stage.name)
             if every_steps and sim.step_count % every_steps == 0:
                 self._write_frame(stage.name)
@@ -1176,3 +1183,10 @@ def _thermo_cell(v: float | int) -> str:
 def _larger(limit: float) -> str:
     """A max_time to suggest after ``limit`` was reached: twice it, written short."""
     return f"{2.0 * limit:g}"
+
+
+def _intervals(t: float, t0: float, every: float, dt: float) -> int:
+    """How many whole intervals ``every`` lie between the stage's start ``t0`` and ``t`` (a time a
+    thousandth of a step short of a multiple counts as reaching it: the sum of steps rounds). The same
+    on every rank and after a resume, since it reads only the times."""
+    return math.floor((t - t0 + 1e-3 * dt) / every)

@@ -363,8 +363,9 @@ def sort_problems(problems: list[tuple[Loc, str]], data: Any) -> list[tuple[Loc,
 
 
 def make_deck_error(problems: list[tuple[Loc, str]], source: str | None = None) -> DeckError:
-    """One DeckError listing every problem, one per line; ``.problems`` = [(path, message), ...]."""
-    pairs = [(format_path(loc), msg) for loc, msg in problems]
+    """One DeckError listing every problem, one per line; ``.problems`` = [(path, message), ...].
+    A location is a key path, or a path already formatted (a string, e.g. another error's)."""
+    pairs = [(loc if isinstance(loc, str) else format_path(loc), msg) for loc, msg in problems]
     where = f"deck '{source}'" if source else "deck"
     count = f"{len(pairs)} problem{'s' if len(pairs) != 1 else ''}"
     lines = [f"{where} is invalid ({count}):"]

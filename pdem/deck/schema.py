@@ -766,13 +766,25 @@ class OutputCadence(_DeckModel):
     every_time: Float | None = Field(None, gt=0, description="snapshot interval [s]")
     every_steps: Int | None = Field(None, gt=0, description="snapshot interval [steps]")
     series_every_steps: Int | None = Field(None, gt=0, description="time-series interval [steps]")
+    series_every_time: Float | None = Field(None, gt=0, description="time-series interval [s]")
     checkpoint_every_steps: Int | None = Field(None, gt=0, description="checkpoint interval [steps]")
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
         if _given(data, "every_time") and _given(data, "every_steps"):
-            return [(("every_time",), "give at most one of every_time [s] and every_steps; both given")]
-        return []
+            out.append((("every_time",), "give at most one of every_time [s] and every_steps; both given"))
+        out += _series_cadence_rule(data)
+        return out
+
+
+def _series_cadence_rule(data: dict) -> Problems:
+    if _given(data, "series_every_time") and _given(data, "series_every_steps"):
+        return [(
+            ("series_every_time",),
+            "give at most one of series_every_time [s] and series_every_steps; both given",
+        )]  # fmt: skip
+    return []
 
 
 class StageMaterial(_ContactValues):
@@ -830,7 +842,15 @@ class OutputSection(_DeckModel):
         description="per-particle fields in snapshots: x (position), v (velocity), w (angular velocity), "
         "r (radius), material, f (force), contacts (contact count), id; default all",
     )
-    series_every_steps: Int = Field(100, gt=0, description="time-series interval [steps] (one CSV per stage)")
+    series_every_steps: Int | None = Field(
+        None, gt=0, description="time-series interval [steps] (one CSV per stage); default 100 when "
+        "series_every_time is not given"
+    )
+    series_every_time: Float | None = Field(
+        None, gt=0, description="time-series interval [s]: a row after each step that crosses a multiple "
+        "of it, counted from the stage's start (the same sampling in time at any step, e.g. DEM-P's and "
+        "DEM-C's); at most one of series_every_time, series_every_steps"
+    )
     checkpoint_every_steps: Int | None = Field(
         None, gt=0, description="periodic checkpoint interval [steps]; default: no periodic checkpoints"
     )
@@ -860,6 +880,8 @@ class OutputSection(_DeckModel):
 
     #: snapshot cadence when neither every_time nor every_steps is given
     DEFAULT_EVERY_STEPS: ClassVar[int] = 1000
+    #: time-series cadence when neither series_every_time nor series_every_steps is given
+    DEFAULT_SERIES_EVERY_STEPS: ClassVar[int] = 100
     #: ``parallel = "auto"`` writes per-rank files from this many particles on (and more than one rank)
     PER_RANK_ABOVE: ClassVar[int] = 1_000_000
 
@@ -875,6 +897,7 @@ class OutputSection(_DeckModel):
         out: Problems = []
         if _given(data, "every_time") and _given(data, "every_steps"):
             out.append((("every_time",), "give at most one of every_time [s] and every_steps; both given"))
+        out += _series_cadence_rule(data)
         allowed = tuple(context.get("writers") or KNOWN_WRITERS)
         formats = data.get("formats")
         if isinstance(formats, list):
@@ -917,6 +940,8 @@ class OutputSection(_DeckModel):
     def _default_cadence(self) -> OutputSection:
         if self.every_time is None and self.every_steps is None:
             self.every_steps = self.DEFAULT_EVERY_STEPS
+        if self.series_every_time is None and self.series_every_steps is None:
+            self.series_every_steps = self.DEFAULT_SERIES_EVERY_STEPS
         return self
 
     def merged(self, override: OutputCadence | None) -> OutputSection:
@@ -929,6 +954,10 @@ class OutputSection(_DeckModel):
             update["every_steps"] = None
         elif "every_steps" in update:
             update["every_time"] = None
+        if "series_every_time" in update:
+            update["series_every_steps"] = None
+        elif "series_every_steps" in update:
+            update["series_every_time"] = None
         return self.model_copy(update=update)
 
 
