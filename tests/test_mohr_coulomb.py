@@ -123,3 +123,40 @@ def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
     assert "materials.glass.youngs_modulus=200000000.0" in lines[1]
     with pytest.raises(SystemExit, match="shear_box"):
         fs.main(["direct_shear", str(ROOT / "inputs" / "triaxial.toml"), "--dry-run"])
+
+
+def test_moving_average_is_the_window_mean():
+    x = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    y = np.array([1.0, 3.0, np.nan, 5.0, 7.0])
+    assert np.allclose(mc.moving_average(x, y, 2.0), [2.0, 2.0, 4.0, 6.0, 6.0])
+    assert np.array_equal(mc.moving_average(x, y, 0.0)[[0, 1, 3, 4]], y[[0, 1, 3, 4]])
+
+
+@pytest.mark.parametrize("rows", [80, 2000])
+def test_smoothed_peak_of_a_noisy_shear_curve(tmp_path, rows):
+    """A curve rising to 0.6 at 2 mm and falling to 0.5, with ±0.1 noise on every row: the largest
+    row reads the noise (and grows with the number of rows); averaged over 0.5 mm, the peak is the
+    curve's within the noise's residue, at the right displacement."""
+    rng = np.random.default_rng(7)
+    u = np.linspace(1e-5, 0.004, rows)
+    true = np.where(u < 0.002, 0.6 * u / 0.002, 0.6 - 50.0 * (u - 0.002))
+    noisy = true + rng.uniform(-0.1, 0.1, rows)
+    out = tmp_path / "ds"
+    out.mkdir()
+    _write_series(out / "series_shear.csv", [
+        {"time": k, "step": k, "box.displacement": x, "box.ratio": r, "box.plane_ratio": r,
+         "box.normal_stress": 3100.0, "box.dilation": 0.0}
+        for k, (x, r) in enumerate(zip(u, noisy, strict=True))
+    ])  # fmt: skip
+    res = {"peak_ratio": float(noisy.max()), "residual_ratio": 0.5,
+           "peak_displacement": float(u[noisy.argmax()]), "max_dilation": 0.0,
+           "peak_plane_ratio": float(noisy.max()), "residual_plane_ratio": 0.5,
+           "plane_normal_stress_mean": 3100.0}  # fmt: skip
+    (out / "summary.json").write_text(json.dumps({"results": {"box": res}}))
+    raw = mc.read_run(out, 0.2)
+    smooth = mc.read_run(out, 0.2, smooth=5e-4)
+    assert raw["peak_ratio"] > 0.6 + 0.05  # the noise's excursion
+    # the window's mean of the true curve at its apex is 0.6 − 0.0094 (the slopes average down)
+    assert smooth["peak_ratio"] == pytest.approx(0.59, abs=0.03 if rows == 80 else 0.01)
+    assert smooth["u_peak"] == pytest.approx(0.002, abs=3e-4)
+    assert smooth["peak_ratio_applied"] == pytest.approx(smooth["peak_ratio"], abs=1e-12)

@@ -56,8 +56,29 @@ def _series(out: Path, key: str) -> dict[str, np.ndarray]:
     return {k: np.concatenate(v) for k, v in rows.items()}
 
 
-def read_run(out: Path, residual_fraction: float) -> dict:
-    """One run: its kind, boundary, stresses at the peak and at large strain, and its curves."""
+def moving_average(x: np.ndarray, y: np.ndarray, width: float) -> np.ndarray:
+    """The mean of ``y`` over the rows whose ``x`` lies within ``width``/2 of each row's (a centred
+    window in the curve's own abscissa, so rows every step and rows every 200 steps are averaged
+    over the same strain or displacement); NaN rows are left out."""
+    x = np.maximum.accumulate(np.asarray(x, dtype=float))
+    y = np.asarray(y, dtype=float)
+    lo = np.searchsorted(x, x - 0.5 * width, "left")
+    hi = np.searchsorted(x, x + 0.5 * width, "right")
+    good = np.isfinite(y)
+    c = np.concatenate([[0.0], np.cumsum(np.where(good, y, 0.0))])
+    n = np.concatenate([[0], np.cumsum(good)])
+    cnt = n[hi] - n[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, (c[hi] - c[lo]) / np.maximum(cnt, 1), np.nan)
+
+
+def read_run(out: Path, residual_fraction: float, smooth: float = 0.0) -> dict:
+    """One run: its kind, boundary, stresses at the peak and at large strain, and its curves.
+
+    ``smooth`` > 0: the peak is the largest value of the curve averaged over a window that wide
+    (axial strain for the triaxial test, shear displacement [m] for the shear box), not the largest
+    row: a noisy curve (DEM-C's unconverged solves, its free plate's jitter) would otherwise report
+    its noise's highest excursion, and the more rows, the higher."""
     path = out / "summary.json"
     if not path.is_file():
         raise SystemExit(f"{out}: no summary.json (not a finished pdem run)")
@@ -67,14 +88,16 @@ def read_run(out: Path, residual_fraction: float) -> dict:
             s = _series(out, f"{name}.eps_a")
             ea, q, s3 = (s[f"{name}.{k}"] for k in ("eps_a", "q", "sigma3"))
             ev = s[f"{name}.eps_v"]
-            k = int(np.argmax(q))
+            if smooth > 0:
+                q = moving_average(ea, q, smooth)
+            k = int(np.nanargmax(q))
             late = ea >= (1.0 - residual_fraction) * ea.max()
             s3_peak, s1_peak = float(s3[k]), float(s3[k] + q[k])
             s3_cs, s1_cs = float(s3[late].mean()), float((s3[late] + q[late]).mean())
             return {
                 "kind": "triaxial", "output": str(out), "boundary": name,
                 "sigma3": float(s3.mean()), "peak": (s1_peak, s3_peak), "critical": (s1_cs, s3_cs),
-                "eps_a_peak": float(ea[k]), "eps_v_final": float(ev[-1]),
+                "eps_a_peak": float(ea[k]), "eps_v_final": float(ev[-1]), "smooth": smooth,
                 "phi_peak_deg": _phi_triax(s1_peak, s3_peak), "phi_cs_deg": _phi_triax(s1_cs, s3_cs),
                 "wall_time_s": summary.get("wall_time_s"), "dt": summary.get("dt"),
                 "curves": {"x": ea, "y": q, "v": ev},
@@ -91,6 +114,13 @@ def read_run(out: Path, residual_fraction: float) -> dict:
             sigma = float(res["plane_normal_stress_mean"]) if on_plane else applied
             ppeak = float(res["peak_plane_ratio"]) if on_plane else peak
             pres = float(res["residual_plane_ratio"]) if on_plane else residual
+            u_peak = float(res["peak_displacement"])
+            if smooth > 0:
+                peak = float(np.nanmax(moving_average(u, ratio, smooth)))
+                plane = s.get(f"{name}.plane_ratio") if on_plane else None
+                sm = moving_average(u, plane if plane is not None else ratio, smooth)
+                k = int(np.nanargmax(sm))
+                ppeak, u_peak = float(sm[k]), float(u[k])
             return {
                 "kind": "direct_shear", "output": str(out), "boundary": name, "sigma": sigma,
                 "sigma_applied": applied, "on_plane": on_plane,
@@ -98,7 +128,7 @@ def read_run(out: Path, residual_fraction: float) -> dict:
                 "peak_ratio_applied": peak, "residual_ratio_applied": residual,
                 "tau_peak": ppeak * sigma, "tau_residual": pres * sigma,
                 "tau_peak_applied": peak * applied, "tau_residual_applied": residual * applied,
-                "u_peak": float(res["peak_displacement"]), "dilation_max": float(res["max_dilation"]),
+                "u_peak": u_peak, "dilation_max": float(res["max_dilation"]), "smooth": smooth,
                 "phi_peak_deg": math.degrees(math.atan(ppeak)),
                 "phi_residual_deg": math.degrees(math.atan(pres)),
                 "wall_time_s": summary.get("wall_time_s"), "dt": summary.get("dt"),
@@ -226,8 +256,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("outputs", type=Path, nargs="+")
     ap.add_argument("--out", type=Path, default=None, help="prefix of the .json/.csv/.png written")
     ap.add_argument("--residual-fraction", type=float, default=0.2)
+    ap.add_argument("--smooth", type=float, default=0.0, metavar="WIDTH",
+                    help="peaks of the curves averaged over this window (axial strain, or shear "
+                    "displacement in m), not of single rows; default 0: the largest row")  # fmt: skip
     args = ap.parse_args(argv)
-    runs = [read_run(o, args.residual_fraction) for o in args.outputs]
+    if not args.smooth >= 0:
+        ap.error(f"--smooth: {args.smooth!r} must be a width >= 0")
+    runs = [read_run(o, args.residual_fraction, args.smooth) for o in args.outputs]
     fits = analyse(runs)
     prefix = args.out or args.outputs[0] / "mohr_coulomb"
     prefix.parent.mkdir(parents=True, exist_ok=True)
