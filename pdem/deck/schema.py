@@ -771,20 +771,16 @@ class OutputCadence(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        out: Problems = []
-        if _given(data, "every_time") and _given(data, "every_steps"):
-            out.append((("every_time",), "give at most one of every_time [s] and every_steps; both given"))
-        out += _series_cadence_rule(data)
-        return out
+        return _cadence_rules(data)
 
 
-def _series_cadence_rule(data: dict) -> Problems:
-    if _given(data, "series_every_time") and _given(data, "series_every_steps"):
-        return [(
-            ("series_every_time",),
-            "give at most one of series_every_time [s] and series_every_steps; both given",
-        )]  # fmt: skip
-    return []
+def _cadence_rules(data: dict) -> Problems:
+    """At most one of each pair of cadences, by time or by steps ([output] and [stages.output])."""
+    return [
+        ((by_time,), f"give at most one of {by_time} [s] and {by_steps}; both given")
+        for by_time, by_steps in (("every_time", "every_steps"), ("series_every_time", "series_every_steps"))
+        if _given(data, by_time) and _given(data, by_steps)
+    ]
 
 
 class StageMaterial(_ContactValues):
@@ -894,10 +890,7 @@ class OutputSection(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        out: Problems = []
-        if _given(data, "every_time") and _given(data, "every_steps"):
-            out.append((("every_time",), "give at most one of every_time [s] and every_steps; both given"))
-        out += _series_cadence_rule(data)
+        out = _cadence_rules(data)
         allowed = tuple(context.get("writers") or KNOWN_WRITERS)
         formats = data.get("formats")
         if isinstance(formats, list):
