@@ -428,24 +428,36 @@ def speed_bounds(v, n, dv):
 
 @njit(inline="always")
 def _accumulate_row(c, cb, cn, ca, croll, gam, P, L):
-    """P, L += contact c's impulse and its moments on its two bodies."""
+    """P, L += contact c's impulse and its moments on its two bodies.
+
+    Every array is read before the first branch and only scalars are branched on: an array whose
+    last use in an inlined helper sits inside a branch keeps numba's reference counting (atomic
+    increments and decrements, calls into its runtime) inside the caller's loop, which made this
+    loop five times slower. The arithmetic is unchanged (the same bits)."""
     i = cb[c, 0]
     j = cb[c, 1]
     nx = cn[c, 0]
     ny = cn[c, 1]
     nz = cn[c, 2]
-    gx = gam[c, 0] * nx + gam[c, 1]
-    gy = gam[c, 0] * ny + gam[c, 2]
-    gz = gam[c, 0] * nz + gam[c, 3]
+    g0 = gam[c, 0]
+    g4 = gam[c, 4]
+    g5 = gam[c, 5]
+    g6 = gam[c, 6]
+    g7 = gam[c, 7]
+    gx = g0 * nx + gam[c, 1]
+    gy = g0 * ny + gam[c, 2]
+    gz = g0 * nz + gam[c, 3]
+    rs = croll[c, 2]
+    ai = ca[c, 0]
+    aj = ca[c, 1]
     # n × G; a_i × (−G) = −a_i (n × G), (−a_j n) × G = −a_j (n × G)
     cx = ny * gz - nz * gy
     cy = nz * gx - nx * gz
     cz = nx * gy - ny * gx
-    rs = croll[c, 2]
     if rs > 0.0:  # rolling and spinning: a pure moment R*(ρ + σ n) on j
-        mx = rs * (gam[c, 4] + gam[c, 7] * nx)
-        my = rs * (gam[c, 5] + gam[c, 7] * ny)
-        mz = rs * (gam[c, 6] + gam[c, 7] * nz)
+        mx = rs * (g4 + g7 * nx)
+        my = rs * (g5 + g7 * ny)
+        mz = rs * (g6 + g7 * nz)
     else:
         mx = 0.0
         my = 0.0
@@ -453,16 +465,16 @@ def _accumulate_row(c, cb, cn, ca, croll, gam, P, L):
     P[j, 0] += gx
     P[j, 1] += gy
     P[j, 2] += gz
-    L[j, 0] -= ca[c, 1] * cx - mx
-    L[j, 1] -= ca[c, 1] * cy - my
-    L[j, 2] -= ca[c, 1] * cz - mz
+    L[j, 0] -= aj * cx - mx
+    L[j, 1] -= aj * cy - my
+    L[j, 2] -= aj * cz - mz
     if i >= 0:
         P[i, 0] -= gx
         P[i, 1] -= gy
         P[i, 2] -= gz
-        L[i, 0] -= ca[c, 0] * cx + mx
-        L[i, 1] -= ca[c, 0] * cy + my
-        L[i, 2] -= ca[c, 0] * cz + mz
+        L[i, 0] -= ai * cx + mx
+        L[i, 1] -= ai * cy + my
+        L[i, 2] -= ai * cz + mz
 
 
 @njit
@@ -498,47 +510,76 @@ def velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, dof, n):
 
 @njit(inline="always")
 def _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w):
+    # arrays read before any branch (see _accumulate_row); a wall row (i < 0) reads body 0's values
+    # and uses the wall's
     i = cb[c, 0]
     j = cb[c, 1]
+    ii = i if i >= 0 else 0
     nx = cn[c, 0]
     ny = cn[c, 1]
     nz = cn[c, 2]
     aj = ca[c, 1]
+    ai = ca[c, 0]
+    bias = cbias[c]
+    vj0 = v[j, 0]
+    vj1 = v[j, 1]
+    vj2 = v[j, 2]
+    wj0 = w[j, 0]
+    wj1 = w[j, 1]
+    wj2 = w[j, 2]
+    vi0 = v[ii, 0]
+    vi1 = v[ii, 1]
+    vi2 = v[ii, 2]
+    wi0 = w[ii, 0]
+    wi1 = w[ii, 1]
+    wi2 = w[ii, 2]
+    cw0 = cvw[c, 0]
+    cw1 = cvw[c, 1]
+    cw2 = cvw[c, 2]
     # v_j + ω_j × (−a_j n)
-    rx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
-    ry = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
-    rz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
+    rx = vj0 - aj * (wj1 * nz - wj2 * ny)
+    ry = vj1 - aj * (wj2 * nx - wj0 * nz)
+    rz = vj2 - aj * (wj0 * ny - wj1 * nx)
     if i >= 0:
-        ai = ca[c, 0]
-        rx -= v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
-        ry -= v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
-        rz -= v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+        rx -= vi0 + ai * (wi1 * nz - wi2 * ny)
+        ry -= vi1 + ai * (wi2 * nx - wi0 * nz)
+        rz -= vi2 + ai * (wi0 * ny - wi1 * nx)
     else:
-        rx -= cvw[c, 0]
-        ry -= cvw[c, 1]
-        rz -= cvw[c, 2]
+        rx -= cw0
+        ry -= cw1
+        rz -= cw2
     vn = rx * nx + ry * ny + rz * nz
-    return vn + cbias[c], rx - vn * nx, ry - vn * ny, rz - vn * nz
+    return vn + bias, rx - vn * nx, ry - vn * ny, rz - vn * nz
 
 
 @njit(inline="always")
 def _rolling_velocity(c, cb, cn, cvw, croll, w):
     """R* × the relative angular velocity ω_j − ω_i (a wall: − Ω_w): its tangential part u_r and its
-    normal part u_s [m/s]."""
+    normal part u_s [m/s]. (Arrays read before any branch, as in :func:`_contact_velocity`.)"""
     i = cb[c, 0]
     j = cb[c, 1]
+    ii = i if i >= 0 else 0
     nx = cn[c, 0]
     ny = cn[c, 1]
     nz = cn[c, 2]
-    if i >= 0:
-        ox = w[j, 0] - w[i, 0]
-        oy = w[j, 1] - w[i, 1]
-        oz = w[j, 2] - w[i, 2]
-    else:
-        ox = w[j, 0] - cvw[c, 3]
-        oy = w[j, 1] - cvw[c, 4]
-        oz = w[j, 2] - cvw[c, 5]
+    wj0 = w[j, 0]
+    wj1 = w[j, 1]
+    wj2 = w[j, 2]
+    wi0 = w[ii, 0]
+    wi1 = w[ii, 1]
+    wi2 = w[ii, 2]
+    cw3 = cvw[c, 3]
+    cw4 = cvw[c, 4]
+    cw5 = cvw[c, 5]
     rs = croll[c, 2]
+    if i >= 0:
+        ox = wj0 - wi0
+        oy = wj1 - wi1
+        oz = wj2 - wi2
+    else:
+        ox = wj0 - cw3
+        oy = wj1 - cw4
+        oz = wj2 - cw5
     on = ox * nx + oy * ny + oz * nz
     return rs * (ox - on * nx), rs * (oy - on * ny), rs * (oz - on * nz), rs * on
 
@@ -781,13 +822,37 @@ def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
     sp3 = 0.0
     for q in range(rows.shape[0]):
         c = rows[q]
-        for k in range(8):
+        # rows without rolling or spinning friction have zero impulses and velocities in columns
+        # 4–7 (exact sums skip zero terms anyway: the sums are the same bits)
+        kmax = 8 if croll[c, 2] > 0.0 else 4
+        for k in range(kmax):
             s = g_new[c, k] - y[c, k]
             sp1 += exact_add(a1, b1, i1, s * (u_new[c, k] - gy[c, k]))
             sp2 += exact_add(a2, b2, i2, s * s)
             sp3 += exact_add(a3, b3, i3, gy[c, k] * (g_new[c, k] - gam_k[c, k]))
     res = residual_max(g_new, u_new, cmu, cscale, croll, nc)
     return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
+
+
+@njit
+def body_impulse_partials(cb, cn, gam, nc, body):
+    """Exact partials (as :func:`pdem.parallel.exact.dot_partials`) of the three components of
+    Σ (γ_n n + γ_t) over this rank's contacts with the rigid body ``body`` (rows whose first index is
+    ``body``), and their plain sums of non-finite terms: the impulse the body's contacts give the
+    grains, −(the impulse on the body)."""
+    ax, bx, ix = exact_accumulator()
+    ay, by, iy = exact_accumulator()
+    az, bz, iz = exact_accumulator()
+    spx = 0.0
+    spy = 0.0
+    spz = 0.0
+    for c in range(nc):
+        if cb[c, 0] != body:
+            continue
+        spx += exact_add(ax, bx, ix, gam[c, 0] * cn[c, 0] + gam[c, 1])
+        spy += exact_add(ay, by, iy, gam[c, 0] * cn[c, 1] + gam[c, 2])
+        spz += exact_add(az, bz, iz, gam[c, 0] * cn[c, 2] + gam[c, 3])
+    return exact_partials(ax), spx, exact_partials(ay), spy, exact_partials(az), spz
 
 
 @njit

@@ -439,18 +439,13 @@ class Stepper(Integrator):
         """v = v_free + P/M for every body, P the exact sum of its contacts' impulses over all
         ranks (each contact of a body is held by the rank that owns the grain), so the body moves
         alike on every rank and partition."""
-        from ..parallel.exact import exact_sums
-
         sim = self.sim
         n_tot = sim.particles.n
-        cb, cn, gam = self.cb[:nc], self.cn[:nc], self.gam[:nc]
         for j, (_k, wall) in enumerate(self._bodies):
-            rows = np.flatnonzero(cb[:, 0] == n_tot + j)
-            g = gam[rows, 0:1] * cn[rows] + gam[rows, 1:4]  # impulse on the grain; −g on the body
-            if sim.comm.size > 1:
-                P = -exact_sums(sim.comm, g)
-            else:
-                P = -np.array([math.fsum(g[:, c]) for c in range(3)])
+            px, sx, py, sy, pz, sz = ck.body_impulse_partials(self.cb, self.cn, self.gam, nc, n_tot + j)
+            # the impulse on the grains, correctly rounded (the body's is its negative)
+            g = exact_reduce(sim.comm, [(px, sx), (py, sy), (pz, sz)])[0]
+            P = -np.array(g)
             v = v_free[n_tot + j] + P / wall.motion.mass
             self.V[n_tot + j] = v * wall.motion.free_axes
 

@@ -125,14 +125,18 @@ def exact_accumulator():
 @njit(inline="always")
 def exact_add(acc, buf, bits, x):
     """acc += x exactly (x a double); returns x if it is not finite (sum those apart, as
-    :func:`dot_partials` does), else 0.0."""
-    if x == 0.0:
-        return 0.0
-    if not math.isfinite(x):
-        return x
+    :func:`dot_partials` does), else 0.0.
+
+    No branch touches an array: a zero or non-finite x adds the digits of +0 (nothing). An inlined
+    helper whose arrays are used only on some paths keeps numba's reference counting inside the
+    caller's loop (atomic operations per term), which made the APGD sums four times slower."""
     buf[0] = x
-    _acc_add(acc, bits[0])
-    return 0.0
+    b = bits[0]
+    finite = math.isfinite(x)
+    if not finite:
+        b = 0
+    _acc_add(acc, b)
+    return 0.0 if finite else x
 
 
 @njit(inline="always")
@@ -155,14 +159,7 @@ def dot_partials(a, b, rows):
     for q in range(rows.shape[0]):
         c = rows[q]
         for k in range(a.shape[1]):
-            x = a[c, k] * b[c, k]
-            if x == 0.0:
-                continue
-            if not math.isfinite(x):
-                special += x
-                continue
-            buf[0] = x
-            _acc_add(acc, ibuf[0])
+            special += exact_add(acc, buf, ibuf, a[c, k] * b[c, k])
     return _acc_digits(acc), special
 
 
