@@ -488,14 +488,14 @@ def accumulate(cb, cn, ca, croll, gam, nc, P, L):
 
 @njit(inline="always")
 def _lock(v, w, dof, i):
-    """Zero the locked velocity components of body i (``dof`` bits: v_c at c, ω_c at 3 + c)."""
+    """Zero the locked velocity components of body i (``dof`` bits: v_c at c, ω_c at 3 + c).
+    Written without branches around the stores (see :func:`_accumulate_row`)."""
     lock = dof[i]
-    if lock != 0:
-        for d in range(3):
-            if (lock >> d) & 1:
-                v[i, d] = 0.0
-            if (lock >> (d + 3)) & 1:
-                w[i, d] = 0.0
+    for d in range(3):
+        vd = v[i, d]
+        wd = w[i, d]
+        v[i, d] = 0.0 if (lock >> d) & 1 else vd
+        w[i, d] = 0.0 if (lock >> (d + 3)) & 1 else wd
 
 
 @njit
@@ -655,19 +655,6 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
     return rc, p0, g0, g1, g2, g3, n0, n1, n2, n3
 
 
-@njit(inline="always")
-def _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected):
-    """Contact c's Jacobi update (its rolling rows after its (γ_n, γ_t)); returns its residual."""
-    rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
-        c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
-    )
-    if croll[c, 2] > 0.0:
-        rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
-        if rr > rc or rr != rr:
-            rc = rr
-    return rc
-
-
 @njit
 def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected=True):
     """One projected Jacobi sweep: every contact from the same velocities (``corrected``: the
@@ -675,7 +662,16 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, ome
     (γ_n, γ_t). Returns the largest residual of the impulses before the sweep."""
     res = 0.0
     for c in range(nc):
-        rc = _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected)
+        # the rolling rows' update is called from the loop itself, not from an inlined helper: an
+        # inlined helper that uses arrays on some paths only keeps numba's reference counting in
+        # the loop (see _accumulate_row)
+        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+        )
+        if croll[c, 2] > 0.0:
+            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
     return res
@@ -690,7 +686,13 @@ def jacobi_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omeg
     L[:] = 0.0
     res = 0.0
     for c in range(nc):
-        rc = _jacobi_row(c, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, omega_relax, corrected)
+        rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+        )
+        if croll[c, 2] > 0.0:
+            rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
+            if rr > rc or rr != rr:
+                rc = rr
         if rc > res or rc != rc:
             res = rc
         _accumulate_row(c, cb, cn, ca, croll, gam, P, L)
