@@ -815,7 +815,8 @@ def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, correcte
 def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
     """The local reductions of one corrected-cone APGD trial, in one pass: exact partials (as
     :func:`pdem.parallel.exact.dot_partials`) of Σ (γ − y)·(ũ(γ) − ũ(y)), Σ |γ − y|² and
-    Σ ũ(y)·(γ − γ_k) over ``rows``, and the residual max of (γ, ũ(γ)) over all rows."""
+    Σ ũ(y)·(γ − γ_k) over ``rows`` (each row's dot product formed in double, the rows' sum exact),
+    and the residual max of (γ, ũ(γ)) over all rows."""
     a1, b1, i1 = exact_accumulator()
     a2, b2, i2 = exact_accumulator()
     a3, b3, i3 = exact_accumulator()
@@ -824,14 +825,21 @@ def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
     sp3 = 0.0
     for q in range(rows.shape[0]):
         c = rows[q]
-        # rows without rolling or spinning friction have zero impulses and velocities in columns
-        # 4–7 (exact sums skip zero terms anyway: the sums are the same bits)
+        # each row's three dot products in double, in column order (a function of the row's data
+        # only: the same on every rank), then summed exactly over the rows; rows without rolling
+        # or spinning friction have zeros in columns 4–7
         kmax = 8 if croll[c, 2] > 0.0 else 4
+        d1 = 0.0
+        d2 = 0.0
+        d3 = 0.0
         for k in range(kmax):
             s = g_new[c, k] - y[c, k]
-            sp1 += exact_add(a1, b1, i1, s * (u_new[c, k] - gy[c, k]))
-            sp2 += exact_add(a2, b2, i2, s * s)
-            sp3 += exact_add(a3, b3, i3, gy[c, k] * (g_new[c, k] - gam_k[c, k]))
+            d1 += s * (u_new[c, k] - gy[c, k])
+            d2 += s * s
+            d3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
+        sp1 += exact_add(a1, b1, i1, d1)
+        sp2 += exact_add(a2, b2, i2, d2)
+        sp3 += exact_add(a3, b3, i3, d3)
     res = residual_max(g_new, u_new, cmu, cscale, croll, nc)
     return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
 
@@ -855,6 +863,20 @@ def body_impulse_partials(cb, cn, gam, nc, body):
         spy += exact_add(ay, by, iy, gam[c, 0] * cn[c, 1] + gam[c, 2])
         spz += exact_add(az, bz, iz, gam[c, 0] * cn[c, 2] + gam[c, 3])
     return exact_partials(ax), spx, exact_partials(ay), spy, exact_partials(az), spz
+
+
+@njit
+def cone_shift(uraw, cmu, nc, out):
+    """out = ũ: the raw contact velocities with u_n += μ_c |u_t| (the arithmetic of
+    :func:`contact_velocities` with ``corrected``)."""
+    for c in range(nc):
+        u0 = uraw[c, 0]
+        u1 = uraw[c, 1]
+        u2 = uraw[c, 2]
+        u3 = uraw[c, 3]
+        out[c, 0] = u0 + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
+        for k in range(1, 8):
+            out[c, k] = uraw[c, k]
 
 
 @njit
