@@ -287,13 +287,45 @@ def test_solvers_reach_the_same_velocities_on_a_packing():
         assert np.max(np.abs(states[s] - states["apgd"])) < 1e-6, s
 
 
-def test_apgd_warm_start_on_a_resting_packing():
-    """``apgd_start = "warm"`` starts from the last step's impulses: on a packing at rest under
-    gravity they hardly change, so at the same iteration cap a warm solve ends much nearer the
-    solution (measured: 8× lower residual at 100 iterations), and solved to the tolerance both reach
-    the same velocities (the CCP's are unique)."""
+def _stack(start, add=True, **kw):
+    """A simple-cubic stack of 4 × 4 × 6 spheres on a floor, touching exactly: a static packing whose
+    impulses are the same every step."""
+    sim = make_sim("apgd", mu=0.4, dt=2e-4, apgd_start=start, **kw)
+    g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(6), indexing="ij"), -1).reshape(-1, 3)
+    if add:
+        sim.add_particles(g * 2 * R + R, R, material="glass")
+    floor(sim)
+    return sim
+
+
+def test_apgd_warm_start_on_a_static_stack():
+    """``apgd_start = "warm"`` starts from the last step's impulses (carried by contact key). On a
+    static packing they are the solution, so at a cap of 20 iterations a warm solve is at the
+    tolerance's level while a cold one is not (measured: 1.2e-13 against 4.5e-5 m/s).
+
+    (An earlier version of this test took one state of a packing still settling, 80 grains after
+    400 steps (speeds up to 5e-2 m/s), and found the warm residual 8× lower; over ten consecutive
+    states of that packing the ratio warm/cold at 100 iterations ranges 0.13–2.5, median 0.56: the
+    warm start is no reliable help while the grains still move.)"""
+    base = _stack("warm", tolerance=1e-12, max_iterations=20000)
+    base.run(steps=5)
+    assert base.integrator.last_iterations <= 2  # warm: at the solution from the start
+    state = base.state_dict()
+    capped = {}
+    for s in ("cold", "warm"):
+        sim = _stack(s, add=False, tolerance=1e-14, max_iterations=20)
+        sim.load_state(state)
+        sim.step()
+        capped[s] = sim.integrator.last_residual
+    assert capped["warm"] < 1e-9, capped
+    assert capped["warm"] < 1e-6 * capped["cold"], capped
+
+
+def test_apgd_warm_and_cold_starts_reach_the_same_velocities():
+    """Solved to the tolerance, a warm and a cold start reach the same velocities (the CCP's are
+    unique), here on a packing that is still settling (many contacts, grains moving)."""
     base = _packing("apgd", tolerance=1e-10, max_iterations=5000)
-    base.run(steps=400)  # settled: a resting packing
+    base.run(steps=400)
     state = base.state_dict()
 
     def one_step(start, **kw):
@@ -302,9 +334,6 @@ def test_apgd_warm_start_on_a_resting_packing():
         sim.step()
         return sim
 
-    capped = {s: one_step(s, tolerance=1e-12, max_iterations=100).integrator.last_residual
-              for s in ("cold", "warm")}  # fmt: skip
-    assert capped["warm"] < 0.25 * capped["cold"], capped
     solved = {s: one_step(s, tolerance=1e-9, max_iterations=20000) for s in ("cold", "warm")}
     for s, sim in solved.items():
         assert sim.integrator.last_residual <= 1e-9, s
