@@ -721,3 +721,37 @@ def test_a_fixed_envelope_reports_an_overlap_with_a_contact_it_left_out():
     summary = sim.integrator.summary()
     assert summary["missed_contact_steps"] == 1 and summary["envelope_short_steps"] == 1
     assert float(np.linalg.norm(sim.particles.x[1] - sim.particles.x[0])) < 2 * R  # overlapping
+
+
+def test_jacobi_check_every_skips_residuals_not_sweeps():
+    """``check_every = k``: the residual is formed on sweeps 1, k + 1, 2k + 1, … only. Solves that
+    run to the cap perform the same sweeps, so they give the same bits as k = 1; solves that
+    converge stop at a checked sweep (iterations ≡ 1 mod k) with the residual below the tolerance,
+    at most k − 1 sweeps after k = 1 stops."""
+
+    def run(k, **kw):
+        sim = _packing("jacobi", check_every=k, **kw)
+        sim.run(steps=60)
+        return sim
+
+    capped = {k: run(k, tolerance=1e-15, max_iterations=37) for k in (1, 5)}  # never converges
+    a, b = (capped[k].get_particles() for k in (1, 5))
+    for key in ("x", "v", "w"):
+        assert np.array_equal(a[key], b[key]), key
+    log5 = capped[5].integrator.log  # a step whose contacts are all open converges exactly (res 0)
+    assert all(it == 37 or (it % 5 == 1 and res <= 1e-15) for _, it, res, _ in log5)
+    assert sum(it == 37 for _, it, _, _ in log5) > 30
+
+    conv = {k: run(k, tolerance=1e-6, max_iterations=5000) for k in (1, 4)}
+    its = [it for _, it, _, nc in conv[4].integrator.log if nc > 0]
+    assert len(its) > 30 and all(it % 4 == 1 for it in its), its
+    assert all(res <= 1e-6 for _, _, res, _ in conv[4].integrator.log)
+    # the first step starts from the same state: k = 4 stops at the first checked sweep at or after
+    # k = 1's
+    first1, first4 = conv[1].integrator.log[0][1], conv[4].integrator.log[0][1]
+    assert first1 <= first4 <= first1 + 3, (first1, first4)
+
+
+def test_check_every_is_validated():
+    with pytest.raises(Exception, match="check_every"):
+        pdem.Simulation(law="complementarity", check_every=0)

@@ -632,10 +632,11 @@ def _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, bn, bn_new):
 
 
 @njit(inline="always")
-def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected):
+def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected, want_res=True):
     """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``); returns the
     residual of the old γ_c, the fully projected γ_n (the rolling rows' bound in the residual) and
-    the old and new impulses."""
+    the old and new impulses. Without ``want_res`` the residual is not formed (0, and γ_n for the
+    bound)."""
     u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
     b = cscale[c]
     mu = cmu[c]
@@ -645,7 +646,11 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
     g1 = gam[c, 1]
     g2 = gam[c, 2]
     g3 = gam[c, 3]
-    rc, p0 = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+    if want_res:
+        rc, p0 = _residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu)
+    else:
+        rc = 0.0
+        p0 = g0
     s = omega_relax * b
     n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
     gam[c, 0] = n0
@@ -678,20 +683,22 @@ def jacobi_update(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, ome
 
 
 @njit
-def jacobi_sweep(cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected, P, L):
+def jacobi_sweep(
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, nc, omega_relax, corrected, P, L, want_res=True
+):  # fmt: skip
     """:func:`jacobi_update` and :func:`accumulate` of the new impulses in one pass over the rows
     (the same arithmetic in the same order: the same bits). Returns the largest residual of the
-    impulses before the sweep."""
+    impulses before the sweep (0 without ``want_res``: the same new impulses, no residual formed)."""
     P[:] = 0.0
     L[:] = 0.0
     res = 0.0
     for c in range(nc):
         rc, p0, _g0, _g1, _g2, _g3, n0, _n1, _n2, _n3 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected, want_res
         )
         if croll[c, 2] > 0.0:
             rr = _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, p0, n0)[0]
-            if rr > rc or rr != rr:
+            if want_res and (rr > rc or rr != rr):
                 rc = rr
         if rc > res or rc != rc:
             res = rc
