@@ -488,14 +488,14 @@ def accumulate(cb, cn, ca, croll, gam, nc, P, L):
 
 @njit(inline="always")
 def _lock(v, w, dof, i):
-    """Zero the locked velocity components of body i (``dof`` bits: v_c at c, ω_c at 3 + c).
-    Written without branches around the stores (see :func:`_accumulate_row`)."""
+    """Zero the locked velocity components of body i (``dof`` bits: v_c at c, ω_c at 3 + c)."""
     lock = dof[i]
-    for d in range(3):
-        vd = v[i, d]
-        wd = w[i, d]
-        v[i, d] = 0.0 if (lock >> d) & 1 else vd
-        w[i, d] = 0.0 if (lock >> (d + 3)) & 1 else wd
+    if lock != 0:
+        for d in range(3):
+            if (lock >> d) & 1:
+                v[i, d] = 0.0
+            if (lock >> (d + 3)) & 1:
+                w[i, d] = 0.0
 
 
 @njit
