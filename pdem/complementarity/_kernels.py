@@ -873,17 +873,39 @@ def body_impulse_partials(cb, cn, gam, nc, body):
 
 
 @njit
-def cone_shift(uraw, cmu, nc, out):
-    """out = ũ: the raw contact velocities with u_n += μ_c |u_t| (the arithmetic of
-    :func:`contact_velocities` with ``corrected``)."""
+def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u, corrected):
+    """:func:`contact_velocities` writing the raw velocities to ``uraw`` and, with ``corrected``, ũ
+    (u_n + μ|u_t|) to ``u`` in the same pass (the arithmetic of :func:`contact_velocities`)."""
     for c in range(nc):
-        u0 = uraw[c, 0]
-        u1 = uraw[c, 1]
-        u2 = uraw[c, 2]
-        u3 = uraw[c, 3]
-        out[c, 0] = u0 + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
-        for k in range(1, 8):
-            out[c, k] = uraw[c, k]
+        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        uraw[c, 0] = u0
+        uraw[c, 1] = u1
+        uraw[c, 2] = u2
+        uraw[c, 3] = u3
+        if croll[c, 2] > 0.0:
+            uraw[c, 4], uraw[c, 5], uraw[c, 6], uraw[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
+        else:
+            uraw[c, 4] = uraw[c, 5] = uraw[c, 6] = uraw[c, 7] = 0.0
+        if corrected:
+            u[c, 0] = u0 + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
+            for k in range(1, 8):
+                u[c, k] = uraw[c, k]
+
+
+@njit
+def extrapolate_velocities(u_new, u_k, beta, cmu, nc, uraw_out, u_out, corrected):
+    """uraw_out = u + β (u − u_k) (:func:`extrapolate`'s arithmetic) and, with ``corrected``, u_out its
+    ũ (u_n + μ|u_t|, as :func:`contact_velocities` forms it), in one pass."""
+    for c in range(nc):
+        for k in range(8):
+            uraw_out[c, k] = u_new[c, k] + beta * (u_new[c, k] - u_k[c, k])
+        if corrected:
+            u1 = uraw_out[c, 1]
+            u2 = uraw_out[c, 2]
+            u3 = uraw_out[c, 3]
+            u_out[c, 0] = uraw_out[c, 0] + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
+            for k in range(1, 8):
+                u_out[c, k] = uraw_out[c, k]
 
 
 @njit

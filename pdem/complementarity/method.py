@@ -659,14 +659,11 @@ class Stepper(Integrator):
             self.gam[:nc] = gv
             self._sync_velocities(nc, v_free, w_free, P, L)
             uraw = np.empty((nc, 8))
-            ck.contact_velocities(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, uraw,
-                False,
+            u = np.empty((nc, 8)) if corrected else uraw
+            ck.contact_velocities_raw(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, uraw, u,
+                corrected,
             )  # fmt: skip
-            if not corrected:
-                return uraw, uraw
-            u = np.empty((nc, 8))
-            ck.cone_shift(uraw, cmu, nc, u)
             return u, uraw
 
         def grad(gv: np.ndarray) -> np.ndarray:
@@ -768,12 +765,8 @@ class Stepper(Integrator):
                 y = np.empty((nc, 8))
                 ck.extrapolate(g_new, gam_k, beta, nc, y)
                 gy_raw = np.empty((nc, 8))
-                ck.extrapolate(u_new_raw, u_k_raw, beta, nc, gy_raw)
-                if corrected:
-                    gy = np.empty((nc, 8))
-                    ck.cone_shift(gy_raw, cmu, nc, gy)
-                else:
-                    gy = gy_raw
+                gy = np.empty((nc, 8)) if corrected else gy_raw
+                ck.extrapolate_velocities(u_new_raw, u_k_raw, beta, cmu, nc, gy_raw, gy, corrected)
             lip *= 0.9
             t = 1.0 / lip
             gam_k = g_new
