@@ -147,9 +147,38 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
         for _ in range(20):
             hm.compute_forces()
         times_p.append((time.perf_counter() - t0) / 20 / max(touching, 1))
+    # an APGD iteration as the solver runs it (line-search trials, exact sums, Python between the
+    # kernels), on the rows of the first step: solves capped at 41 and at 1 iteration (tolerance out
+    # of reach), the difference per iteration and contact
+    sa = pdem.Simulation(law="complementarity", solver="apgd", max_iterations=1, tolerance=1e-30, envelope=0.0)
+    sa.add_material("glass", **(MAT | roll))
+    sa.add_particles(x, R, material="glass")
+    sa.dt = 1e-4
+    sa.max_overlap = 1.0
+    sa.step()
+    sta = sa.integrator
+    nca = sta.log[-1][3]
+    vf = np.zeros((p.n, 3))
+    wf = np.zeros((p.n, 3))
+    Pa = np.zeros((p.n, 3))
+    La = np.zeros((p.n, 3))
+    step_times, step_its = {}, {}
+    for cap in (1, 41):
+        sta.p = sta.p.model_copy(update={"max_iterations": cap})
+        ts, its = [], []
+        for _ in range(repeat):
+            sta.gam[:nca] = 0.0
+            t0 = time.perf_counter()
+            it, _res = sta._apgd(nca, vf, wf, Pa, La)
+            ts.append(time.perf_counter() - t0)
+            its.append(it)
+        step_times[cap], step_its[cap] = float(np.median(ts)), float(np.median(its))
+    apgd_it = (step_times[41] - step_times[1]) / (step_its[41] - step_its[1]) / nca
     return {
         "contacts_dem_c": nc,
         "touching_pairs_dem_p": touching,
+        "apgd_iteration_ns_per_contact": 1e9 * apgd_it,
+        "apgd_iteration_over_dem_p": apgd_it / float(np.median(times_p)),
         "jacobi_sweep_ns_per_contact": 1e9 * float(np.median(times_it)),
         "accumulate_ns_per_contact": 1e9 * float(np.median(times_acc)),
         "jacobi_iteration_ns_per_contact": 1e9 * float(np.median(times_fused)),
