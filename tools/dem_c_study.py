@@ -101,7 +101,7 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     st = sim.integrator
     p = sim.particles
     nc = st.log[-1][3]
-    times_it, times_acc, times_fused, times_unchecked = [], [], [], []
+    times_it, times_acc, times_fused, times_unchecked, times_gs = [], [], [], [], []
     P = np.zeros((p.n, 3))
     L = np.zeros((p.n, 3))
     v0, w0 = p.v[: p.n].copy(), p.w[: p.n].copy()
@@ -130,7 +130,14 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
             )  # fmt: skip
             ck.velocities(p.v, p.w, v0, w0, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
         t4 = time.perf_counter()
+        for _ in range(20):  # a Gauss–Seidel sweep (its iteration: velocities updated in place)
+            ck.gauss_seidel_sweep(
+                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
+                st.IM, st.II, st.DOF, nc, 0.3, True,
+            )  # fmt: skip
+        t5 = time.perf_counter()
         times_unchecked.append((t4 - t3) / 20 / nc)
+        times_gs.append((t5 - t4) / 20 / nc)
         times_it.append((t1 - t0) / 20 / nc)
         times_acc.append((t2 - t1) / 20 / nc)
         times_fused.append((t3 - t2) / 20 / nc)
@@ -183,6 +190,7 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
         "accumulate_ns_per_contact": 1e9 * float(np.median(times_acc)),
         "jacobi_iteration_ns_per_contact": 1e9 * float(np.median(times_fused)),
         "jacobi_iteration_unchecked_ns_per_contact": 1e9 * float(np.median(times_unchecked)),
+        "gauss_seidel_iteration_ns_per_contact": 1e9 * float(np.median(times_gs)),
         "dem_p_force_ns_per_contact": 1e9 * float(np.median(times_p)),
         "iteration_over_dem_p": float(np.median(times_fused)) / float(np.median(times_p)),
         "unchecked_iteration_over_dem_p": float(np.median(times_unchecked)) / float(np.median(times_p)),

@@ -82,14 +82,16 @@ HERTZ_COLLISION = 2.868
 # cost model: measured on this machine
 # ---------------------------------------------------------------------------------------------
 
-NS_PER_CONTACT_DEM_P = 35.5
+NS_PER_CONTACT_DEM_P = 43.5
 """DEM-P Hertz–Mindlin pair-force evaluation, ns per contact: ``tools/dem_c_study.py --parts 3``
-(4,000 spheres each overlapping its six neighbours, 11,200 contacts), quiet machine; docs/dem_c.md,
-*The hopper after the per-contact envelope and fused APGD*."""
+(4,000 spheres each overlapping its six neighbours, 11,200 contacts), 2026-11-25; docs/dem_c.md,
+*Kernel costs*."""
 
-NS_PER_CONTACT_ITERATION_DEM_C = 57.8
-"""DEM-C fused iteration with its velocity update, ns per contact and iteration: same run and
-document as :data:`NS_PER_CONTACT_DEM_P`."""
+NS_PER_CONTACT_ITERATION = {"jacobi": 37.3, "gauss_seidel": 41.0, "apgd": 98.2}
+"""DEM-C iteration per contact, by solver, same run and document as :data:`NS_PER_CONTACT_DEM_P`:
+Jacobi's fused sweep with its velocity update (residual formed on every sweep, ``check_every = 1``),
+a Gauss–Seidel sweep, and an APGD iteration as the solver runs it (line-search trials, exact sums,
+the Python between its kernels)."""
 
 PARTICLE_STEPS_PER_SECOND = 1.35e6
 """Whole DEM-P steps of a small scene, particle-steps per second on one core (the reduced direct
