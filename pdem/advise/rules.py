@@ -82,12 +82,13 @@ HERTZ_COLLISION = 2.868
 # cost model: measured on this machine
 # ---------------------------------------------------------------------------------------------
 
-NS_PER_CONTACT_DEM_P = 43.5
+NS_PER_CONTACT_DEM_P = 45.0
 """DEM-P Hertz–Mindlin pair-force evaluation, ns per contact: ``tools/dem_c_study.py --parts 3``
-(4,000 spheres each overlapping its six neighbours, 11,200 contacts), 2026-11-25; docs/dem_c.md,
+(4,000 spheres each overlapping its six neighbours, 11,200 contacts), medians of three runs on a
+quiet machine, 2026-11-25; docs/dem_c.md,
 *Kernel costs*."""
 
-NS_PER_CONTACT_ITERATION = {"jacobi": 37.3, "gauss_seidel": 41.0, "apgd": 98.2}
+NS_PER_CONTACT_ITERATION = {"jacobi": 37.8, "gauss_seidel": 42.0, "apgd": 98.1}
 """DEM-C iteration per contact, by solver, same run and document as :data:`NS_PER_CONTACT_DEM_P`:
 Jacobi's fused sweep with its velocity update (residual formed on every sweep, ``check_every = 1``),
 a Gauss–Seidel sweep, and an APGD iteration as the solver runs it (line-search trials, exact sums,
