@@ -214,6 +214,7 @@ class Stepper(Integrator):
         self._cap = 0
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
         self._bodies: list = []
+        self._apgd_work = np.empty((9, 0, 8))  # APGD's work arrays (see _apgd)
         self.corrected = self.p.cone == "corrected"
 
     def prepare(self) -> None:
@@ -652,28 +653,34 @@ class Stepper(Integrator):
             """Global exact Σ a·b for each (a, b) and global max of each local value."""
             return exact_reduce(comm, [dot_partials(a, b, rows) for a, b in pairs], maxima)
 
-        def grad2(gv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """(ũ(γ), u(γ)): the solver's velocities and the raw ones (the same array for the
-            relaxed cone). u is affine in γ, so u at an extrapolated point is the same combination
-            of the u's it was made from (see the iteration below)."""
+        # work arrays reused through the solve and across steps (views of one block): allocating
+        # them per iteration cost as much as the iteration's kernels on a 10,000-contact scene
+        # (page faults of fresh memory)
+        if self._apgd_work.shape[1] < nc:
+            self._apgd_work = np.empty((9, max(nc, int(1.25 * self._apgd_work.shape[1])), 8))
+        work = self._apgd_work
+        Y, GY, GYR, GK, UKR, GN, UN, UNR, BEST = (work[k, :nc] for k in range(9))
+
+        def grad2(gv: np.ndarray, u: np.ndarray, uraw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """(ũ(γ), u(γ)) written into ``u`` and ``uraw``: the solver's velocities and the raw ones
+            (the relaxed cone: both ``uraw``). u is affine in γ, so u at an extrapolated point is
+            the same combination of the u's it was made from (see the iteration below)."""
             self.gam[:nc] = gv
             self._sync_velocities(nc, v_free, w_free, P, L)
-            uraw = np.empty((nc, 8))
-            u = np.empty((nc, 8)) if corrected else uraw
+            if not corrected:
+                u = uraw
             ck.contact_velocities_raw(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, uraw, u,
                 corrected,
             )  # fmt: skip
             return u, uraw
 
-        def grad(gv: np.ndarray) -> np.ndarray:
-            return grad2(gv)[0]
-
         # a cold start: from the last step's impulses (the Jacobi warm start) APGD took 23.8 instead
         # of 22.8 iterations per step on the 300-bead hopper scene, and the 4,000-bead hopper's fill
         # (h = 1e-3 s) no longer settled below its kinetic-energy threshold by 0.3 s
         warm = self.gam[:nc].copy() if pr.apgd_start == "warm" else np.zeros((nc, 8))
-        r_vec = None if corrected else grad(np.zeros((nc, 8)))  # u(0) = r (the relaxed cone's f)
+        # u(0) = r (the relaxed cone's f), kept for the solve
+        r_vec = None if corrected else grad2(np.zeros((nc, 8)), UN, UNR)[0].copy()
 
         def objective(s_nu: float, s_r: float) -> float:
             # f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ
@@ -685,9 +692,9 @@ class Stepper(Integrator):
         ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * e_n, cmu, croll)
         d = g0 - ghat
         nd = math.sqrt(reduce([(d, d)])[0][0])
-        gy, gy_raw = grad2(g0)  # ũ and u at the first y = γ0
+        gy, gy_raw = grad2(g0, GY, GYR)  # ũ and u at the first y = γ0
         if nd > 0.0:
-            du = gy - grad(ghat)
+            du = gy - grad2(ghat, UN, UNR)[0]
             lip = math.sqrt(reduce([(du, du)])[0][0]) / nd
         else:
             lip = 0.0
@@ -695,11 +702,16 @@ class Stepper(Integrator):
             local = float(np.max(3.0 / cscale)) if nc else -math.inf
             lip = reduce([], [local])[1][0]
         t = 1.0 / lip
-        gam_k = g0
-        u_k_raw = gy_raw  # u(γ_k)
-        y = g0.copy()
+        gam_k = GK
+        gam_k[:] = g0
+        u_k_raw = UKR
+        u_k_raw[:] = gy_raw  # u(γ_k)
+        y = Y
+        y[:] = g0
         theta = 1.0
-        best = gam_k.copy()
+        best = BEST
+        best[:] = g0
+        g_new, u_new_raw = GN, UNR
         best_res = math.inf
         res = math.inf
         it = 0
@@ -713,9 +725,8 @@ class Stepper(Integrator):
                 s = reduce([(y, gy - r_vec), (r_vec, y)])[0]
                 fy = objective(s[0], s[1])
             while True:
-                g_new = np.empty((nc, 8))
                 ck.project_step(y, gy, t, cmu, croll, nc, g_new)  # Π(y − t ∇)
-                u_new, u_new_raw = grad2(g_new)
+                u_new, u_new_raw = grad2(g_new, UN, u_new_raw)
                 # one collective per trial: the acceptance test's sums, the restart test's and the
                 # residual (the last two used only if the trial is accepted)
                 if corrected:  # the three sums and the residual in one pass (fused kernel)
@@ -751,26 +762,26 @@ class Stepper(Integrator):
             res = m[0]
             if res < best_res:
                 best_res = res
-                best = g_new.copy()
+                best[:] = g_new
             if res <= pr.tolerance:
                 break
             if s[-1] > 0.0:  # restart
-                y = g_new.copy()
-                gy, gy_raw = u_new, u_new_raw
+                y[:] = g_new
+                gy_raw[:] = u_new_raw
+                if corrected:
+                    gy[:] = u_new
                 theta_new = 1.0
             else:
                 # y = γ + β (γ − γ_k), and u(y) = u(γ) + β (u(γ) − u(γ_k)) without solving for the
                 # bodies' velocities again (u is affine in γ; elementwise, so the same on every rank):
                 # one evaluation of ũ per iteration instead of two
-                y = np.empty((nc, 8))
                 ck.extrapolate(g_new, gam_k, beta, nc, y)
-                gy_raw = np.empty((nc, 8))
-                gy = np.empty((nc, 8)) if corrected else gy_raw
                 ck.extrapolate_velocities(u_new_raw, u_k_raw, beta, cmu, nc, gy_raw, gy, corrected)
             lip *= 0.9
             t = 1.0 / lip
-            gam_k = g_new
-            u_k_raw = u_new_raw
+            # γ_k ← γ, u(γ_k) ← u(γ); the old γ_k's arrays take the next trial
+            gam_k, g_new = g_new, gam_k
+            u_k_raw, u_new_raw = u_new_raw, u_k_raw
             theta = theta_new
         self.gam[:nc] = best
         self._sync_velocities(nc, v_free, w_free, P, L)
