@@ -157,7 +157,9 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     # an APGD iteration as the solver runs it (line-search trials, exact sums, Python between the
     # kernels), on the rows of the first step: solves capped at 41 and at 1 iteration (tolerance out
     # of reach), the difference per iteration and contact
-    sa = pdem.Simulation(law="complementarity", solver="apgd", max_iterations=1, tolerance=1e-30, envelope=0.0)
+    sa = pdem.Simulation(
+        law="complementarity", solver="apgd", max_iterations=1, tolerance=1e-30, envelope=0.0
+    )
     sa.add_material("glass", **(MAT | roll))
     sa.add_particles(x, R, material="glass")
     sa.dt = 1e-4

@@ -953,8 +953,9 @@ class _Advisor:
             f"a column of {layers:.0f} grains needs ~{estimate:,.0f} {solver} iterations cold "
             f"({'~N²' if solver != 'apgd' else '~N'}), a lower bound. Only contact work is counted (lists, "
             "integration and boundaries add to both) and Z = 5.5 is assumed. Given the step counts and "
-            "caps of pdem's measured runs, the model gives DEM-C/DEM-P 3.4× for the hopper (APGD, h = 1e-3 s, "
-            "cap 100; measured 1.9×) and 94× for the reduced direct shear (measured 12.7×): it leaves out "
+            "caps of pdem's measured runs, the model gives DEM-C/DEM-P 3.4× for the hopper (APGD, "
+            "h = 1e-3 s, cap 100; measured 1.9×) and 94× for the reduced direct shear (measured 12.7×): it "
+            "leaves out "
             "DEM-P's per-step work (lists, integration, Python between kernels), which dominates small "
             "scenes, so it overstates DEM-C's cost; and DEM-C's unconverged solves change the results"
         )
