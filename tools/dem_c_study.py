@@ -91,13 +91,19 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
 
     g = np.stack(np.meshgrid(np.arange(20), np.arange(20), np.arange(10), indexing="ij"), -1).reshape(-1, 3)
     x = g * 1.99 * R
-    sim = pdem.Simulation(law="complementarity", solver="jacobi", max_iterations=1, envelope=0.0)
     roll = {"rolling_friction": 0.1, "spinning_friction": 0.05} if rolling else {}
-    sim.add_material("glass", **(MAT | roll))
-    sim.add_particles(x, R, material="glass")
-    sim.dt = 1e-4
-    sim.max_overlap = 1.0
-    sim.step()
+
+    def block_step(**params):
+        """The block with DEM-C after one step (its contact rows assembled)."""
+        s = pdem.Simulation(law="complementarity", max_iterations=1, envelope=0.0, **params)
+        s.add_material("glass", **(MAT | roll))
+        s.add_particles(x, R, material="glass")
+        s.dt = 1e-4
+        s.max_overlap = 1.0
+        s.step()
+        return s
+
+    sim = block_step(solver="jacobi")
     st = sim.integrator
     p = sim.particles
     nc = st.log[-1][3]
@@ -157,15 +163,7 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     # an APGD iteration as the solver runs it (line-search trials, exact sums, Python between the
     # kernels), on the rows of the first step: solves capped at 41 and at 1 iteration (tolerance out
     # of reach), the difference per iteration and contact
-    sa = pdem.Simulation(
-        law="complementarity", solver="apgd", max_iterations=1, tolerance=1e-30, envelope=0.0
-    )
-    sa.add_material("glass", **(MAT | roll))
-    sa.add_particles(x, R, material="glass")
-    sa.dt = 1e-4
-    sa.max_overlap = 1.0
-    sa.step()
-    sta = sa.integrator
+    sta = block_step(solver="apgd", tolerance=1e-30).integrator
     nca = sta.log[-1][3]
     vf = np.zeros((p.n, 3))
     wf = np.zeros((p.n, 3))

@@ -804,18 +804,7 @@ def project_step(y, gy, t, mu, croll, nc, out):
 def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
     """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off); with
     ``corrected``, u_n += μ_c |u_t| (the corrected cone's ũ)."""
-    for c in range(nc):
-        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
-        if corrected:
-            u0 += cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
-        u[c, 0] = u0
-        u[c, 1] = u1
-        u[c, 2] = u2
-        u[c, 3] = u3
-        if croll[c, 2] > 0.0:
-            u[c, 4], u[c, 5], u[c, 6], u[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
-        else:
-            u[c, 4] = u[c, 5] = u[c, 6] = u[c, 7] = 0.0
+    contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, u, corrected)
 
 
 @njit
@@ -874,8 +863,8 @@ def body_impulse_partials(cb, cn, gam, nc, body):
 
 @njit
 def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u, corrected):
-    """:func:`contact_velocities` writing the raw velocities to ``uraw`` and, with ``corrected``, ũ
-    (u_n + μ|u_t|) to ``u`` in the same pass (the arithmetic of :func:`contact_velocities`)."""
+    """u = Dᵀ v + b for every contact into ``uraw`` and, with ``corrected``, ũ (u_n + μ_c |u_t|) into
+    ``u``, in one pass (``u`` may be ``uraw``: then it ends as ũ)."""
     for c in range(nc):
         u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
         uraw[c, 0] = u0
