@@ -38,6 +38,8 @@ from .errors import InputError, PdemError
 
 __all__ = ["main"]
 
+# a DEM-C run whose first step pushed its initial overlaps apart faster than this [m/s] is warned about
+INITIAL_RECOVERY_WARNING = 0.01
 SUBCOMMANDS = ("check", "advise", "resume", "plugins", "schema", "study")
 
 
@@ -189,6 +191,16 @@ def _print_summary(summary: dict, out: Path) -> None:
             f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "
             "on average" + note
         )
+        thrown = solver.get("initial_recovery_speed", 0.0)
+        if solver.get("recovery_speed") is None and thrown >= INITIAL_RECOVERY_WARNING:
+            print(
+                f"pdem: warning: the packing the run started from overlapped by up to "
+                f"{solver['initial_overlap']:.3g} m (a soft-grain preparation leaves such overlaps), and "
+                f"the first DEM-C step pushed it apart at {thrown:.3g} m/s, more at the top of a deep "
+                "bed, where the contacts below add up: that can throw grains and loosen the packing. "
+                "Set contact.complementarity.recovery_speed (e.g. 1e-3 m/s) to remove overlaps gently "
+                "(docs/dem_c.md, Initial overlaps)"
+            )
         missed, short = solver.get("missed_contact_steps", 0), solver.get("envelope_short_steps", 0)
         if missed or short:
             print(

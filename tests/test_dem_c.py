@@ -520,6 +520,41 @@ def test_penetration_recovery_speed_cap():
         assert sim.particles.v[0, 2] == pytest.approx(expected, rel=1e-9)
 
 
+def test_initial_overlap_is_reported_with_the_speed_the_first_step_removes_it():
+    """Two spheres starting δ deep in each other (no gravity, no cap) separate at δ/h after the
+    first step; the summary reports δ and that speed, and with a cap the cap; the CLI warns about
+    an uncapped one above INITIAL_RECOVERY_WARNING and not about a capped one."""
+    import io
+    from contextlib import redirect_stdout
+    from pathlib import Path
+
+    from pdem import cli
+
+    depth = 0.01 * R
+    for cap in (None, 1e-3):
+        kw = {} if cap is None else {"recovery_speed": cap}
+        sim = make_sim("apgd", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=500, **kw)
+        sim.add_particles([[0.0, 0.0, 0.0], [2 * R - depth, 0.0, 0.0]], R, material="glass")
+        sim.step()
+        gap_speed = sim.particles.v[1, 0] - sim.particles.v[0, 0]
+        summary = sim.integrator.summary()
+        assert summary["initial_overlap"] == pytest.approx(depth, rel=1e-9)
+        expected = depth / sim.dt if cap is None else cap
+        assert gap_speed == pytest.approx(expected, rel=1e-9)
+        assert summary["initial_recovery_speed"] == pytest.approx(expected, rel=1e-12)
+        sim.step()  # later steps do not change what the run started from
+        assert sim.integrator.summary()["initial_overlap"] == pytest.approx(depth, rel=1e-9)
+        out = io.StringIO()
+        run = {"steps": 2, "time": 2e-4, "particles": 2, "wall_time_s": 0.1, "solver": summary}
+        with redirect_stdout(out):
+            cli._print_summary(run, Path("out"))
+        warned = "contact.complementarity.recovery_speed" in out.getvalue()
+        if cap is None:
+            assert expected > cli.INITIAL_RECOVERY_WARNING and warned, out.getvalue()
+        else:
+            assert not warned, out.getvalue()
+
+
 def test_automatic_envelope_catches_fast_grains():
     """A sphere falling at 3 m/s travels 0.6 r per step at h = 2e-4 s: the automatic envelope
     (2.5 × travel) puts the floor in the problem before the sphere reaches it, so it stops on the

@@ -205,6 +205,9 @@ class Stepper(Integrator):
         # not solved again: that envelope is the user's choice)
         self.n_missed_steps = 0
         self.n_short_steps = 0  # steps whose fastest grain could close more than a fixed envelope
+        # the deepest grain-pair overlap of the packing the run starts from (e.g. left by a soft-grain
+        # preparation): the first step removes it at overlap / h, or at recovery_speed if capped
+        self.initial_overlap = 0.0
         self.n_steps = 0
         self.total_iterations = 0
         self.max_residual = 0.0
@@ -321,6 +324,8 @@ class Stepper(Integrator):
             return n_pair, nc, flags
 
         n_pair, nc, flags = assemble(spd)
+        if self.n_steps == 0:
+            self.initial_overlap = all_max(sim.comm, _deepest_overlap(p.x, p.r, cs.pi, cs.pj))
         g = sim.g
         v_free = np.empty((n_tot + nb, 3))
         w_free = np.zeros((n_tot + nb, 3))
@@ -493,6 +498,7 @@ class Stepper(Integrator):
                 ]
             ),
             "solver/max_residual": np.array(self.max_residual),
+            "solver/initial_overlap": np.array(self.initial_overlap),
         }
 
     def restore(self, state: dict) -> None:
@@ -504,6 +510,7 @@ class Stepper(Integrator):
             self.n_missed_steps = counters[5] if len(counters) > 5 else 0
             self.n_short_steps = counters[6] if len(counters) > 6 else 0
             self.max_residual = float(state["solver/max_residual"])
+            self.initial_overlap = float(state.get("solver/initial_overlap", 0.0))  # older checkpoints: 0
 
     def stats(self) -> dict[str, float]:
         """The last step's iterations and residual, and the run's counters (public statistics)."""
@@ -536,6 +543,12 @@ class Stepper(Integrator):
             "envelope_resolves": self.n_resolves,
             "missed_contact_steps": self.n_missed_steps,
             "envelope_short_steps": self.n_short_steps,
+            "recovery_speed": p.recovery_speed,
+            "initial_overlap": self.initial_overlap,
+            # how fast the first step pushed the deepest initial overlap apart
+            "initial_recovery_speed": (
+                min(self.initial_overlap / self.sim.dt, p.recovery_speed or math.inf) if self.n_steps else 0.0
+            ),
         }
 
     # ------------------------------------------------------------------ solvers
@@ -786,3 +799,11 @@ class Stepper(Integrator):
         self.gam[:nc] = best
         self._sync_velocities(nc, v_free, w_free, P, L)
         return it, best_res
+
+
+def _deepest_overlap(x: np.ndarray, r: np.ndarray, pi: np.ndarray, pj: np.ndarray) -> float:
+    """The largest overlap r_i + r_j − |x_i − x_j| of the listed pairs (0 when none overlaps)."""
+    if pi.size == 0:
+        return 0.0
+    gap = np.linalg.norm(x[pi] - x[pj], axis=1) - r[pi] - r[pj]
+    return float(max(0.0, -gap.min()))
