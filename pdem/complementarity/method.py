@@ -120,7 +120,9 @@ class ComplementarityParams(LawParams):
         default=None,
         gt=0,
         description="cap on the speed [m/s] at which penetration is removed (b = max(φ/h, −v)); "
-        "default: no cap (b = φ/h)",
+        "default: no cap (b = φ/h). Set it (e.g. 1e-3) when the run starts from a packing made with soft "
+        "grains (a poured bed): uncapped, its overlaps are pushed apart within one step and can throw "
+        "grains (summary.json: solver.initial_overlap, initial_recovery_speed)",
     )
     envelope_rule: Literal["contact", "global"] = Field(
         "contact",
