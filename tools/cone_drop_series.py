@@ -3,6 +3,7 @@
 
     python tools/cone_drop_series.py [DECK] [--tips sphere cone60 cone30] [--heights 0.02 0.05 0.1 0.3]
                                      [--ranks N] [--out DIR] [--set KEY=VALUE ...] [--render] [--dry-run]
+    python tools/cone_drop_series.py --compare DIR1 DIR2 [...] [--labels DEM-P DEM-C] [--out DIR]
 
 Each run is ``pdem DECK --set boundaries.pen.tip=... --set boundaries.pen.release_height=H`` (plus
 ``apex_deg`` and ``shaft_length`` = ``--cone-shaft`` for a cone: by default 0, solid cones of the
@@ -19,6 +20,10 @@ spheres in loose beads). Written: ``OUT/drop_series.csv`` (tip, H, d, H + d, imp
 how long the body has been at rest at the end, wall time), ``OUT/drop_series.json`` (the fits)
 and ``OUT/drop_series.png``. ``--render`` draws each run's last frame cut through the axis
 (``tools/render.py --clip-y``: the crater and the body) into ``OUT/<run>/crater.png``.
+
+``--compare`` runs nothing: it reads the ``drop_series.json`` of finished series (e.g. DEM-P and
+DEM-C) and writes ``OUT/drop_compare.csv`` (each tip and height: every series' depth and wall time,
+and each depth over the first series') and ``OUT/drop_compare.png`` (all on one log–log plot).
 """
 
 from __future__ import annotations
@@ -68,7 +73,12 @@ def main(argv: list[str] | None = None) -> int:
                     "deck's 0.1 drops the whole penetrometer)")  # fmt: skip
     ap.add_argument("--render", action="store_true", help="crater picture of each run (pyvista)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    ap.add_argument("--compare", type=Path, nargs="+", metavar="DIR",
+                    help="compare finished series (their drop_series.json) instead of running")  # fmt: skip
+    ap.add_argument("--labels", nargs="+", help="with --compare: one label per DIR (default: the names)")
     args = ap.parse_args(argv)
+    if args.compare:
+        return compare(args.compare, args.labels, args.out)
     runs = [(tip, h) for tip in args.tips for h in args.heights]
     rows = []
     for k, (tip, h) in enumerate(runs):
@@ -131,6 +141,67 @@ def main(argv: list[str] | None = None) -> int:
     fig.savefig(args.out / "drop_series.png", dpi=120)
     (args.out / "drop_series.json").write_text(json.dumps({"fits": fits, "runs": rows}, indent=2) + "\n")
     print(f"wrote {args.out / 'drop_series.csv'}, .json, .png", file=sys.stderr)
+    return 0
+
+
+def compare(dirs: list[Path], labels: list[str] | None, out: Path) -> int:
+    """Depths of several finished series side by side (see the module doc); 2 on missing input."""
+    labels = labels or [d.name for d in dirs]
+    if len(labels) != len(dirs):
+        print(f"--labels: {len(labels)} label(s) for {len(dirs)} director(ies)", file=sys.stderr)
+        return 2
+    series = []
+    for d in dirs:
+        f = d / "drop_series.json"
+        if not f.is_file():
+            print(f"{f}: not found; run the series into {d} first", file=sys.stderr)
+            return 2
+        series.append({(r["tip"], r["H_m"]): r for r in json.loads(f.read_text())["runs"]})
+    keys = list(dict.fromkeys(k for runs in series for k in runs))
+    rows = []
+    for tip, h in keys:
+        row: dict[str, object] = {"tip": tip, "H_m": h}
+        ref = series[0].get((tip, h))
+        for lab, runs in zip(labels, series, strict=True):
+            r = runs.get((tip, h))
+            row[f"depth_m {lab}"] = r["depth_m"] if r else math.nan
+            row[f"wall_time_s {lab}"] = r.get("wall_time_s") if r else math.nan
+            if lab != labels[0]:
+                row[f"{lab} / {labels[0]}"] = r["depth_m"] / ref["depth_m"] if r and ref else math.nan
+        rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "drop_compare.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    for row in rows:
+        print(f"{row['tip']:7s} H = {row['H_m'] * 100:4g} cm: " + ", ".join(
+            f"{lab} {row[f'depth_m {lab}'] * 1000:.2f} mm" for lab in labels) + "".join(
+            f"; {lab}/{labels[0]} {row[f'{lab} / {labels[0]}']:.3f}" for lab in labels[1:]))  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 5))
+    tips = list(dict.fromkeys(t for t, _ in keys))
+    colours = {t: f"C{k}" for k, t in enumerate(tips)}
+    for m, (lab, runs) in enumerate(zip(labels, series, strict=True)):
+        for tip in tips:
+            sel = [runs[k] for k in keys if k[0] == tip and k in runs]
+            if sel:
+                tot = np.array([r["total_drop_m"] for r in sel]) * 100
+                dep = np.array([r["depth_m"] for r in sel]) * 1000
+                style = "os^v"[m % 4] + "-:"[m % 2]
+                ax.loglog(tot, dep, style, color=colours[tip], mfc="none" if m else None, lw=0.8,
+                          label=f"{tip}, {lab}")  # fmt: skip
+    ax.set_xlabel("total drop distance H + d [cm]")
+    ax.set_ylabel("final depth d [mm]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "drop_compare.png", dpi=120)
+    print(f"wrote {out / 'drop_compare.csv'}, .png", file=sys.stderr)
     return 0
 
 

@@ -1,0 +1,57 @@
+"""tools/cone_drop_series.py: the power-law fit recovers known parameters, and --compare puts two
+finished series side by side (depth ratios per tip and height, a missing run as NaN, bad input as
+exit code 2)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+import cone_drop_series  # noqa: E402
+
+
+def test_power_law_fit_gives_the_parameters_back():
+    total = np.array([0.025, 0.057, 0.108, 0.31])
+    a, n = cone_drop_series.fit_power_law(total, 0.014 * total**0.24)
+    assert n == pytest.approx(0.24, abs=1e-12) and a == pytest.approx(0.014, rel=1e-10)
+    assert all(math.isnan(v) for v in cone_drop_series.fit_power_law(total[:1], total[:1]))
+
+
+def _series(path: Path, depths: dict[tuple[str, float], float]) -> Path:
+    runs = [
+        {"tip": tip, "H_m": h, "depth_m": d, "total_drop_m": h + d, "wall_time_s": 10.0 * (k + 1)}
+        for k, ((tip, h), d) in enumerate(depths.items())
+    ]
+    path.mkdir(parents=True)
+    (path / "drop_series.json").write_text(json.dumps({"fits": {}, "runs": runs}))
+    return path
+
+
+def test_compare_two_series(tmp_path, capsys):
+    p = _series(tmp_path / "p", {("sphere", 0.02): 0.005, ("sphere", 0.1): 0.008, ("cone60", 0.1): 0.012})
+    c = _series(tmp_path / "c", {("sphere", 0.02): 0.0045, ("sphere", 0.1): 0.0088})
+    out = tmp_path / "cmp"
+    assert cone_drop_series.main(["--compare", str(p), str(c), "--labels", "P", "C", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "drop_compare.csv").open()))
+    assert [(r["tip"], float(r["H_m"])) for r in rows] == [("sphere", 0.02), ("sphere", 0.1), ("cone60", 0.1)]
+    assert float(rows[0]["C / P"]) == pytest.approx(0.9, rel=1e-12)
+    assert float(rows[1]["C / P"]) == pytest.approx(1.1, rel=1e-12)
+    assert math.isnan(float(rows[2]["C / P"]))  # no DEM-C run for that one
+    assert (out / "drop_compare.png").stat().st_size > 0
+    assert "C/P 0.900" in capsys.readouterr().out
+
+
+def test_compare_refuses_missing_series_and_mismatched_labels(tmp_path, capsys):
+    p = _series(tmp_path / "p", {("sphere", 0.02): 0.005})
+    assert cone_drop_series.main(["--compare", str(p), str(tmp_path / "none"), "--out", str(tmp_path)]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert cone_drop_series.main(["--compare", str(p), "--labels", "A", "B", "--out", str(tmp_path)]) == 2
+    assert "--labels" in capsys.readouterr().err
