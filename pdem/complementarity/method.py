@@ -452,14 +452,14 @@ class Stepper(Integrator):
             wbinv[cs.wall_rows[k] : cs.wall_rows[k + 1]] = 1.0 / wall.motion.mass
         return wbody, wbinv
 
-    def _body_velocities(self, nc: int, v_free: np.ndarray) -> None:
-        """v = v_free + P/M for every body, P the exact sum of its contacts' impulses over all
+    def _body_velocities(self, nc: int, v_free: np.ndarray, gam: np.ndarray) -> None:
+        """v = v_free + P/M for every body, P the exact sum of its contacts' impulses ``gam`` over all
         ranks (each contact of a body is held by the rank that owns the grain), so the body moves
         alike on every rank and partition."""
         sim = self.sim
         n_tot = sim.particles.n
         for j, (_k, wall) in enumerate(self._bodies):
-            px, sx, py, sy, pz, sz = ck.body_impulse_partials(self.cb, self.cn, self.gam, nc, n_tot + j)
+            px, sx, py, sy, pz, sz = ck.body_impulse_partials(self.cb, self.cn, gam, nc, n_tot + j)
             # the impulse on the grains, correctly rounded (the body's is its negative)
             g = exact_reduce(sim.comm, [(px, sx), (py, sy), (pz, sz)])[0]
             P = -np.array(g)
@@ -554,17 +554,20 @@ class Stepper(Integrator):
         }
 
     # ------------------------------------------------------------------ solvers
-    def _sync_velocities(self, nc, v_free, w_free, P, L) -> None:
-        ck.accumulate(self.cb, self.cn, self.ca, self.croll, self.gam, nc, P, L)
-        self._apply_impulses(nc, v_free, w_free, P, L)
+    def _sync_velocities(self, nc, v_free, w_free, P, L, gam=None) -> None:
+        """Velocities from the impulses ``gam`` (default: the contacts' own, ``self.gam``)."""
+        gam = self.gam if gam is None else gam
+        ck.accumulate(self.cb, self.cn, self.ca, self.croll, gam, nc, P, L)
+        self._apply_impulses(nc, v_free, w_free, P, L, gam)
 
-    def _apply_impulses(self, nc, v_free, w_free, P, L) -> None:
-        """v, ω of every body from the accumulated impulses P, L; ghosts' forwarded."""
+    def _apply_impulses(self, nc, v_free, w_free, P, L, gam=None) -> None:
+        """v, ω of every body from the accumulated impulses P, L (and the rigid bodies' from ``gam``,
+        default ``self.gam``); ghosts' forwarded."""
         sim = self.sim
         p = sim.particles
         ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
         if self._bodies:
-            self._body_velocities(nc, v_free)
+            self._body_velocities(nc, v_free, self.gam if gam is None else gam)
         sim.forward_ghosts()
 
     def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
@@ -680,8 +683,7 @@ class Stepper(Integrator):
             """(ũ(γ), u(γ)) written into ``u`` and ``uraw``: the solver's velocities and the raw ones
             (the relaxed cone: both ``uraw``). u is affine in γ, so u at an extrapolated point is
             the same combination of the u's it was made from (see the iteration below)."""
-            self.gam[:nc] = gv
-            self._sync_velocities(nc, v_free, w_free, P, L)
+            self._sync_velocities(nc, v_free, w_free, P, L, gv)  # from gv itself: no copy into self.gam
             if not corrected:
                 u = uraw
             ck.contact_velocities_raw(
