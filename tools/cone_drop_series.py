@@ -179,6 +179,7 @@ def compare(dirs: list[Path], labels: list[str] | None, out: Path) -> int:
             f"{lab} {row[f'depth_m {lab}'] * 1000:.2f} mm" for lab in labels) + "".join(
             f"; {lab}/{labels[0]} {row[f'{lab} / {labels[0]}']:.3f}" for lab in labels[1:]))  # fmt: skip
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -197,6 +198,11 @@ def compare(dirs: list[Path], labels: list[str] | None, out: Path) -> int:
                           label=f"{tip}, {lab}")  # fmt: skip
     ax.set_xlabel("total drop distance H + d [cm]")
     ax.set_ylabel("final depth d [mm]")
+    for axis in (ax.xaxis, ax.yaxis):  # plain numbers: the decades here are few
+        axis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.set_xticks([2, 3, 5, 10, 20, 30])
+    ax.set_yticks([5, 7, 10, 15, 20, 30])
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     fig.tight_layout()
