@@ -373,3 +373,15 @@ def test_resume_inside_the_drop_is_bitwise(tmp_path):
     sa, sb = _series(full / "series_penetrate.csv"), _series(cont / "series_penetrate.csv")
     for key in ("pen.depth", "pen.velocity", "pen.tip_force", "pen.surface"):
         assert np.array_equal(sa[key], sb[key]), key
+
+
+def test_a_killed_sphere_drop_resumes_and_a_sphere_still_refuses_another_apex(tmp_path):
+    """The resolved deck stored in a checkpoint writes apex_deg's default out; resuming a sphere
+    drop from it must not read that as the user's apex angle (it did: 'applies to tip = cone
+    only'). An explicit other angle on a sphere is still an error naming the key."""
+    sets = ["--set", "boundaries.pen.tip=sphere", "--set", "boundaries.pen.mode=drop"]
+    out = tmp_path / "run"
+    assert main([str(SMALL), "--quiet", "--steps", "5", "--output", str(out), *sets]) == 0
+    assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--steps", "8", "--quiet"]) == 0
+    with pytest.raises(DeckError, match="apex_deg"):
+        load_deck(SMALL, overrides=["boundaries.pen.tip=sphere", "boundaries.pen.apex_deg=30.0"])

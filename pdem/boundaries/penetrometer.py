@@ -176,7 +176,10 @@ class PenetrometerParams(BoundaryParams):
 
     @model_validator(mode="after")
     def _consistent(self):
-        if self.tip == "sphere" and "apex_deg" in self.model_fields_set:
+        # a resolved deck (stored in every checkpoint) writes the default out: only another angle is
+        # a user's mistake
+        default = type(self).model_fields["apex_deg"].default
+        if self.tip == "sphere" and "apex_deg" in self.model_fields_set and self.apex_deg != default:
             raise ValueError("apex_deg applies to tip = 'cone' only; remove it or set tip = 'cone'")
         return self
 
