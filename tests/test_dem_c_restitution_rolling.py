@@ -288,3 +288,37 @@ def test_a_checkpoint_with_the_old_four_column_history_resumes():
     assert runs[1]["pairs/hist"].shape[1] == 8
     for k in runs[0]:
         assert np.array_equal(np.asarray(runs[0][k]), np.asarray(runs[1][k])), k
+
+
+# ------------------------------------------------------------------------- rows of 4 and of 8 columns
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_rows_without_rolling_give_the_bits_of_rows_of_eight(solver, monkeypatch):
+    """Without rolling or spinning friction the contact rows hold 4 impulses instead of 8 (half the
+    data streamed per iteration). The results must be the bits of the 8-column rows, also when rolling
+    friction is switched on mid-run (the rows widen, the warm start carries over)."""
+    from pdem.complementarity.method import Stepper
+
+    def run():
+        sim = make_sim(solver, dt=2e-4, e=0.3, max_iterations=30)
+        floor(sim)
+        rng = np.random.default_rng(3)
+        x = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(3)), -1).reshape(-1, 3) * 2.2 * R
+        x = x + rng.uniform(-0.1 * R, 0.1 * R, x.shape) + [0.0, 0.0, 1.2 * R]
+        sim.add_particles(x, R, material="glass", velocities=rng.uniform(-0.05, 0.05, x.shape))
+        widths = []
+        for k in range(2):
+            if k == 1:
+                sim.set_material("glass", rolling_friction=0.1, spinning_friction=0.05)
+            sim.run(steps=40)
+            widths.append(sim.integrator.gam.shape[1])
+        p = sim.get_particles()
+        return widths, {f: np.asarray(p[f]).copy() for f in ("x", "v", "w")}
+
+    widths, natural = run()
+    assert widths == [4, 8]
+    monkeypatch.setattr(Stepper, "_row_width", lambda self: 8)
+    widths8, eight = run()
+    assert widths8 == [8, 8]
+    assert np.any(natural["v"] != 0.0)
+    for f in natural:
+        assert np.array_equal(natural[f], eight[f]), f

@@ -113,7 +113,8 @@ def project_cone_array(g, mu, croll):
             out[c, 4], out[c, 5], out[c, 6] = clamp_norm(g[c, 4], g[c, 5], g[c, 6], croll[c, 0] * out[c, 0])
             out[c, 7] = clamp_abs(g[c, 7], croll[c, 1] * out[c, 0])
         else:
-            out[c, 4] = out[c, 5] = out[c, 6] = out[c, 7] = 0.0
+            for k in range(4, g.shape[1]):
+                out[c, k] = 0.0
     return out
 
 
@@ -250,10 +251,8 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bou
         croll[c, 1] = 0.0
         croll[c, 2] = 0.0
         croll[c, 3] = 0.0
-        gam[c, 4] = 0.0
-        gam[c, 5] = 0.0
-        gam[c, 6] = 0.0
-        gam[c, 7] = 0.0
+        for k in range(4, gam.shape[1]):  # rows of 8 (some pair of the scene rolls) or of 4
+            gam[c, k] = 0.0
 
 
 @njit
@@ -440,10 +439,13 @@ def _accumulate_row(c, cb, cn, ca, croll, gam, P, L):
     ny = cn[c, 1]
     nz = cn[c, 2]
     g0 = gam[c, 0]
-    g4 = gam[c, 4]
-    g5 = gam[c, 5]
-    g6 = gam[c, 6]
-    g7 = gam[c, 7]
+    # the rolling impulses (columns 4-7 of rows of 8; rows of 4 have none, and these read columns
+    # 0-3, unused: rs = 0 on every row of a scene without rolling friction)
+    o = gam.shape[1] - 4
+    g4 = gam[c, o]
+    g5 = gam[c, o + 1]
+    g6 = gam[c, o + 2]
+    g7 = gam[c, o + 3]
     gx = g0 * nx + gam[c, 1]
     gy = g0 * ny + gam[c, 2]
     gz = g0 * nz + gam[c, 3]
@@ -797,7 +799,8 @@ def project_step(y, gy, t, mu, croll, nc, out):
             out[c, 4], out[c, 5], out[c, 6] = clamp_norm(r4, r5, r6, croll[c, 0] * out[c, 0])
             out[c, 7] = clamp_abs(y[c, 7] - t * gy[c, 7], croll[c, 1] * out[c, 0])
         else:
-            out[c, 4] = out[c, 5] = out[c, 6] = out[c, 7] = 0.0
+            for k in range(4, out.shape[1]):
+                out[c, k] = 0.0
 
 
 @njit
@@ -864,7 +867,8 @@ def body_impulse_partials(cb, cn, gam, nc, body):
 @njit
 def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u, corrected):
     """u = Dᵀ v + b for every contact into ``uraw`` and, with ``corrected``, ũ (u_n + μ_c |u_t|) into
-    ``u``, in one pass (``u`` may be ``uraw``: then it ends as ũ)."""
+    ``u``, in one pass (``u`` may be ``uraw``: then it ends as ũ). Rows of 8 or of 4 (no rolling)."""
+    width = uraw.shape[1]
     for c in range(nc):
         u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
         uraw[c, 0] = u0
@@ -874,10 +878,11 @@ def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u
         if croll[c, 2] > 0.0:
             uraw[c, 4], uraw[c, 5], uraw[c, 6], uraw[c, 7] = _rolling_velocity(c, cb, cn, cvw, croll, w)
         else:
-            uraw[c, 4] = uraw[c, 5] = uraw[c, 6] = uraw[c, 7] = 0.0
+            for k in range(4, width):
+                uraw[c, k] = 0.0
         if corrected:
             u[c, 0] = u0 + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
-            for k in range(1, 8):
+            for k in range(1, width):
                 u[c, k] = uraw[c, k]
 
 
@@ -885,15 +890,16 @@ def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u
 def extrapolate_velocities(u_new, u_k, beta, cmu, nc, uraw_out, u_out, corrected):
     """uraw_out = u + β (u − u_k) (:func:`extrapolate`'s arithmetic) and, with ``corrected``, u_out its
     ũ (u_n + μ|u_t|, as :func:`contact_velocities` forms it), in one pass."""
+    width = u_new.shape[1]
     for c in range(nc):
-        for k in range(8):
+        for k in range(width):
             uraw_out[c, k] = u_new[c, k] + beta * (u_new[c, k] - u_k[c, k])
         if corrected:
             u1 = uraw_out[c, 1]
             u2 = uraw_out[c, 2]
             u3 = uraw_out[c, 3]
             u_out[c, 0] = uraw_out[c, 0] + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
-            for k in range(1, 8):
+            for k in range(1, width):
                 u_out[c, k] = uraw_out[c, k]
 
 
@@ -901,23 +907,29 @@ def extrapolate_velocities(u_new, u_k, beta, cmu, nc, uraw_out, u_out, corrected
 def extrapolate(g_new, gam_k, beta, nc, out):
     """out = γ + β (γ − γ_k) (APGD's momentum step; numpy's arithmetic, without temporaries)."""
     for c in range(nc):
-        for k in range(8):
+        for k in range(g_new.shape[1]):
             out[c, k] = g_new[c, k] + beta * (g_new[c, k] - gam_k[c, k])
 
 
 @njit
 def store_history(gam, csrc, nc, n_pair, hist, whist):
-    """Keep each contact's impulses for the next step's warm start."""
+    """Keep each contact's impulses for the next step's warm start (the history keeps 8 per contact;
+    rows of 4, without rolling, store zeros for the rest)."""
     hs = hist.shape[1]
+    gs = min(hs, gam.shape[1])
     for c in range(nc):
         k = csrc[c, 1]
         if c < n_pair:
-            for q in range(hs):
+            for q in range(gs):
                 hist[k, q] = gam[c, q]
+            for q in range(gs, hs):
+                hist[k, q] = 0.0
         else:
             row = csrc[c, 2]
-            for q in range(hs):
+            for q in range(gs):
                 whist[row, q] = gam[c, q]
+            for q in range(gs, hs):
+                whist[row, q] = 0.0
 
 
 @njit

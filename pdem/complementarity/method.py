@@ -229,10 +229,20 @@ class Stepper(Integrator):
         sim.add_body_forces()
 
     # ------------------------------------------------------------------ work arrays
+    def _row_width(self) -> int:
+        """Impulses per contact row: 8 (γ_n, γ_t, ρ, σ) when some material pair has rolling or
+        spinning friction, else 4 (γ_n, γ_t). The rows are streamed through every iteration; without
+        rolling rows their last four columns would be zeros read and written for nothing (half of
+        APGD's memory traffic). The same for every rank (the materials are global), and the arithmetic
+        of the first four columns is the same either way (the same bits)."""
+        coef = self.sim.coefficients
+        return 8 if coef.size and bool(np.any(coef[..., 2:4] > 0.0)) else 4
+
     def _reserve(self, nc: int) -> None:
-        if nc <= self._cap and self._cap > 0:
+        width = self._row_width()
+        if nc <= self._cap and self._cap > 0 and self.gam.shape[1] == width:
             return
-        cap = max(int(nc * 1.3) + 64, 256)
+        cap = max(int(nc * 1.3) + 64, 256, self._cap)
         self.cb = np.empty((cap, 2), dtype=np.int64)
         self.cn = np.empty((cap, 3))
         self.ca = np.empty((cap, 2))
@@ -241,7 +251,7 @@ class Stepper(Integrator):
         self.cmu = np.empty(cap)
         self.cscale = np.empty(cap)
         self.croll = np.empty((cap, 4))
-        self.gam = np.empty((cap, 8))
+        self.gam = np.empty((cap, width))
         self.csrc = np.empty((cap, 3), dtype=np.int64)
         self.cpt = np.zeros((cap, 3))
         self._cap = cap
@@ -598,7 +608,7 @@ class Stepper(Integrator):
     def _residual(self, nc) -> float:
         """The residual of the current impulses and velocities: of Coulomb's law (ũ) for the corrected
         cone, of the relaxed cone problem (u) otherwise."""
-        u = np.empty((nc, 8))
+        u = np.empty((nc, self.gam.shape[1]))
         ck.contact_velocities(
             self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.V, self.W, nc, u,
             self.corrected,
@@ -674,8 +684,9 @@ class Stepper(Integrator):
         # work arrays reused through the solve and across steps (views of one block): allocating
         # them per iteration cost as much as the iteration's kernels on a 10,000-contact scene
         # (page faults of fresh memory)
-        if self._apgd_work.shape[1] < nc:
-            self._apgd_work = np.empty((9, max(nc, int(1.25 * self._apgd_work.shape[1])), 8))
+        width = self.gam.shape[1]
+        if self._apgd_work.shape[1] < nc or self._apgd_work.shape[2] != width:
+            self._apgd_work = np.empty((9, max(nc, int(1.25 * self._apgd_work.shape[1])), width))
         work = self._apgd_work
         Y, GY, GYR, GK, UKR, GN, UN, UNR, BEST = (work[k, :nc] for k in range(9))
 
@@ -695,9 +706,9 @@ class Stepper(Integrator):
         # a cold start: from the last step's impulses (the Jacobi warm start) APGD took 23.8 instead
         # of 22.8 iterations per step on the 300-bead hopper scene, and the 4,000-bead hopper's fill
         # (h = 1e-3 s) no longer settled below its kinetic-energy threshold by 0.3 s
-        warm = self.gam[:nc].copy() if pr.apgd_start == "warm" else np.zeros((nc, 8))
+        warm = self.gam[:nc].copy() if pr.apgd_start == "warm" else np.zeros((nc, width))
         # u(0) = r (the relaxed cone's f), kept for the solve
-        r_vec = None if corrected else grad2(np.zeros((nc, 8)), UN, UNR)[0].copy()
+        r_vec = None if corrected else grad2(np.zeros((nc, width)), UN, UNR)[0].copy()
 
         def objective(s_nu: float, s_r: float) -> float:
             # f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ
@@ -705,7 +716,8 @@ class Stepper(Integrator):
 
         g0 = ck.project_cone_array(warm, cmu, croll)
         # step from a Lipschitz estimate: |N(γ0 − γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start
-        e_n = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+        e_n = np.zeros(width)
+        e_n[0] = 1.0
         ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * e_n, cmu, croll)
         d = g0 - ghat
         nd = math.sqrt(reduce([(d, d)])[0][0])
