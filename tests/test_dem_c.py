@@ -787,6 +787,37 @@ def test_jacobi_check_every_skips_residuals_not_sweeps():
     assert first1 <= first4 <= first1 + 3, (first1, first4)
 
 
+def test_apgd_check_every_forms_fewer_residuals_on_the_same_iterates():
+    """APGD with ``check_every = k``: its iterates do not depend on the residual (only its stopping
+    and the iterate it returns do), so a solve stops at the first checked iteration (1, k + 1, …)
+    whose residual is below the tolerance, at or after the one k = 1 stops at; capped solves end at
+    the cap with the residual of a checked iterate; k = 1 is the default's bits."""
+
+    def run(k, **kw):
+        sim = _packing("apgd", check_every=k, **kw)
+        sim.run(steps=60)
+        return sim
+
+    conv = {k: run(k, tolerance=1e-6, max_iterations=5000) for k in (1, 4)}
+    its = [it for _, it, _, nc in conv[4].integrator.log if nc > 0]
+    assert len(its) > 30 and all(it % 4 == 1 for it in its), its
+    assert all(res <= 1e-6 for _, _, res, _ in conv[4].integrator.log)
+    first1, first4 = conv[1].integrator.log[0][1], conv[4].integrator.log[0][1]
+    assert first1 <= first4 <= first1 + 3, (first1, first4)
+    assert any(it % 4 != 1 for _, it, _, nc in conv[1].integrator.log if nc > 0)  # k = 1 stops anywhere
+
+    capped = run(6, tolerance=1e-15, max_iterations=23)
+    log = [(it, res) for _, it, res, nc in capped.integrator.log if nc > 0]
+    assert sum(it == 23 for it, _ in log) > 10
+    # at the cap: the best checked residual; before it: a checked iteration that converged
+    assert all((it == 23 and math.isfinite(res)) or (it % 6 == 1 and res <= 1e-15) for it, res in log), log
+    default = _packing("apgd", tolerance=1e-6, max_iterations=5000)
+    default.run(steps=60)
+    a, b = default.get_particles(), conv[1].get_particles()
+    for key in ("x", "v", "w"):
+        assert np.array_equal(a[key], b[key]), key
+
+
 def test_check_every_is_validated():
     with pytest.raises(Exception, match="check_every"):
         pdem.Simulation(law="complementarity", check_every=0)

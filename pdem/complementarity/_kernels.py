@@ -811,11 +811,11 @@ def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, correcte
 
 
 @njit
-def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
+def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, want_res=True):
     """The local reductions of one corrected-cone APGD trial, in one pass: exact partials (as
     :func:`pdem.parallel.exact.dot_partials`) of Σ (γ − y)·(ũ(γ) − ũ(y)), Σ |γ − y|² and
     Σ ũ(y)·(γ − γ_k) over ``rows`` (each row's dot product formed in double, the rows' sum exact),
-    and the residual max of (γ, ũ(γ)) over all rows."""
+    and the residual max of (γ, ũ(γ)) over all rows (+inf without ``want_res``: not formed)."""
     a1, b1, i1 = exact_accumulator()
     a2, b2, i2 = exact_accumulator()
     a3, b3, i3 = exact_accumulator()
@@ -839,7 +839,7 @@ def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc):
         sp1 += exact_add(a1, b1, i1, d1)
         sp2 += exact_add(a2, b2, i2, d2)
         sp3 += exact_add(a3, b3, i3, d3)
-    res = residual_max(g_new, u_new, cmu, cscale, croll, nc)
+    res = residual_max(g_new, u_new, cmu, cscale, croll, nc) if want_res else math.inf
     return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
 
 

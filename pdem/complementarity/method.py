@@ -104,10 +104,12 @@ class ComplementarityParams(LawParams):
         1,
         ge=1,
         le=1000,
-        description="Jacobi: measure the residual (and test convergence) on every k-th sweep only, the "
-        "first included; the others skip the second cone projection per contact and, under MPI, the "
-        "global maximum. A solve may then run up to k − 1 sweeps past convergence; steps at the cap run "
-        "the same sweeps. 1 (default): every sweep",
+        description="Jacobi and APGD: measure the residual (and test convergence) on every k-th "
+        "iteration only, the first included (APGD: and the last, at the cap); the others skip the "
+        "second cone projection per contact and, for Jacobi under MPI, the global maximum. A solve may "
+        "then run up to k − 1 iterations past convergence. Jacobi's steps at the cap run the same "
+        "sweeps; APGD returns its best checked iterate, so its results change. 1 (default): every "
+        "iteration",
     )
     envelope: float | None = Field(
         default=None,
@@ -748,6 +750,8 @@ class Stepper(Integrator):
             it += 1
             trials = 0
             stalled = False
+            # the residual on every k-th iteration (the first included) and at the cap
+            check = (it - 1) % pr.check_every == 0 or it == pr.max_iterations
             if corrected:
                 fy = 0.0
             else:
@@ -760,13 +764,13 @@ class Stepper(Integrator):
                 # residual (the last two used only if the trial is accepted)
                 if corrected:  # the three sums and the residual in one pass (fused kernel)
                     p1, e1, p2, e2, p3, e3, local_res = ck.apgd_trial_sums(
-                        g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc
+                        g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, check
                     )
                     s, m = exact_reduce(comm, [(p1, e1), (p2, e2), (p3, e3)], [local_res])
                     accept = s[0] <= lip * s[1]
                 else:
                     step = g_new - y
-                    local_res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
+                    local_res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc) if check else math.inf
                     restart_terms = (gy, g_new - gam_k)
                     s, m = reduce(
                         [(g_new, u_new - r_vec), (r_vec, g_new), (gy, step), (step, step), restart_terms],
@@ -788,12 +792,13 @@ class Stepper(Integrator):
                 break
             theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
             beta = theta * (1.0 - theta) / (theta * theta + theta_new)
-            res = m[0]
-            if res < best_res:
-                best_res = res
-                best[:] = g_new
-            if res <= pr.tolerance:
-                break
+            if check:
+                res = m[0]
+                if res < best_res:
+                    best_res = res
+                    best[:] = g_new
+                if res <= pr.tolerance:
+                    break
             if s[-1] > 0.0:  # restart
                 y[:] = g_new
                 gy_raw[:] = u_new_raw
