@@ -46,6 +46,22 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
     retry with a capacity of at least ``count``.
     """
     cell_start, cell_items = bin_particles(x, n, lo, inv_cell, dims)
+    # positions, radii and ids copied in cell order: the neighbour cells' particles are then read
+    # from contiguous memory instead of scattered rows (storage is in id order, not in space; the
+    # scattered reads made a build ~1.2 µs per particle on the hopper). The same candidates in the
+    # same order: the same list, bit for bit
+    xs = np.empty((n, 3))
+    rs = np.empty(n)
+    ids_s = np.empty(n, dtype=np.int64)
+    own_s = np.empty(n, dtype=np.bool_)
+    for s in range(n):
+        j = cell_items[s]
+        xs[s, 0] = x[j, 0]
+        xs[s, 1] = x[j, 1]
+        xs[s, 2] = x[j, 2]
+        rs[s] = r[j]
+        ids_s[s] = ids[j]
+        own_s[s] = j < n_owned
     order = np.argsort(ids[:n])
     pi = np.empty(capacity, dtype=np.int64)
     pj = np.empty(capacity, dtype=np.int64)
@@ -55,6 +71,11 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
     for q in range(n):
         i = order[q]
         idi = ids[i]
+        xi0 = x[i, 0]
+        xi1 = x[i, 1]
+        xi2 = x[i, 2]
+        ri = r[i]
+        ghost_i = i >= n_owned
         cx = min(max(int((x[i, 0] - lo[0]) * inv_cell), 0), dims[0] - 1)
         cy = min(max(int((x[i, 1] - lo[1]) * inv_cell), 0), dims[1] - 1)
         cz = min(max(int((x[i, 2] - lo[2]) * inv_cell), 0), dims[2] - 1)
@@ -64,14 +85,15 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
                 for ex in range(max(cx - 1, 0), min(cx + 2, dims[0])):
                     c = (ez * dims[1] + ey) * dims[0] + ex
                     for s in range(cell_start[c], cell_start[c + 1]):
-                        j = cell_items[s]
-                        if ids[j] <= idi or (i >= n_owned and j >= n_owned):
+                        idj = ids_s[s]
+                        if idj <= idi or (ghost_i and not own_s[s]):
                             continue
-                        dx = x[j, 0] - x[i, 0]
-                        dy = x[j, 1] - x[i, 1]
-                        dz = x[j, 2] - x[i, 2]
-                        cut = r[i] + r[j] + skin
+                        dx = xs[s, 0] - xi0
+                        dy = xs[s, 1] - xi1
+                        dz = xs[s, 2] - xi2
+                        cut = ri + rs[s] + skin
                         if dx * dx + dy * dy + dz * dz < cut * cut:
+                            j = cell_items[s]
                             if nc == cand.shape[0]:
                                 bigger = np.empty(2 * nc, dtype=np.int64)
                                 bigger[:nc] = cand
@@ -80,7 +102,6 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
                                 bigger_id[:nc] = cand_id
                                 cand_id = bigger_id
                             # insertion by id keeps the candidates sorted
-                            idj = ids[j]
                             p = nc
                             while p > 0 and cand_id[p - 1] > idj:
                                 cand_id[p] = cand_id[p - 1]
