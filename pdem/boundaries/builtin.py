@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
+from .._jit import njit
 from . import shapes
 from .api import Boundary, BoundaryParams, Vec3, WallBoundaryParams
 
@@ -229,6 +230,10 @@ class OutflowBoundary(Boundary):
         self._comm = sim.comm
         n = sim.n_particles
         x = sim.particles.x[:n]
+        # a kernel first (every step, ~1 µs per 1,000 grains); the NumPy mask it replaced took
+        # ~60 µs a step on the hopper, ~5 % of a DEM-P step
+        if not _any_below(x, sim.particles.inv_m[:n], self._p, self._n):
+            return
         gone = ((x - self._p) @ self._n < 0.0) & (sim.particles.inv_m[:n] > 0)
         if gone.any():
             self.removed_masses.extend(float(m) for m in sim.particles.mass[:n][gone])
@@ -250,6 +255,19 @@ class OutflowBoundary(Boundary):
     def restore(self, state: dict[str, Any]) -> None:
         rank = 0 if self._comm is None else self._comm.rank
         self.removed_masses = list(state.get("removed_masses", [])) if rank == 0 else []
+
+
+@njit
+def _any_below(x, inv_m, p, n):
+    """Whether any free particle may be on the negative side of the plane through p with normal n: a
+    pre-check for the mask in :meth:`OutflowBoundary.after_step`, which decides. It answers yes from
+    1e-9 m above the plane, so rounding differences between the two (NumPy's matmul may sum in
+    another order) never leave a particle the mask would remove."""
+    for i in range(x.shape[0]):
+        d = (x[i, 0] - p[0]) * n[0] + (x[i, 1] - p[1]) * n[1] + (x[i, 2] - p[2]) * n[2]
+        if d < 1e-9 and inv_m[i] > 0:
+            return True
+    return False
 
 
 class HopperParams(WallBoundaryParams):
