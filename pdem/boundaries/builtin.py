@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from .._jit import njit
+from pdem.api import njit
+
 from . import shapes
 from .api import Boundary, BoundaryParams, Vec3, WallBoundaryParams
 
