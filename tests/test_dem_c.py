@@ -758,6 +758,19 @@ def test_a_fixed_envelope_reports_an_overlap_with_a_contact_it_left_out():
     assert float(np.linalg.norm(sim.particles.x[1] - sim.particles.x[0])) < 2 * R  # overlapping
 
 
+def _stops_at_checked_iterations(run):
+    """Solves with ``check_every = 4`` stop only at checked iterations (1, 5, 9, …), converged; the
+    first step starts from the same state, so k = 4 stops at the first checked iteration at or after
+    k = 1's. Returns the runs by k."""
+    conv = {k: run(k, tolerance=1e-6, max_iterations=5000) for k in (1, 4)}
+    its = [it for _, it, _, nc in conv[4].integrator.log if nc > 0]
+    assert len(its) > 30 and all(it % 4 == 1 for it in its), its
+    assert all(res <= 1e-6 for _, _, res, _ in conv[4].integrator.log)
+    first1, first4 = conv[1].integrator.log[0][1], conv[4].integrator.log[0][1]
+    assert first1 <= first4 <= first1 + 3, (first1, first4)
+    return conv
+
+
 def test_jacobi_check_every_skips_residuals_not_sweeps():
     """``check_every = k``: the residual is formed on sweeps 1, k + 1, 2k + 1, … only. Solves that
     run to the cap perform the same sweeps, so they give the same bits as k = 1; solves that
@@ -777,14 +790,7 @@ def test_jacobi_check_every_skips_residuals_not_sweeps():
     assert all(it == 37 or (it % 5 == 1 and res <= 1e-15) for _, it, res, _ in log5)
     assert sum(it == 37 for _, it, _, _ in log5) > 30
 
-    conv = {k: run(k, tolerance=1e-6, max_iterations=5000) for k in (1, 4)}
-    its = [it for _, it, _, nc in conv[4].integrator.log if nc > 0]
-    assert len(its) > 30 and all(it % 4 == 1 for it in its), its
-    assert all(res <= 1e-6 for _, _, res, _ in conv[4].integrator.log)
-    # the first step starts from the same state: k = 4 stops at the first checked sweep at or after
-    # k = 1's
-    first1, first4 = conv[1].integrator.log[0][1], conv[4].integrator.log[0][1]
-    assert first1 <= first4 <= first1 + 3, (first1, first4)
+    _stops_at_checked_iterations(run)
 
 
 def test_apgd_check_every_forms_fewer_residuals_on_the_same_iterates():
@@ -798,12 +804,7 @@ def test_apgd_check_every_forms_fewer_residuals_on_the_same_iterates():
         sim.run(steps=60)
         return sim
 
-    conv = {k: run(k, tolerance=1e-6, max_iterations=5000) for k in (1, 4)}
-    its = [it for _, it, _, nc in conv[4].integrator.log if nc > 0]
-    assert len(its) > 30 and all(it % 4 == 1 for it in its), its
-    assert all(res <= 1e-6 for _, _, res, _ in conv[4].integrator.log)
-    first1, first4 = conv[1].integrator.log[0][1], conv[4].integrator.log[0][1]
-    assert first1 <= first4 <= first1 + 3, (first1, first4)
+    conv = _stops_at_checked_iterations(run)
     assert any(it % 4 != 1 for _, it, _, nc in conv[1].integrator.log if nc > 0)  # k = 1 stops anywhere
 
     capped = run(6, tolerance=1e-15, max_iterations=23)
