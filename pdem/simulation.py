@@ -123,6 +123,7 @@ class Simulation:
         self.stiffness_every = 100
         #: stop (InstabilityError) when dt exceeds this multiple of the live bound; 0: never
         self.stiffness_limit = STIFFNESS_LIMIT
+        self._load_stiffness: np.ndarray | None = None  # this step's boundary loads' (N/m)
         self.stiffness = _fresh_stiffness()
         self.integrator = None  # made by the law at preparation (velocity Verlet, DEM-C stepper, …)
         self.envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
@@ -1034,6 +1035,7 @@ class Simulation:
         # the load balancer weighs ranks by this time: contacts only (a boundary hook may wait in a
         # collective call, which would make the emptier rank look busier and drain it further)
         self._force_time += _time.perf_counter() - t0
+        self._load_stiffness = None
         self._run_hooks("apply_forces")
         return flags
 
@@ -1042,10 +1044,43 @@ class Simulation:
         enter the free velocity). Returns whether any boundary has such a hook."""
         p = self.particles
         integ.zero_forces(p.f, p.t, p.n)
+        self._load_stiffness = None
         if not self._hooks["apply_forces"]:
             return False
         self._run_hooks("apply_forces")
         return True
+
+    def add_load_stiffness(self, rows: np.ndarray, k: np.ndarray) -> None:
+        """Declare how stiff the loads just added by an ``apply_forces`` hook are: ``k`` [N/m] per
+        owned particle ``rows``, a bound on the largest |eigenvalue| of ∂F_i/∂x_i (how fast the
+        particle's own load changes as it moves, e.g. a membrane's pressure over the grains it
+        drapes). Summed over the boundaries of a step, cleared at the next step.
+
+        DEM-C uses it: its load enters the free velocity explicitly, which is stable only while
+        h² k/m stays below ~4, and at DEM-C's large steps a membrane's loads are stiffer than that
+        (docs/dem_c.md, "Stiff boundary loads"). With ``load_mass_scaling`` (default) the step gives
+        each such particle the mass max(m, h² k) in its solve (mass scaling: static loads and
+        contact forces unchanged, the particle's dynamics slowed). DEM-P's step is far below these
+        limits and ignores it. Call it on every rank (``rows`` may be empty)."""
+        p = self.particles
+        n = p.n_owned
+        rows = np.asarray(rows, dtype=np.int64)
+        k = np.asarray(k, dtype=float)
+        if rows.shape != k.shape:
+            raise InputError(f"add_load_stiffness: {rows.shape[0]} rows but {k.shape} stiffnesses")
+        if rows.size and (rows.min() < 0 or rows.max() >= n):
+            raise InputError("add_load_stiffness: rows must index owned particles")
+        if not np.all(np.isfinite(k)) or (k.size and k.min() < 0.0):
+            raise InputError("add_load_stiffness: stiffnesses must be finite and ≥ 0 [N/m]")
+        if self._load_stiffness is None or self._load_stiffness.shape[0] != n:
+            self._load_stiffness = np.zeros(n)
+        np.add.at(self._load_stiffness, rows, k)
+
+    @property
+    def load_stiffness(self) -> np.ndarray | None:
+        """Per owned particle, the stiffness [N/m] of this step's boundary loads
+        (:meth:`add_load_stiffness`), or ``None`` when no boundary declared one."""
+        return self._load_stiffness
 
     def _contact_forces(self) -> int:
         p = self.particles

@@ -224,6 +224,63 @@ def test_a_fast_servo_consolidates_at_a_larger_step(packing, monkeypatch, capped
     else:
         assert err > 0.5  # the defect the cap removes
 
+def test_membrane_stiffness_bounds_the_loads_own_jacobian(packing):
+    """The stiffness the membrane declares per grain (Simulation.load_stiffness, for DEM-C's mass
+    scaling) bounds |∂F_i/∂x_i| (central differences, the largest eigenvalue in magnitude of the
+    3 × 3 block) from above and stays within a small factor of it: a bound much too high would
+    scale masses for nothing."""
+    sim, cell = _cell(packing)
+    sim.set_stage("consolidate")
+    sim.prepare()
+    sim.compute_forces()
+    p = sim.particles
+    f = _membrane_only(sim, cell)
+    k = sim.load_stiffness.copy()
+    loaded = np.flatnonzero(np.any(f != 0.0, axis=1))
+    assert np.array_equal(np.flatnonzero(k > 0.0), loaded)
+    eps = 1e-8
+    ratios = []
+    mag = np.linalg.norm(f, axis=1)
+    held = loaded[mag[loaded] > 1e-3 * mag.max()]  # (below, differences of the load are rounding)
+    for i in held[np.argsort(-mag[held])[:: max(1, held.size // 40)]]:
+        jac = np.zeros((3, 3))
+        for c in range(3):
+            p.x[i, c] += eps
+            fp = _membrane_only(sim, cell)[i]
+            p.x[i, c] -= 2 * eps
+            fm = _membrane_only(sim, cell)[i]
+            p.x[i, c] += eps
+            jac[:, c] = (fp - fm) / (2 * eps)
+        radius = np.abs(np.linalg.eigvals(jac)).max()
+        ratios.append(k[i] / radius)
+    ratios = np.array(ratios)
+    assert ratios.size >= 30
+    assert ratios.min() >= 0.99
+    assert np.median(ratios) < 3.5 and ratios.max() < 8.0
+    # the load is stiff for a DEM-C step: h² k / m over 1 on some grains at h = 5e-4 s
+    assert np.max(5e-4**2 * k[loaded] * p.inv_m[loaded]) > 1.0
+
+
+@pytest.mark.parametrize("where", ["radial", "axial"])
+def test_a_grain_that_leaves_the_specimen_stops_the_run(packing, where):
+    """A runaway grain (twice the specimen radius out, or a diameter past a platen) is an
+    instability, not a result: before this check a DEM-C run whose surface grains ran away finished
+    with exit 0 and reported q_peak = 9 MPa from them."""
+    from pdem.errors import InstabilityError
+
+    sim, cell = _cell(packing)
+    sim.set_stage("consolidate")
+    sim.run(steps=2)
+    p = sim.particles
+    i = int(np.argmax(p.x[: p.n_owned, 2]))
+    if where == "radial":
+        p.x[i, :2] = (2.5 * R0, 0.0)
+    else:
+        p.x[i, 2] = cell.height() + 3e-3
+    with pytest.raises(InstabilityError, match="left the triaxial specimen"):
+        sim.run(steps=1)
+
+
 @pytest.mark.slow  # ~45 s: APGD at its iteration cap every step
 def test_dem_c_consolidates_under_load_control(packing):
     """Rigid grains: the top platen is a free plate under σ3 A (solved with the grains). The

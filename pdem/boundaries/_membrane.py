@@ -128,15 +128,24 @@ def weights(q, cell, M, cut, b):
 
 
 @njit
-def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt):
+def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt, b):
     """Load of each grain, −σ₃ Δθ Σ_c w_c R_c ∂R_c/∂x (``scale`` = σ₃ Δθ, w the row's height, half
     a spacing for the rows on the platens), summed over its cells in a fixed order;
     ∂R_c/∂x = p g, g = ρ̂ − g_a (Δθ ρ̂ + θ̂) − g_w ẑ (the penalty's slopes), p = e / Z_c. Each cell's
     part acts where the grain's surface faces along g (lever r ĝ): also returned, per grain, the
     moment Σ lever ⊗ f (for the grains' average stress) and the radial virial Σ (ρ + lever)·f over
-    the horizontal components (for the pressure the membrane exerts, −Σ/(2V))."""
+    the horizontal components (for the pressure the membrane exerts, −Σ/(2V)).
+
+    Also a bound k_i on the stiffness of each grain's own load, |∂F_i/∂x_i| (the largest eigenvalue
+    in magnitude): −∂F_i/∂x_i = Σ_c σ₃ Δθ w_c [∂R_c ⊗ ∂R_c + R_c ∂²R_c], and with the smooth maximum
+    ∂²R_c = p(1 − p)/b g ⊗ g + p ∂g/∂x, whose slope terms change at STEEP/r on a cap's flanks and
+    ρ̂ turns at 1/ρ, so k_i = Σ_c S_c [(1 − p)|g|²/b + p|g|²/R_c + STEEP/r (flanks) + |g|/ρ] with
+    S_c = σ₃ Δθ w_c R_c p (the triangle inequality over the terms' norms). The 1/b term dominates:
+    a narrow smoothing makes a stiff load (tests/test_triaxial.py compares k with finite
+    differences)."""
     n = e.shape[0]
     f = np.zeros((n, 3))
+    kst = np.zeros(n)
     mom = np.zeros((n, 3, 3))
     vir = np.zeros(n)
     for i in range(n):
@@ -148,11 +157,19 @@ def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt):
                 continue
             c = cell[i, k]
             coef = -scale * wrow[c // nt] * R[c] * e[i, k] / Z[c]
+            pk = e[i, k] / Z[c]
             kk = ga[i, k]
             radial = 1.0 - kk * dtheta[i, k]
             gx = radial * ux + kk * uy
             gy = radial * uy - kk * ux
             gz = -gw[i, k]
+            gg = gx * gx + gy * gy + gz * gz
+            flanks = (1.0 if kk != 0.0 else 0.0) + (1.0 if gz != 0.0 else 0.0)
+            # (a cell held up only by far caps can have R < 0: magnitudes)
+            kst[i] += abs(coef) * (
+                abs(1.0 - pk) * gg / b + pk * gg / max(abs(R[c]), r[i]) + flanks * STEEP / r[i]
+                + math.sqrt(gg) / rh
+            )
             px, py, pz = coef * gx, coef * gy, coef * gz
             fx += px
             fy += py
@@ -172,4 +189,4 @@ def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt):
         f[i, 0] = fx
         f[i, 1] = fy
         f[i, 2] = fz
-    return f, mom, vir
+    return f, mom, vir, kst

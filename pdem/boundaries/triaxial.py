@@ -69,6 +69,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..contact.stability import servo_gain
+from ..errors import InstabilityError
 from ..parallel.comm import all_max, all_max_array, all_sum_int_array
 from . import _membrane as _mb
 from . import shapes
@@ -473,7 +474,13 @@ class TriaxialCell(Boundary):
         # the outermost surface per cell (an exact global max) and its smallest over each cell's
         # 3 × 3 neighbourhood: a grain deeper than that by the cut and a diameter (plus 2 r) reaches
         # no cell centre within the cut
-        mb = all_max_array(sim.comm, _mb.binned_max(rho + r, kz, kt, nt, ncell))
+        # (with two more maxima: how far a grain stands outside the specimen radially and axially)
+        out_r = float(np.max(rho + r)) if r.size else 0.0
+        out_z = float(np.max(np.maximum(-zrel, zrel - h))) if r.size else -math.inf
+        mb = all_max_array(sim.comm, np.append(_mb.binned_max(rho + r, kz, kt, nt, ncell), [out_r, out_z]))
+        out_r, out_z, mb = float(mb[-2]), float(mb[-1]), mb[:-2]
+        if out_r > 2.0 * self.params.radius or out_z > size:
+            self._runaway(sim, out_r, out_z, size)
         low = _mb.neighbourhood_min(mb, nz, nt)
         cut = 20.0 * b
         depth = cut + 2.0 * size
@@ -494,7 +501,8 @@ class TriaxialCell(Boundary):
             return geometry
         self._volume, self._lateral_area, self._radius = geometry
         self._cells = (nz, nt, int(filled.sum()))
-        f, mom, vir = _mb.loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, dth, wrow, nt)  # σ₃ = 1
+        # loads at σ₃ = 1
+        f, mom, vir, kst = _mb.loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, dth, wrow, nt, b)
         if self.params.membrane_load == "radial":
             # each grain keeps the radial part of its load, acting through its centre at ρ + r
             u = np.stack([dx, dy], axis=1) / np.maximum(rho, 1e-300)[:, None]
@@ -513,12 +521,37 @@ class TriaxialCell(Boundary):
         mom *= scale
         vir *= scale
         sim.particles.f[rows[loaded]] += f[loaded]
+        # how fast each grain's load changes as it moves (DEM-C scales the masses of the grains whose
+        # load is too stiff for its step: Simulation.add_load_stiffness)
+        sim.add_load_stiffness(rows[loaded], kst[loaded] * scale)
         self._applied = (f[loaded], mom[loaded].reshape(-1, 9), vir[loaded])
         self._applied_volume = self._volume
         # the loads' axial virial Σ (z + lever_z) f_z (z from the bottom platen): the membrane's part
         # of the specimen's mean σ_zz (it pushes along its normal, which tilts on a barrel)
         self._axial_virial = zrel[loaded] * f[loaded, 2] + mom[loaded, 2, 2]
         return geometry
+
+    def _runaway(self, sim: Any, out_r: float, out_z: float, size: float) -> None:
+        """A grain left the specimen (collective: every rank sees the same maxima and raises)."""
+        p = sim.particles
+        n = p.n_owned
+        vmax = all_max(sim.comm, float(np.max(np.linalg.norm(p.v[:n], axis=1))) if n else 0.0)
+        where = (
+            f"{out_r:.4g} m from the axis (twice the specimen radius {self.params.radius:g} m)"
+            if out_r > 2.0 * self.params.radius
+            else f"{out_z:.4g} m beyond a platen (more than a mean diameter, {size:.3g} m)"
+        )
+        dem_c = getattr(sim.law, "kind", "") == "complementarity"
+        remedy = (
+            "with DEM-C keep contact.complementarity.load_mass_scaling = true (the membrane's loads are "
+            "too stiff for the step without it) or give a smaller run.dt"
+            if dem_c else "reduce run.dt (or run.dt_fraction)"
+        )
+        raise InstabilityError(
+            f"boundary '{self.name}': a grain left the triaxial specimen at step {sim.step_count} "
+            f"(t = {sim.time:.6g} s): it stands {where}; the fastest grain moves at {vmax:.3g} m/s. "
+            f"The run went unstable; {remedy}"
+        )
 
     # ------------------------------------------------------------------ measuring
     def measurements(self, sim: Any) -> dict[str, float]:

@@ -110,6 +110,14 @@ class ComplementarityParams(LawParams):
         "sweeps; APGD returns its best checked iterate, so its results change. 1 (default): every "
         "iteration",
     )
+    load_mass_scaling: bool = Field(
+        True,
+        description="grains whose boundary loads are stiff (a membrane's: Simulation.add_load_stiffness, "
+        "k [N/m]) get the mass max(m, h² k) in the step's solve, so that the explicit load stays stable "
+        "(h² k/m ≤ 1) at DEM-C's large steps; their static loads and contact forces are unchanged, their "
+        "motion slower (mass scaling, docs/dem_c.md 'Stiff boundary loads'). false: the true masses "
+        "(surface grains of the triaxial membrane then run away at the automatic step)",
+    )
     envelope: float | None = Field(
         default=None,
         ge=0,
@@ -208,6 +216,11 @@ class Stepper(Integrator):
         # not solved again: that envelope is the user's choice)
         self.n_missed_steps = 0
         self.n_short_steps = 0  # steps whose fastest grain could close more than a fixed envelope
+        # mass scaling of grains under stiff boundary loads (load_mass_scaling): steps that scaled,
+        # the largest m_eff / m of the run and of the last step (global maxima)
+        self.n_scaled_steps = 0
+        self.max_mass_ratio = 1.0
+        self.last_mass_ratio = 1.0
         # the deepest grain-pair overlap of the packing the run starts from (e.g. left by a soft-grain
         # preparation): the first step removes it at overlap / h, or at recovery_speed if capped
         self.initial_overlap = 0.0
@@ -318,6 +331,12 @@ class Stepper(Integrator):
         w_params = cs.params.copy() if walls else None
         # ... with the velocity the walls move at during the step
         sim.advance_walls(h)
+        # external (boundary) forces: impulses h f_ext enter the free velocity; the reported force
+        # below adds them back. Taken before the rows are assembled: a boundary that declares its
+        # loads' stiffness makes the step scale those grains' masses (_scale_masses), which the
+        # rows' effective masses read
+        external = sim.external_forces()
+        scaled = self._scale_masses(h, external)
         # self.V: the velocities at the start of the step (restitution's pre-impact velocities)
         per_contact = self.p.envelope is None and self.p.envelope_rule == "contact"
         gh = float(np.linalg.norm(sim.g)) * h
@@ -332,7 +351,7 @@ class Stepper(Integrator):
 
         def assemble(spd):
             n_pair, flags = ck.assemble_pairs(
-                cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env,
+                cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env,
                 v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
                 self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor,
             )  # fmt: skip
@@ -340,7 +359,7 @@ class Stepper(Integrator):
             if walls:
                 nc, wflags = ck.assemble_walls(
                     cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
-                    cs.wall_hist, p.x, self.V, p.r, p.inv_m, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
+                    cs.wall_hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
                     v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
                     self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot), spd,
                     env_base, env_factor,
@@ -357,11 +376,11 @@ class Stepper(Integrator):
         for j, (_k, wall) in enumerate(bodies):
             v_free[n_tot + j] = wall.motion.free_velocity(h)
         ck.free_velocities(p.v, p.w, p.motion, p.dof, g[0], g[1], g[2], h, n_own, v_free, w_free)
-        # external (boundary) forces: impulses h f_ext enter the free velocity; the reported force
-        # below adds them back
-        external = sim.external_forces()
+        if scaled is not None:  # a heavier grain gains m g h / m_eff from its (true) weight
+            ratio = (p.mass[scaled] * self.IM[scaled])[:, None]
+            v_free[scaled] = p.v[scaled] + (v_free[scaled] - p.v[scaled]) * ratio
         if external:
-            ck.add_external_impulses(v_free, w_free, p.f, p.t, p.inv_m, p.inv_i, p.motion, p.dof, h, n_own)
+            ck.add_external_impulses(v_free, w_free, p.f, p.t, self.IM, p.inv_i, p.motion, p.dof, h, n_own)
             f_ext, t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
         P = np.empty((n_tot + nb, 3))
         L = np.empty((n_tot + nb, 3))
@@ -447,6 +466,46 @@ class Stepper(Integrator):
         self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
         sim.finish_step(flags)
 
+    def _scale_masses(self, h: float, external: bool) -> np.ndarray | None:
+        """Mass scaling for stiff boundary loads (``load_mass_scaling``). A load F_i(x) that a
+        boundary declares with stiffness k_i (:meth:`Simulation.add_load_stiffness`) enters the free
+        velocity explicitly, v += h F/m, which is stable only while h² k/m stays below ~4; a grain
+        on a softening load (negative k) drifts off by a factor exp(h sqrt(|k|/m)) a step. The
+        triaxial membrane's surface grains reach h² k/m ≈ 20 at DEM-C's automatic step (docs/dem_c.md).
+        Such a grain gets the mass m_eff = max(m, h² k) for the whole step (its free velocity, its
+        rows' effective masses, its velocity update): h² k/m_eff ≤ 1. Loads held by contacts are
+        unchanged (an impulse balances h F whatever the mass), only the grain's own acceleration is
+        slower. Grains with h² k ≤ m keep their masses exactly.
+
+        Returns the owned rows scaled (``self.IM`` then holds the scaled inverse masses, ghosts' from
+        their owners), or ``None``. Collective: one maximum per step with boundary forces."""
+        self.last_mass_ratio = 1.0
+        if not external or not self.p.load_mass_scaling:
+            return None
+        sim = self.sim
+        p = sim.particles
+        k = sim.load_stiffness
+        rows = np.zeros(0, dtype=np.int64)
+        hk = np.zeros(0)
+        if k is not None:
+            hk_all = h * h * k
+            rows = np.flatnonzero((hk_all > p.mass[: k.shape[0]]) & (p.inv_m[: k.shape[0]] > 0.0))
+            hk = hk_all[rows]
+        local = float(np.max(hk * p.inv_m[rows])) if rows.size else 1.0
+        ratio = all_max(sim.comm, local)
+        if ratio <= 1.0:
+            return None
+        im = np.array(self.IM, copy=True)  # owned, ghosts and free rigid bodies
+        im[rows] = 1.0 / hk
+        from ..parallel.exchange import forward_values
+
+        forward_values(sim, im)  # ghost copies take their owners' masses (the same on any rank count)
+        self.IM = im
+        self.last_mass_ratio = ratio
+        self.max_mass_ratio = max(self.max_mass_ratio, ratio)
+        self.n_scaled_steps += 1
+        return rows
+
     def _solve(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         solver = self.p.solver
         if solver == "jacobi":
@@ -522,8 +581,10 @@ class Stepper(Integrator):
                     self.n_resolves,
                     self.n_missed_steps,
                     self.n_short_steps,
+                    self.n_scaled_steps,
                 ]
             ),
+            "solver/max_mass_ratio": np.array(self.max_mass_ratio),
             "solver/max_residual": np.array(self.max_residual),
             "solver/initial_overlap": np.array(self.initial_overlap),
         }
@@ -536,6 +597,8 @@ class Stepper(Integrator):
             self.n_resolves = counters[4] if len(counters) > 4 else 0
             self.n_missed_steps = counters[5] if len(counters) > 5 else 0
             self.n_short_steps = counters[6] if len(counters) > 6 else 0
+            self.n_scaled_steps = counters[7] if len(counters) > 7 else 0
+            self.max_mass_ratio = float(state.get("solver/max_mass_ratio", 1.0))
             self.max_residual = float(state["solver/max_residual"])
             self.initial_overlap = float(state.get("solver/initial_overlap", 0.0))  # older checkpoints: 0
 
@@ -570,6 +633,9 @@ class Stepper(Integrator):
             "envelope_resolves": self.n_resolves,
             "missed_contact_steps": self.n_missed_steps,
             "envelope_short_steps": self.n_short_steps,
+            "load_mass_scaling": p.load_mass_scaling,
+            "mass_scaled_steps": self.n_scaled_steps,
+            "max_mass_ratio": self.max_mass_ratio,
             "recovery_speed": p.recovery_speed,
             "initial_overlap": self.initial_overlap,
             # how fast the first step pushed the deepest initial overlap apart
@@ -590,7 +656,7 @@ class Stepper(Integrator):
         default ``self.gam``); ghosts' forwarded."""
         sim = self.sim
         p = sim.particles
-        ck.velocities(p.v, p.w, v_free, w_free, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
+        ck.velocities(p.v, p.w, v_free, w_free, P, L, self.IM, p.inv_i, p.dof, p.n_owned)
         if self._bodies:
             self._body_velocities(nc, v_free, self.gam if gam is None else gam)
         sim.forward_ghosts()

@@ -27,7 +27,7 @@ import numpy as np
 
 from ._kernels import pack_xvw, unpack_xvw
 
-__all__ = ["migrate", "borders", "forward"]
+__all__ = ["migrate", "borders", "forward", "forward_values"]
 
 # Which fields travel is the particle store's registry (pdem.state.particles.Field: migrate, ghost);
 # contact history travels with the particles through the contact store (rows keyed by ids).
@@ -198,3 +198,41 @@ def forward(sim) -> None:
         for buf, start, _end in received:
             if start >= 0:
                 unpack_xvw(buf, start, x, v, w)
+
+
+def forward_values(sim, values: np.ndarray) -> None:
+    """Send the owners' entries of a per-particle array (``values[i]`` for particle row i, owned and
+    ghosts; floats) to their ghost copies along the recorded swaps, as :func:`forward` does for x,
+    v, ω (no periodic shift: the values are not positions). Collective; a serial run without
+    periodic images has no ghosts and does nothing."""
+    dec = sim.decomposition
+    if dec is None:
+        return
+    comm = dec.comm
+    swaps = dec.swaps
+    for a in range(0, len(swaps), 2):
+        requests = []
+        received = []
+        for tag, (send_idx, dest, source, start, end, _d, _shift) in enumerate(swaps[a : a + 2]):
+            if dest is not None and dest == source == dec.rank:  # our own images
+                if end > start:
+                    values[start:end] = values[send_idx]
+                continue
+            if source is not None and end > start:
+                buf = np.empty(end - start)
+                requests.append(comm.Irecv(buf, source=source, tag=tag))
+                received.append((buf, start, end))
+        for tag, (send_idx, dest, source, _start, _end, _d, _shift) in enumerate(swaps[a : a + 2]):
+            if dest is not None and dest == source == dec.rank:
+                continue
+            if dest is not None and send_idx.shape[0] > 0:
+                buf = np.ascontiguousarray(values[send_idx], dtype=float)
+                requests.append(comm.Isend(buf, dest=dest, tag=tag))
+                received.append((buf, -1, -1))
+        if requests:
+            from mpi4py import MPI
+
+            MPI.Request.Waitall(requests)
+        for buf, start, end in received:
+            if start >= 0:
+                values[start:end] = buf
