@@ -238,6 +238,27 @@ def test_resume_is_bitwise_identical(tmp_path, capsys):
             assert np.array_equal(a[key], b[key]), key
 
 
+def test_resume_may_change_the_dem_c_solver_settings_but_not_its_law(tmp_path, capsys):
+    """A DEM-C run goes on from a checkpoint with a higher iteration cap and a tighter tolerance
+    (numerics: LawParams.resumable), which the continued run uses; its cone (the friction law
+    solved) is part of the scene and is refused, naming the key (exit 2)."""
+    import json
+
+    text = SMALL.replace('law = "hertz_mindlin"', 'law = "complementarity"\nmax_iterations = 20')
+    deck = write(tmp_path, text.replace("dt = 2e-6", "dt = 1e-4").replace("steps = 300", "steps = 30"))
+    part = tmp_path / "part"
+    assert run_cli([deck, "--output", part, "--quiet", "--steps", "20"], capsys)[0] == 0
+    ckpt = part / "checkpoints" / "latest.h5"
+    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", 'contact.cone="relaxed"'], capsys)
+    assert code == 2 and "contact.cone: cannot be changed on resume" in err, err
+    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", "contact.max_iterations=300",
+                            "--set", "contact.tolerance=1e-9"], capsys)  # fmt: skip
+    assert code == 0, err
+    solver = json.loads((part / "summary.json").read_text())["solver"]
+    assert solver["max_iterations"] == 300 and solver["tolerance"] == 1e-9
+    assert solver["mean_iterations"] > 20  # the steps after the checkpoint ran past the old cap
+
+
 def test_resume_needs_only_the_checkpoint(tmp_path, capsys):
     """The deck file may change or disappear: the checkpoint holds the resolved deck. A change of
     the scene asked for with --set is refused, naming the key (exit 2, nothing written)."""

@@ -55,7 +55,7 @@ at most one contact per iteration.
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -70,6 +70,12 @@ __all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
 
 class ComplementarityParams(LawParams):
     """Parameters of :class:`Complementarity` (DEM-C)."""
+
+    #: solver settings a resume may change (e.g. a tighter solve from a checkpoint)
+    resumable: ClassVar[frozenset[str]] = frozenset(
+        {"solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation",
+         "load_mass_scaling"}
+    )  # fmt: skip
 
     solver: Literal["jacobi", "apgd", "gauss_seidel"] = Field(
         "jacobi",

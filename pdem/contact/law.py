@@ -53,9 +53,12 @@ __all__ = ["ContactLaw", "LawParams"]
 
 
 class LawParams(BaseModel):
-    """Base of every law's parameter model: unknown keys are errors."""
+    """Base of every law's parameter model: unknown keys are errors. ``resumable``: the keys that
+    only steer the numerics (a solver's cap or tolerance), which ``pdem resume --set`` may change;
+    every other key describes the scene and is fixed for the run."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+    resumable: ClassVar[frozenset[str]] = frozenset()
 
 
 class ContactLaw:

@@ -14,7 +14,9 @@ What a resume may change is what decides *how the run goes on*, never the scene 
   (``pdem resume --output DIR`` chooses where the continuation goes);
 * ``run.dt`` (the stability limit is checked when the run starts), ``run.force_dt``,
   ``run.stiffness_limit``,
-  ``run.max_particles``, ``run.balance_threshold``, ``run.decomposition``; and ``title``.
+  ``run.max_particles``, ``run.balance_threshold``, ``run.decomposition``; and ``title``;
+* the contact law's solver settings that it lists as resumable (``LawParams.resumable``: DEM-C's
+  solver, tolerance, iteration cap, …), e.g. to continue a run with a tighter solve.
 
 Everything else (materials, the contact law, particle sources, boundaries, the domain, gravity, skin,
 seed, the stages that have already run) describes the scene: changing it would not continue the same
@@ -46,7 +48,9 @@ ALLOWED = (
     "stages.<name>.dt, stages.<name>.output.*), anything in later stages, stages added at the end, "
     "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.stiffness_limit, "
     "run.max_particles, "
-    "run.balance_threshold, run.decomposition and title; to change anything else start a new run"
+    "run.balance_threshold, run.decomposition, title and the contact law's solver settings (DEM-C: "
+    "contact.solver, tolerance, max_iterations, check_every, apgd_start, relaxation, "
+    "load_mass_scaling); to change anything else start a new run"
 )
 
 
@@ -133,7 +137,10 @@ def resume_deck(
             if k < len(resolved.deck.particles):
                 resolved.deck.particles[k].path = original
     applied, _ = apply_overrides(copy.deepcopy(data), overrides)
-    problems = resume_changes(old.resolved_dict(), new.resolved_dict(), point)
+    resumable = frozenset()
+    if old.law_class is new.law_class:
+        resumable = frozenset(getattr(new.law_class.Params, "resumable", frozenset()))
+    problems = resume_changes(old.resolved_dict(), new.resolved_dict(), point, resumable)
     if problems:
         texts = {o.loc: o.text for o in applied}
         marked = []
@@ -166,9 +173,12 @@ def _diff(a: Any, b: Any, loc: Loc) -> list[Loc]:
     return [] if a == b else [loc]
 
 
-def resume_changes(old: dict, new: dict, point: ResumePoint) -> list[tuple[Loc, str]]:
+def resume_changes(
+    old: dict, new: dict, point: ResumePoint, law_keys: frozenset[str] = frozenset()
+) -> list[tuple[Loc, str]]:
     """Problems for every key that differs between the resolved decks ``old`` and ``new`` and that a
-    resume may not change (see the module doc)."""
+    resume may not change (see the module doc); ``law_keys``: the ``[contact]`` keys of the (same)
+    law that may change."""
     problems: list[tuple[Loc, str]] = []
     old_stages = old.get("stages", [])
     new_stages = new.get("stages", [])
@@ -180,6 +190,8 @@ def resume_changes(old: dict, new: dict, point: ResumePoint) -> list[tuple[Loc, 
         if head == "title":
             continue
         if head == "run" and len(loc) > 1 and loc[1] in RESUMABLE_RUN_KEYS:
+            continue
+        if head == "contact" and len(loc) > 1 and loc[1] in law_keys:
             continue
         if head == "output" and len(loc) > 1 and loc[1] != "directory":
             continue
