@@ -192,6 +192,12 @@ def _print_summary(summary: dict, out: Path) -> None:
             f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "
             "on average" + note
         )
+        if solver.get("mass_scaled_steps"):
+            print(
+                f"pdem: DEM-C scaled the masses of grains under stiff boundary loads in "
+                f"{solver['mass_scaled_steps']} step(s), by up to {solver['max_mass_ratio']:.3g}x "
+                "(load_mass_scaling; docs/dem_c.md, Stiff boundary loads)"
+            )
         thrown = solver.get("initial_recovery_speed", 0.0)
         if solver.get("recovery_speed") is None and thrown >= INITIAL_RECOVERY_WARNING:
             print(

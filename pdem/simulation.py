@@ -1072,9 +1072,11 @@ class Simulation:
             raise InputError("add_load_stiffness: rows must index owned particles")
         if not np.all(np.isfinite(k)) or (k.size and k.min() < 0.0):
             raise InputError("add_load_stiffness: stiffnesses must be finite and ≥ 0 [N/m]")
+        added = np.bincount(rows, weights=k, minlength=n)
         if self._load_stiffness is None or self._load_stiffness.shape[0] != n:
-            self._load_stiffness = np.zeros(n)
-        np.add.at(self._load_stiffness, rows, k)
+            self._load_stiffness = added
+        else:
+            self._load_stiffness += added
 
     @property
     def load_stiffness(self) -> np.ndarray | None:
