@@ -124,8 +124,9 @@ class TriaxialParams(BoundaryParams):
         "gradient", pattern="^(gradient|radial)$",
         description="'gradient' (default): each grain's load is −σ₃ ∂V/∂x, along the membrane's normal "
         "(conservative); 'radial': only its radial part, scaled to the same pressure (the membrane as a "
-        "locally straight cylinder; not conservative). For DEM-C, whose large step turns the gradient's "
-        "tangential parts on protruding grains into runaway speeds (docs/experiments/triaxial.md)",
+        "locally straight cylinder; not conservative). DEM-C runs the gradient with its mass scaling of "
+        "grains under stiff loads (contact.complementarity.load_mass_scaling, default; "
+        "docs/experiments/triaxial.md)",
     )
     tie_length: float | None = Field(
         default=None, gt=0,
