@@ -1079,6 +1079,12 @@ class Simulation:
             self._load_stiffness += added
 
     @property
+    def load_stiffness_wanted(self) -> bool:
+        """Whether the method steps with the boundaries' load stiffness (DEM-C with
+        ``load_mass_scaling``): a boundary may skip computing it when not (DEM-P ignores it)."""
+        return bool(getattr(self.integrator, "wants_load_stiffness", False))
+
+    @property
     def load_stiffness(self) -> np.ndarray | None:
         """Per owned particle, the stiffness [N/m] of this step's boundary loads
         (:meth:`add_load_stiffness`), or ``None`` when no boundary declared one."""

@@ -229,13 +229,13 @@ def test_membrane_stiffness_bounds_the_loads_own_jacobian(packing):
     scaling) bounds |∂F_i/∂x_i| (central differences, the largest eigenvalue in magnitude of the
     3 × 3 block) from above and stays within a small factor of it: a bound much too high would
     scale masses for nothing."""
-    sim, cell = _cell(packing)
+    sim, cell = _cell(packing, law="complementarity")
     sim.set_stage("consolidate")
-    sim.prepare()
-    sim.compute_forces()
+    sim.prepare()  # DEM-C: the boundaries' forces, and the stiffness it asks for
+    assert sim.load_stiffness_wanted
+    k = sim.load_stiffness.copy()
     p = sim.particles
     f = _membrane_only(sim, cell)
-    k = sim.load_stiffness.copy()
     loaded = np.flatnonzero(np.any(f != 0.0, axis=1))
     assert np.array_equal(np.flatnonzero(k > 0.0), loaded)
     eps = 1e-8
@@ -259,6 +259,12 @@ def test_membrane_stiffness_bounds_the_loads_own_jacobian(packing):
     assert np.median(ratios) < 3.5 and ratios.max() < 8.0
     # the load is stiff for a DEM-C step: h² k / m over 1 on some grains at h = 5e-4 s
     assert np.max(5e-4**2 * k[loaded] * p.inv_m[loaded]) > 1.0
+    # DEM-P does not use it: the membrane does not compute it there
+    sim_p, cell_p = _cell(packing)
+    sim_p.set_stage("consolidate")
+    sim_p.prepare()
+    sim_p.compute_forces()
+    assert not sim_p.load_stiffness_wanted and sim_p.load_stiffness is None
 
 
 @pytest.mark.parametrize("where", ["radial", "axial"])

@@ -128,7 +128,7 @@ def weights(q, cell, M, cut, b):
 
 
 @njit
-def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt, b):
+def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt, b, want_k):
     """Load of each grain, −σ₃ Δθ Σ_c w_c R_c ∂R_c/∂x (``scale`` = σ₃ Δθ, w the row's height, half
     a spacing for the rows on the platens), summed over its cells in a fixed order;
     ∂R_c/∂x = p g, g = ρ̂ − g_a (Δθ ρ̂ + θ̂) − g_w ẑ (the penalty's slopes), p = e / Z_c. Each cell's
@@ -142,7 +142,7 @@ def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt, b):
     ρ̂ turns at 1/ρ, so k_i = Σ_c S_c [(1 − p)|g|²/b + p|g|²/R_c + STEEP/r (flanks) + |g|/ρ] with
     S_c = σ₃ Δθ w_c R_c p (the triangle inequality over the terms' norms). The 1/b term dominates:
     a narrow smoothing makes a stiff load (tests/test_triaxial.py compares k with finite
-    differences)."""
+    differences). Computed only with ``want_k``."""
     n = e.shape[0]
     f = np.zeros((n, 3))
     kst = np.zeros(n)
@@ -163,13 +163,13 @@ def loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, scale, wrow, nt, b):
             gx = radial * ux + kk * uy
             gy = radial * uy - kk * ux
             gz = -gw[i, k]
-            gg = gx * gx + gy * gy + gz * gz
-            flanks = (1.0 if kk != 0.0 else 0.0) + (1.0 if gz != 0.0 else 0.0)
-            # (a cell held up only by far caps can have R < 0: magnitudes)
-            kst[i] += abs(coef) * (
-                abs(1.0 - pk) * gg / b + pk * gg / max(abs(R[c]), r[i]) + flanks * STEEP / r[i]
-                + math.sqrt(gg) / rh
-            )
+            if want_k:  # (a cell held up only by far caps can have R < 0: magnitudes)
+                gg = gx * gx + gy * gy + gz * gz
+                flanks = (1.0 if kk != 0.0 else 0.0) + (1.0 if gz != 0.0 else 0.0)
+                kst[i] += abs(coef) * (
+                    abs(1.0 - pk) * gg / b + pk * gg / max(abs(R[c]), r[i]) + flanks * STEEP / r[i]
+                    + math.sqrt(gg) / rh
+                )
             px, py, pz = coef * gx, coef * gy, coef * gz
             fx += px
             fy += py

@@ -503,7 +503,8 @@ class TriaxialCell(Boundary):
         self._volume, self._lateral_area, self._radius = geometry
         self._cells = (nz, nt, int(filled.sum()))
         # loads at σ₃ = 1
-        f, mom, vir, kst = _mb.loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, dth, wrow, nt, b)
+        want_k = sim.load_stiffness_wanted  # (DEM-P does not use it: not computed)
+        f, mom, vir, kst = _mb.loads(e, cell, dtheta, ga, gw, R, Z, r, dx, dy, rho, dth, wrow, nt, b, want_k)
         if self.params.membrane_load == "radial":
             # each grain keeps the radial part of its load, acting through its centre at ρ + r
             u = np.stack([dx, dy], axis=1) / np.maximum(rho, 1e-300)[:, None]
@@ -524,7 +525,8 @@ class TriaxialCell(Boundary):
         sim.particles.f[rows[loaded]] += f[loaded]
         # how fast each grain's load changes as it moves (DEM-C scales the masses of the grains whose
         # load is too stiff for its step: Simulation.add_load_stiffness)
-        sim.add_load_stiffness(rows[loaded], kst[loaded] * scale)
+        if want_k:
+            sim.add_load_stiffness(rows[loaded], kst[loaded] * scale)
         self._applied = (f[loaded], mom[loaded].reshape(-1, 9), vir[loaded])
         self._applied_volume = self._volume
         # the loads' axial virial Σ (z + lever_z) f_z (z from the bottom platen): the membrane's part

@@ -472,6 +472,11 @@ class Stepper(Integrator):
         self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
         sim.finish_step(flags)
 
+    @property
+    def wants_load_stiffness(self) -> bool:
+        """Boundaries' load stiffness is used (Simulation.load_stiffness_wanted)."""
+        return bool(self.p.load_mass_scaling)
+
     def _scale_masses(self, h: float, external: bool) -> np.ndarray | None:
         """Mass scaling for stiff boundary loads (``load_mass_scaling``). A load F_i(x) that a
         boundary declares with stiffness k_i (:meth:`Simulation.add_load_stiffness`) enters the free
