@@ -644,6 +644,16 @@ class Simulation:
         """Correctly rounded sum over all ranks (collective; independent of the partition)."""
         return exact_sum(self.comm, values)
 
+    def particle_sum(self, values) -> float:
+        """Correctly rounded sum of a per-particle quantity of the owned particles over all ranks
+        (collective; independent of the partition). Unlike :meth:`exact_sum` it is right before an
+        MPI run's first step too, while every rank still holds every particle (one copy is summed)."""
+        if self.comm.size > 1 and self._decomp is None:
+            from .parallel.comm import SerialComm
+
+            return exact_sum(SerialComm(), values)
+        return exact_sum(self.comm, values)
+
     def count(self, n: int) -> int:
         """Sum of an integer over all ranks (collective)."""
         return global_count(self.comm, n)
