@@ -86,6 +86,34 @@ def test_reads_triaxial_and_shear_outputs(tmp_path):
     assert len(Path(f"{prefix}.csv").read_text().splitlines()) == 6
 
 
+def test_runs_at_one_stress_get_their_mean_angle_not_an_envelope(tmp_path, capsys):
+    """Seeds at one cell pressure: a line through (nearly) equal abscissae is noise (it gave φ = 90°
+    and c = −1.9e12 Pa on two real 100 kPa runs); the tool reports the runs' own angles instead."""
+    outs, phis = [], (21.0, 23.0, 22.0)
+    for k, phi in enumerate(phis):
+        out = tmp_path / f"seed{k}"
+        out.mkdir()
+        s3 = 1e5 * (1.0 + 1e-4 * k)  # realised pressures differ in the last digits
+        ea = np.linspace(0.001, 0.2, 50)
+        q = (_sigma1(s3, phi, 0.0) - s3) * np.minimum(ea / 0.02, 1.0)
+        _write_series(out / "series_shear.csv", [
+            {"time": i, "step": i, "cell.eps_a": e, "cell.q": qq, "cell.sigma3": s3, "cell.eps_v": 0.0}
+            for i, (e, qq) in enumerate(zip(ea, q, strict=True))
+        ])  # fmt: skip
+        (out / "summary.json").write_text(json.dumps({"results": {"cell": {"q_peak": float(q.max())}}}))
+        outs.append(out)
+    prefix = tmp_path / "mc"
+    assert mc.main([*map(str, outs), "--out", str(prefix)]) == 0
+    fits = json.loads(Path(f"{prefix}.json").read_text())["fits"]["triaxial"]
+    assert set(fits) == {"one_stress"}
+    peak = fits["one_stress"]["peak"]
+    assert peak["runs"] == 3
+    assert peak["phi_deg_mean"] == pytest.approx(np.mean(phis), abs=1e-3)
+    assert peak["phi_deg_std"] == pytest.approx(np.std(phis, ddof=1), abs=1e-3)
+    assert "no envelope" in capsys.readouterr().out
+    assert Path(f"{prefix}.png").stat().st_size > 10_000
+
+
 def test_friction_study_skips_finished_runs_and_fits(tmp_path, capsys):
     import friction_study as fs
 

@@ -20,6 +20,9 @@ plane, less what the upper walls carry by friction), else the plate's; fitted as
 (R²), and through the origin, τ = σ tan φ (the study's form). The fits on the plate's stress alone
 (the lab convention) are given too, as ``peak_applied`` and ``residual_applied``.
 
+Runs all at one stress (seeds of one test; stresses within 5 % of each other) get no envelope: the
+tool reports the mean and standard deviation of the runs' own angles (``fits.KIND.one_stress``).
+
 Writes ``PREFIX.json`` (every run and fit), ``PREFIX.csv`` (one row per run) and ``PREFIX.png``
 (curves: q and ε_v against ε_a, τ and dilation against u; Mohr circles or τ–σ points with the
 envelopes). ``PREFIX`` defaults to ``mohr_coulomb`` in the first OUTPUT.
@@ -168,15 +171,40 @@ def fit_shear(sigma: np.ndarray, tau: np.ndarray) -> dict[str, float]:
             "phi_origin_deg": math.degrees(math.atan(origin))}  # fmt: skip
 
 
+#: an envelope needs stresses that differ: below this spread (max − min over max) the runs are
+#: repeats at one stress (e.g. seeds), whose line through nearly equal abscissae is noise
+MIN_STRESS_SPREAD = 0.05
+
+
+def _spread(stresses: list[float]) -> bool:
+    s = np.abs(np.asarray(stresses, dtype=float))
+    return s.size >= 2 and float(s.max() - s.min()) > MIN_STRESS_SPREAD * float(s.max())
+
+
+def _repeats(runs: list[dict], keys: tuple[str, str]) -> dict:
+    """Runs at one stress: the mean and standard deviation of their own angles, no envelope."""
+    out = {}
+    for name, key in zip(("peak", keys[0]), ("phi_peak_deg", keys[1]), strict=True):
+        a = np.array([r[key] for r in runs], dtype=float)
+        std = float(a.std(ddof=1)) if a.size > 1 else 0.0
+        out[name] = {"phi_deg_mean": float(a.mean()), "phi_deg_std": std, "runs": int(a.size)}
+    return out
+
+
 def analyse(runs: list[dict]) -> dict:
-    """Fits for each kind of test present."""
+    """Fits for each kind of test present; runs all at one stress get the mean of their own angles
+    instead (``one_stress``)."""
     out: dict = {}
     tri = sorted((r for r in runs if r["kind"] == "triaxial"), key=lambda r: r["sigma3"])
-    if len(tri) >= 2:
+    if len(tri) >= 1 and not _spread([r["sigma3"] for r in tri]):
+        out["triaxial"] = {"one_stress": _repeats(tri, ("critical", "phi_cs_deg"))}
+    elif len(tri) >= 2:
         out["triaxial"] = {"peak": fit_triaxial([r["peak"] for r in tri]),
                            "critical": fit_triaxial([r["critical"] for r in tri])}  # fmt: skip
     ds = sorted((r for r in runs if r["kind"] == "direct_shear"), key=lambda r: r["sigma"])
-    if len(ds) >= 2:
+    if len(ds) >= 1 and not _spread([r["sigma_applied"] for r in ds]):
+        out["direct_shear"] = {"one_stress": _repeats(ds, ("residual", "phi_residual_deg"))}
+    elif len(ds) >= 2:
         sigma = np.array([r["sigma"] for r in ds])
         applied = np.array([r["sigma_applied"] for r in ds])
         out["direct_shear"] = {
@@ -245,7 +273,8 @@ def plot(runs: list[dict], fits: dict, png: Path) -> None:
         ax.set_ylabel("shear stress τ [kPa]")
         ax.set_xlim(left=0)
         ax.set_ylim(bottom=0)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:  # (no envelope at one stress)
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(png, dpi=120)
     plt.close(fig)
@@ -281,6 +310,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['kind']:12s} {stress / 1e3:8.2f} kPa  φ_peak {r['phi_peak_deg']:5.1f}°  "
               f"φ_large-strain {other:5.1f}°  {r['output']}")  # fmt: skip
     for kind, f in fits.items():
+        if "one_stress" in f:
+            for name, v in f["one_stress"].items():
+                print(f"{kind:12s} {name:9s} one stress, {v['runs']} run(s): no envelope; their own angles "
+                      f"φ = {v['phi_deg_mean']:.2f}° ± {v['phi_deg_std']:.2f}° (mean ± s.d.)")  # fmt: skip
+            continue
         for name, v in f.items():
             print(f"{kind:12s} {name:9s} φ = {v['phi_deg']:.2f}°  c = {v['cohesion_pa']:.1f} Pa  "
                   f"R² = {v['r2']:.4f}")  # fmt: skip
