@@ -6,7 +6,8 @@
     pdem resume CHECKPOINT [--set KEY=VALUE ...] [--steps N] [--output DIR] [--overwrite] [--quiet]
     pdem plugins
     pdem schema [--output FILE] [--overwrite]
-    pdem study SPEC [--jobs N] [--ranks N] [--output DIR] [--retry-failed] [--report-only] [--dry-run]
+    pdem study SPEC [--jobs N] [--ranks N] [--output DIR] [--retry-failed] [--series NAME] [--report-only]
+               [--dry-run]
 
 Exit codes: 0 success, 2 invalid input (deck, plugin, parameters, existing output directory, an
 output path that is not or cannot become a directory, a ``run.decomposition`` that does not match
@@ -455,6 +456,8 @@ def cmd_study(argv: list[str]) -> int:
     p.add_argument("--ranks", type=int, default=None, metavar="N", help="MPI ranks per run (default: spec's)")
     p.add_argument("--output", type=Path, default=None, metavar="DIR", help="study directory")
     p.add_argument("--retry-failed", action="store_true", help="run again the runs that did not end ok")
+    p.add_argument("--series", action="append", default=None, metavar="NAME",
+                   help="run only this series' runs (repeatable); the report still covers every run there is")
     p.add_argument("--report-only", action="store_true", help="run nothing; tabulate and chart what is there")
     p.add_argument("--dry-run", action="store_true", help="list the runs and their commands; run nothing")
     args = p.parse_args(argv)
@@ -462,8 +465,9 @@ def cmd_study(argv: list[str]) -> int:
     from .study.launch import command
 
     study = Study.from_file(args.spec, jobs=args.jobs, ranks=args.ranks, output=args.output)
+    selected = study.select(args.series)  # (an unknown series: InputError, exit 2)
     if args.dry_run:
-        for plan in study.plans:
+        for plan in selected:
             cmd = command(study.spec.deck, plan.directory, plan.set_args(), study.spec.ranks)
             print(f"{plan.name} [{plan.method}]: {' '.join(cmd)}")
         return 0
@@ -474,7 +478,7 @@ def cmd_study(argv: list[str]) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)
     if not args.report_only:
-        study.run(retry_failed=args.retry_failed)
+        study.run(retry_failed=args.retry_failed, series=args.series)
     paths = study.report()
     print(f"pdem study: {len(study.plans)} runs; table {paths['table']}; reading {paths['reading']}")
     print(paths["reading"].read_text())

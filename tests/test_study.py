@@ -244,6 +244,36 @@ vary = { "run.dt_fraction" = [0.1, 0.2] }
     assert all(r.record.sets[0] == "stages.settle.end.time=0.03" for r in results)
 
 
+def test_series_option_runs_only_those_series(tmp_path, capsys):
+    """``--series``: the named series run, the others are left unrun (and a later full run does
+    them without redoing the first); an unknown name is refused with exit 2, naming the spec's."""
+    spec = _spec(tmp_path, """
+[quantities.floor_load]
+column = "box.zlo.fz"
+reduce = "last"
+reference = { finest = "a", by = "run.dt_fraction" }
+[[series]]
+name = "a"
+set = { "stages.settle.end.time" = 0.01 }
+vary = { "run.dt_fraction" = [0.2] }
+[[series]]
+name = "b"
+set = { "stages.settle.end.time" = 0.01 }
+vary = { "run.dt_fraction" = [0.1] }
+""")
+    assert main(["study", str(spec), "--series", "nope"]) == 2
+    assert "'nope' is not a series of the spec; its series are: a, b" in capsys.readouterr().err
+    assert main(["study", str(spec), "--series", "b"]) == 0
+    study = Study.from_file(spec)
+    by = {r.plan.series: r for r in study.results()}
+    assert by["b"].record is not None and by["b"].record.status == "ok"
+    assert by["a"].record is None
+    first = (by["b"].plan.directory / "study_run.json").stat().st_mtime_ns
+    results = study.run(progress=None)
+    assert all(r.record.status == "ok" for r in results)
+    assert (by["b"].plan.directory / "study_run.json").stat().st_mtime_ns == first  # kept, not redone
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_pareto_front_matches_brute_force(seed):
     rng = np.random.default_rng(seed)

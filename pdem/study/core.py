@@ -10,11 +10,13 @@ import statistics
 import sys
 import threading
 import time
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from ..errors import InputError
 from .launch import RunRecord, launch, lookup, read_record, reset_stop, series_value, stop_all, summary_of
 from .spec import Quantity, RunPlan, StudySpec, load_spec, plan_runs
 
@@ -99,20 +101,43 @@ class Study:
         return cls(load_spec(path, {k: v for k, v in overrides.items() if v is not None}))
 
     # ------------------------------------------------------------------ running
-    def run(self, *, retry_failed: bool = False, progress: TextIO | None = sys.stderr) -> list[RunResult]:
+    def select(self, series: Iterable[str] | None = None) -> list[RunPlan]:
+        """The planned runs of the named series (all with ``None``); an unknown name is an
+        :class:`InputError` naming the spec's series."""
+        if series is None:
+            return list(self.plans)
+        wanted = list(series)
+        names = [s.name for s in self.spec.series]
+        unknown = [n for n in wanted if n not in names]
+        if unknown:
+            raise InputError(
+                f"study: --series {unknown[0]!r} is not a series of the spec; its series are: "
+                f"{', '.join(names)}"
+            )
+        return [p for p in self.plans if p.series in wanted]
+
+    def run(
+        self,
+        *,
+        retry_failed: bool = False,
+        series: Iterable[str] | None = None,
+        progress: TextIO | None = sys.stderr,
+    ) -> list[RunResult]:
         """Run every planned run that has no record yet (and, with ``retry_failed``, those that did
-        not end ``ok``), ``spec.jobs`` at a time. Progress and a time estimate go to ``progress``."""
+        not end ``ok``), ``spec.jobs`` at a time; with ``series``, only the runs of those series (the
+        others are left as they are, run or not). Progress and a time estimate go to ``progress``."""
         spec = self.spec
+        plans = self.select(series)
         reset_stop()
         todo = []
-        for plan in self.plans:
+        for plan in plans:
             rec = read_record(plan.directory)
             keep = (
                 rec is not None and rec.sets == plan.set_args() and (rec.status == "ok" or not retry_failed)
             )
             if not keep:
                 todo.append(plan)
-        total, kept = len(self.plans), len(self.plans) - len(todo)
+        total, kept = len(plans), len(plans) - len(todo)
         lock = threading.Lock()
         durations: list[float] = []
         by_series: dict[str, list[float]] = {}
