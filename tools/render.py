@@ -338,9 +338,12 @@ def render_frame(
     if field == "displacement":
         ref = read_frame(output_dir, _stage_start(output_dir, snap) if reference is None else reference)
         values = 1e3 * displacement(p, ref.particles)
-        bar_title, fmt = f"displacement since t = {ref.time:.4g} s [mm]", "%.3g"
+        # (the reference time goes in the header: in the bar's title it ran off the picture)
+        bar_title, fmt = "displacement [mm]", "%.3g"
+        what = f"displacement since t = {ref.time:.4g} s"
     else:
         values, bar_title, fmt = field_values(p, field) if len(x) else (np.zeros(0), field, "%.3g")
+        what = "material" if field == "material" else bar_title.split(" [")[0]
     keep = x[:, 1] >= 0.0 if clip_y else np.ones(len(x), dtype=bool)
 
     pv.OFF_SCREEN = True
@@ -443,9 +446,8 @@ def render_frame(
         plotter.camera.zoom(0.98)
 
         title = deck.get("title", "")
-        what = "material" if field == "material" else bar_title.split(" [")[0]
-        head = (
-            f"{what}   t = {snap.time:.4g} s   (stage '{snap.stage}', step {snap.step}, "
+        head = (  # two lines: one line ran off pictures of narrow scenes
+            f"{what}   t = {snap.time:.4g} s\n(stage '{snap.stage}', step {snap.step}, "
             f"{len(x)} particles{', y >= 0' if clip_y else ''})"
         )
         plotter.add_text(head, position="upper_edge", font_size=max(8, int(13 * scale)), color="black")
