@@ -331,3 +331,18 @@ vary = { "run.dt" = [2e-6, 1e-5] }
     assert stopped["status"] == "failed" and stopped["exit_code"] == 3
     assert "run.stiffness_limit" in stopped["message"]
     assert stopped["dt_ratio"] == pytest.approx(1e-5 / ok["dt"] * ok["dt_ratio"], rel=1e-3)
+
+
+SHIPPED = sorted((Path(__file__).resolve().parents[1] / "studies").glob("*.toml"))
+
+
+@pytest.mark.parametrize("spec", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_shipped_specs_plan_valid_decks(spec):
+    """Every shipped study spec loads, and every run it plans is a valid deck (its deck with the
+    run's overrides passes the deck validation): a misspelt key fails here, not hours into a study."""
+    from pdem.deck.load import load_deck
+
+    study = Study.from_file(spec)
+    assert study.plans
+    for plan in study.plans:
+        load_deck(study.spec.deck, plan.set_args())
