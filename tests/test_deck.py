@@ -447,6 +447,18 @@ def test_unknown_law_parameter(deck_dir, base):
     assert msg == "unknown key 'clamp_normall' in contact; did you mean 'clamp_normal'?"
 
 
+def test_unknown_key_in_the_other_laws_table(deck_dir, base):
+    """A DEM-P deck's [contact.complementarity] is checked too: a misspelt key there is reported
+    now, not only after --set contact.law=complementarity; its valid keys pass."""
+    base["contact"]["complementarity"] = {"solver": "apgd", "max_iteratons": 300}
+    problems = problems_of(deck_dir, base)
+    msg = expect(problems, "contact.complementarity.max_iteratons")
+    assert msg == "unknown key 'max_iteratons' in contact.complementarity; did you mean 'max_iterations'?"
+    assert len(problems) == 1
+    base["contact"]["complementarity"] = {"solver": "apgd", "max_iterations": 300}
+    validate_deck(base, path=deck_dir / "deck.toml")  # no error
+
+
 def test_law_parameter_combination(deck_dir, base):
     base["contact"]["parameterisation"] = "coefficients"
     base["contact"]["kn"] = 1e6

@@ -328,6 +328,8 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
     # [contact.<law>] tables hold one law's parameters, so that a deck can carry those of both
     # methods and switch with the one key contact.law; the selected law's table joins the top level
     known = set(plugins.available("contact_laws"))
+    # the other laws' tables are checked for unknown keys now, not only once the deck switches law
+    unused = _unused_law_tables(raw, law, known)
     values: dict = {}
     for k, v in raw.items():
         if k == "law" or (isinstance(v, dict) and k in known and k != law):
@@ -348,7 +350,7 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
             values.update(v)
         else:
             values[k] = v
-    problems = _non_finite(values, ("contact",))
+    problems = unused + _non_finite(values, ("contact",))
     try:
         params = model.model_validate_json(_to_json(values), strict=True)
     except ValidationError as exc:
@@ -366,6 +368,26 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
             [(("contact",), f"contact law '{law}' rejected its parameters: {type(exc).__name__}: {exc}")],
         )
     return cls, params, []
+
+
+def _unused_law_tables(raw: dict, law: str, known: set[str]) -> list[tuple[Loc, str]]:
+    """Unknown keys in the tables of the laws the deck does not select ([contact.complementarity]
+    of a DEM-P deck): a misspelt key there would otherwise surface only after ``--set
+    contact.law=…``."""
+    problems: list[tuple[Loc, str]] = []
+    for name in sorted(k for k, v in raw.items() if isinstance(v, dict) and k in known and k != law):
+        cls, err = _load_plugin("contact_laws", name)
+        if err is not None:
+            continue
+        model, _ = _params_model(cls, ("contact", name), f"contact law '{name}'")
+        if model is None:
+            continue
+        fields = list(model.model_fields)
+        for key in raw[name]:
+            if key not in fields:
+                hint = did_you_mean(key, fields)
+                problems.append((("contact", name, key), f"unknown key '{key}' in contact.{name}{hint}"))
+    return problems
 
 
 def _validate_per_rank_writers(data: dict) -> list[tuple[Loc, str]]:
