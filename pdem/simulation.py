@@ -724,7 +724,10 @@ class Simulation:
         out["scalars/dt"] = np.array(self.dt)
         out["scalars/next_id"] = np.array(self._next_id)
         for name, value in self.stiffness.items():
-            out[f"stiffness/{name}"] = np.array(value)
+            if math.isfinite(value):  # (min_dt is +inf until a bound is measured, always with DEM-C: a
+                # checkpoint leaves it out, a resume starts from +inf again, and no file holds a
+                # non-finite number that a failure scan would take for a blown-up state)
+                out[f"stiffness/{name}"] = np.array(value)
         out.update(self.integrator.state())  # e.g. DEM-C solver counters
         if self.box is not None:
             out.update(self.box.state())

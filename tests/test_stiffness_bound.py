@@ -317,3 +317,35 @@ def test_stop_under_mpi_is_collective_and_the_bound_does_not_depend_on_ranks(tmp
         return line[line.index("at step") : line.index("above run.stiffness_limit")]
 
     assert stop(serial.stderr) == stop(par.stderr)
+
+
+def _two_on_a_floor(law, particles=True):
+    from pdem.boundaries.shapes import Plane
+
+    sim = pdem.Simulation(law=law)
+    sim.add_material("glass", density=2500, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.5)  # fmt: skip
+    if particles:
+        sim.add_particles([[0, 0, 0.0011], [0, 0, 0.0032]], 1e-3)
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)), name="floor")
+    sim.gravity = (0, 0, -9.81)
+    sim.dt = 1e-5 if law == "hertz_mindlin" else 1e-4
+    return sim
+
+
+@pytest.mark.parametrize("law", ["hertz_mindlin", "complementarity"])
+def test_checkpoint_state_before_any_bound_is_finite(law):
+    """Until a bound is measured (before the first check; always with DEM-C) the record's smallest
+    bound is +inf. A checkpoint leaves it out: a failed DEM-C run's files were taken for a blown-up
+    state by the study's scan for non-finite numbers. Restored, the record is +inf again."""
+    sim = _two_on_a_floor(law)
+    sim.run(steps=20)
+    assert sim.stiffness["min_dt"] == math.inf
+    state = sim.state_dict()
+    floats = {k: np.asarray(v) for k, v in state.items() if np.asarray(v).dtype.kind == "f"}
+    assert floats and all(np.all(np.isfinite(v)) for v in floats.values()), [
+        k for k, v in floats.items() if not np.all(np.isfinite(v))
+    ]
+    other = _two_on_a_floor(law, particles=False)
+    other.load_state(state)
+    assert other.stiffness["min_dt"] == math.inf and other.stiffness["checks"] == 0
