@@ -326,16 +326,21 @@ class TriaxialCell(Boundary):
 
     def state(self) -> dict[str, Any]:
         """What a resumed stage needs: the stage, its start time (pressure ramp), the height and
-        volume at the start of shearing (strain references), a load-controlled plate's velocity."""
+        volume at the start of shearing (strain references), a load-controlled plate's velocity, and
+        the membrane's last geometry (the next step's platen load and servo read its area before the
+        membrane is found again)."""
         out = {"stage": getattr(self, "_stage", None), "stage_t0": self._stage_t0, "h0": self.h0,
                "v0": self.v0, "seated": self._seated,
-               "grid": list(self._grid) if self._grid is not None else None}  # fmt: skip
+               "grid": list(self._grid) if self._grid is not None else None,
+               "geometry": [self._volume, self._lateral_area, self._radius]}  # fmt: skip
         if isinstance(self.top.motion, RigidBody):
             out["body_velocity"] = self.top.motion.velocity_now.tolist()
         return out
 
     def restore(self, state: dict[str, Any]) -> None:
         self._restored = dict(state) if state else None
+        if state and state.get("geometry") is not None:  # whichever stage the checkpoint ended
+            self._volume, self._lateral_area, self._radius = (float(v) for v in state["geometry"])
 
     # ------------------------------------------------------------------ geometry
     def height(self) -> float:
