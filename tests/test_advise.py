@@ -338,3 +338,19 @@ def test_applied_deck_keeps_packing_files_and_loads_from_elsewhere(tmp_path):
     out = apply(advice, tmp_path / "elsewhere" / "advised.toml")
     resolved = load_deck(out)
     assert Path(resolved.deck.particles[0].path) == (tmp_path / "pack.txt").resolve()
+
+
+def test_a_wave_deck_keeps_its_stiffness_and_is_told_dem_c_has_no_wave():
+    """The chain's wave speed is set by E: a step 10× finer than the deck's is coarsened, the
+    stiffness is left alone, and the method finding names DEM-P whatever the cost model says (rigid
+    grains carry no wave), warning a deck that runs DEM-C."""
+    deck = Path(__file__).resolve().parents[1] / "inputs" / "wave_chain.toml"
+    shipped = load_deck(deck).deck.run.dt
+    fine = advise(deck, ["run.dt=%r" % (shipped / 10)], probe=False)
+    assert not [k for k in fine.changes if "youngs_modulus" in k], fine.changes
+    assert fine.changes["run.dt"] > 3 * shipped / 10
+    method = finding(fine, "method", "all stages")
+    assert method.verdict == "ok" and method.reason.startswith("DEM-P") and "rigid grains" in method.reason
+    rigid = advise(deck, ['contact.law="complementarity"'], probe=False)
+    method = finding(rigid, "method", "all stages")
+    assert method.verdict == "warn" and "measure the solver" in method.reason
