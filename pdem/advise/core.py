@@ -343,6 +343,11 @@ class _Advisor:
         return best
 
     # ------------------------------------------------------------------ overlap and stiffness
+    def _wave_boundaries(self) -> list[str]:
+        """The boundaries that strike grains or time a wave (its speed is set by the stiffness)."""
+        kinds = ("impulse", "sensors")
+        return [n for n, p in self.scene.boundaries.items() if getattr(p, "type", None) in kinds]
+
     def overlap(self) -> None:
         sc = self.scene
         stress, stage = self._max_stress()
@@ -355,7 +360,7 @@ class _Advisor:
                    else f"law '{sc.law}' ({sc.parameterisation}) is left as it is"),
             ))  # fmt: skip
             return
-        waves = [n for n, p in sc.boundaries.items() if getattr(p, "type", None) in ("impulse", "sensors")]
+        waves = self._wave_boundaries()
         drops = [
             n
             for n, p in sc.boundaries.items()
@@ -962,7 +967,7 @@ class _Advisor:
         if unknown:
             reason += f". Stages {', '.join(unknown)} have no length the deck tells and are left out"
         verdict = "ok"
-        waves = [n for n, p in sc.boundaries.items() if getattr(p, "type", None) in ("impulse", "sensors")]
+        waves = self._wave_boundaries()
         if waves:  # the cost model is beside the point: only one method has the quantity
             verdict = "warn" if sc.law == "complementarity" else "ok"
             reason = (
