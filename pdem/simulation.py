@@ -119,7 +119,8 @@ class Simulation:
         self._force_rebuild = False
         self.dt_critical = math.nan
         #: live step bound from the contacts' stiffness (pdem.contact.stability), checked every this
-        #: many steps for penalty laws that support it (0: never)
+        #: many steps for penalty laws that support it (0: never), and at steps 1, 2, 4, … below it
+        #: (a run's first steps are often its impact: a coarse run of ~100 steps saw it only once)
         self.stiffness_every = 100
         #: stop (InstabilityError) when dt exceeds this multiple of the live bound; 0: never
         self.stiffness_limit = STIFFNESS_LIMIT
@@ -1157,7 +1158,8 @@ class Simulation:
         self.time += self._dt
         self.step_count += 1
         self.check_flags(flags)
-        if self.stiffness_every and self.step_count % self.stiffness_every == 0:
+        every, n = self.stiffness_every, self.step_count
+        if every and (n % every == 0 or (n < every and n & (n - 1) == 0)):
             self.check_stiffness()
 
     def check_stiffness(self) -> float:

@@ -138,6 +138,193 @@ def test_bound_lies_above_the_networks_largest_eigenvalue(seed):
     assert step_bound(sim) == pytest.approx(2.0 / math.sqrt(top))
 
 
+def test_sliding_contact_linearisation_is_what_the_bound_assumes():
+    """At the Coulomb cap the law's own force (plain-Python twin) has no stiffness for further slip,
+    k_t across it, and a tangential force that follows the normal one at a slope of at most μ S_n
+    (μ S_n unloading, μ S_n/3 loading, as the spring's k_t grows slower than F_n); contact_slip flags
+    exactly that state, with the spring's direction and the slope μ S_n, and not a spring below it."""
+    sim = pdem.Simulation()
+    _glass(sim, restitution=1.0)  # μ = 0.5, no dashpots
+    sim.add_particles([[0, 0, 0]], [1e-3], material="glass")
+    sim.prepare()
+    law, coef = sim.law, sim.coefficients
+    r_eff, m_eff, delta, mu = 5e-4, 4e-6, 1e-6, 0.5
+    one = [np.array([v]) for v in (0, 0, r_eff, m_eff)]
+    got = law.contact_stiffness(coef, one[0], one[1], one[2], one[3], np.array([delta]))
+    s_n, k_t = (float(q[0]) for q in got)
+    n, z = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+
+    def force(d, move=z, xi=None):
+        h0 = np.zeros(3) if xi is None else xi.copy()
+        return force_numpy(d, n, move, z, r_eff, m_eff, 1e-12, coef[0, 0], h0, 1.0)[0]
+
+    cap = mu * force(delta)[2]
+    xi = np.array([cap / k_t, 0.0, 0.0])
+    dirs, slope = law.contact_slip(
+        coef, one[0], one[1], one[2], one[3], np.array([delta]), np.zeros(1), xi[None, :]
+    )
+    assert np.allclose(dirs[0], [1.0, 0.0, 0.0]) and slope[0] == pytest.approx(mu * s_n)
+    dirs, slope = law.contact_slip(coef, one[0], one[1], one[2], one[3], np.array([delta]), np.zeros(1),
+                                   0.5 * xi[None, :])  # fmt: skip
+    assert not np.any(dirs) and slope[0] == 0.0
+    base = force(delta, xi=xi)
+    assert base[0] == pytest.approx(-cap, rel=1e-12)
+    h = 1e-4 * xi[0]
+    assert force(delta, np.array([h, 0.0, 0.0]), xi)[0] == pytest.approx(base[0], rel=1e-12)  # slip on
+    across = (force(delta, np.array([0.0, h, 0.0]), xi)[1] - base[1]) / h
+    assert across == pytest.approx(-k_t, rel=1e-3)
+    hd = 1e-5 * delta
+    unload = (force(delta - hd, xi=xi)[0] - base[0]) / -hd
+    load = (force(delta + hd, xi=xi)[0] - base[0]) / hd
+    assert unload == pytest.approx(-mu * s_n, rel=1e-3)
+    assert abs(load) == pytest.approx(mu * s_n / 3, rel=1e-3)
+
+
+def _flat_pair(slide: bool):
+    """Two spheres in the xz plane (2-D mode: no y translation, no turning about x or z), pressed
+    along a normal 30° off z; one step with the upper sphere moving across the normal (fast enough
+    to slide, or not)."""
+    sim = pdem.Simulation()
+    _glass(sim, restitution=1.0)
+    r = 1e-3
+    nrm = np.array([math.sin(math.pi / 6), 0.0, math.cos(math.pi / 6)])
+    tan = np.array([nrm[2], 0.0, -nrm[0]])
+    speed = 2.0 if slide else 1e-5  # per step 2e-6 m (the cap's spring is 8e-7 m) or 1e-11 m
+    sim.add_particles(
+        [[0, 0, 0], (1.9 * r - 2e-6) * nrm], [r, 0.9 * r], material="glass",
+        velocities=[[0, 0, 0], speed * tan], fixed_translation="y", fixed_rotation="xz",
+    )  # fmt: skip
+    sim.dt = 1e-6
+    sim.max_overlap = 1.0
+    sim.run(steps=1)
+    return sim
+
+
+def _locked_norm(sim) -> float:
+    """‖M^-½ K M^-½‖₂ over the free axes, K assembled from scratch for the one contact: normal spring
+    S_n, tangential k_t, or at the cap no stiffness along the spring, k_t across it and the coupling
+    −μ S_n (force on j along the spring per unit of normal separation)."""
+    p = sim.get_particles()
+    x, r, m = p["x"], p["r"], p["mass"]
+    mat = sim.materials[0]
+    e_star, g_star = effective_moduli(mat, mat)
+    d = x[1] - x[0]
+    dist = np.linalg.norm(d)
+    nv = d / dist
+    delta = r[0] + r[1] - dist
+    r_eff = r[0] * r[1] / (r[0] + r[1])
+    a = math.sqrt(r_eff * delta)
+    s_n, k_t = 2 * e_star * a, 8 * g_star * a
+    xi = sim.contact_store.hist[0, :3]
+    cap = 0.5 * 4 / 3 * e_star * a * delta
+    if k_t * np.linalg.norm(xi) >= cap * (1 - 1e-9):
+        t1 = xi / np.linalg.norm(xi)
+        t2 = np.cross(nv, t1)
+        c = s_n * np.outer(nv, nv) - 0.5 * s_n * np.outer(t1, nv) + k_t * np.outer(t2, t2)
+    else:
+        c = s_n * np.outer(nv, nv) + k_t * (np.eye(3) - np.outer(nv, nv))
+
+    def skew(v):
+        return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+    b = np.zeros((3, 12))
+    b[:, 6:9] = np.eye(3)
+    b[:, 9:12] = skew(r[1] * nv)
+    b[:, 0:3] = -np.eye(3)
+    b[:, 3:6] = skew(r[0] * nv)
+    k = b.T @ c @ b
+    w = np.concatenate([[mi] * 3 + [0.4 * mi * ri * ri] * 3 for mi, ri in zip(m, r, strict=True)])
+    s = 1.0 / np.sqrt(w)
+    k = s[:, None] * k * s[None, :]
+    free = np.array([True, False, True, False, True, False] * 2)  # x, z translation; turning about y
+    return float(np.linalg.norm(k[np.ix_(free, free)], 2))
+
+
+@pytest.mark.parametrize("slide", [False, True])
+def test_locked_axes_and_sliding_single_contact_matches_the_assembled_norm(slide):
+    """One contact (so the bound is the contact's norm itself): the 3 × 3 Gram route of the bound
+    equals the norm of the 12 × 12 matrix assembled over the free axes; sliding in the plane leaves
+    the normal spring and the coupling (the out-of-plane direction is locked): for ν = 0.3 and
+    μ = 0.5, λ_n sqrt(1 + 3.5 μ²) = 1.37 λ_n against λ_t = 2.88 λ_n sticking, 2.1× less."""
+    sim = _flat_pair(slide)
+    xi = sim.contact_store.hist[0, :3]
+    assert abs(xi[1]) < 1e-12 * np.linalg.norm(xi)  # the spring is in the plane
+    assert network_bound(sim) == pytest.approx(_locked_norm(sim), rel=1e-9)
+    if slide:
+        stuck = _flat_pair(False)
+        assert network_bound(stuck) > 2.0 * network_bound(sim)
+
+
+def test_bound_lies_above_the_spectral_radius_of_a_flat_bed():
+    """A hexagonal layer in 2-D mode, squeezed, with random in-plane velocities (some contacts slide):
+    the bound is ≥ the spectral radius of the assembled, non-symmetric linearised network over the
+    free axes, and within 4× of it."""
+    sim = pdem.Simulation()
+    _glass(sim, restitution=1.0, friction=0.3)
+    rng = np.random.default_rng(3)
+    r = 1e-3
+    rows, cols = 5, 6
+    pts = [
+        [(2 * c + (q % 2)) * r * 0.995, 0.0, q * math.sqrt(3) * r * 0.995]
+        for q in range(rows)
+        for c in range(cols)
+    ]
+    n = len(pts)
+    v = rng.normal(0.0, 1.0, (n, 3))  # ~1e-6 m a step, past the cap's spring (~1e-6 m at δ = 1e-5 m)
+    v[:, 1] = 0.0
+    sim.add_particles(pts, r, material="glass", velocities=v, fixed_translation="y", fixed_rotation="xz")
+    sim.dt = 1e-6
+    sim.max_overlap = 1.0
+    sim.run(steps=3)
+    p = sim.get_particles()
+    x, m = p["x"], p["mass"]
+    mat = sim.materials[0]
+    e_star, g_star = effective_moduli(mat, mat)
+    cs = sim.contact_store
+    ids = sim.particles.id
+    row_of = {int(i): k for k, i in enumerate(p["id"])}
+    k_full = np.zeros((6 * n, 6 * n))
+    sliding = 0
+
+    def skew(q):
+        return np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
+
+    for c in range(cs.pi.shape[0]):
+        i, j = row_of[int(ids[cs.pi[c]])], row_of[int(ids[cs.pj[c]])]
+        d = x[j] - x[i]
+        dist = np.linalg.norm(d)
+        delta = 2 * r - dist
+        if delta <= 0:
+            continue
+        nv = d / dist
+        a = math.sqrt(0.5 * r * delta)
+        s_n, k_t = 2 * e_star * a, 8 * g_star * a
+        xi = cs.hist[c, :3]
+        cap = 0.3 * 4 / 3 * e_star * a * delta
+        if k_t * np.linalg.norm(xi) >= cap * (1 - 1e-9):
+            sliding += 1
+            t1 = xi / np.linalg.norm(xi)
+            t2 = np.cross(nv, t1)
+            cm = s_n * np.outer(nv, nv) - 0.3 * s_n * np.outer(t1, nv) + k_t * np.outer(t2, t2)
+        else:
+            cm = s_n * np.outer(nv, nv) + k_t * (np.eye(3) - np.outer(nv, nv))
+        b = np.zeros((3, 6 * n))
+        b[:, 6 * j : 6 * j + 3] = np.eye(3)
+        b[:, 6 * j + 3 : 6 * j + 6] = skew(r * nv)
+        b[:, 6 * i : 6 * i + 3] = -np.eye(3)
+        b[:, 6 * i + 3 : 6 * i + 6] = skew(r * nv)
+        k_full += b.T @ cm @ b
+    w = np.repeat(np.stack([m, m, m, 0.4 * m * r * r, 0.4 * m * r * r, 0.4 * m * r * r], 1).reshape(-1), 1)
+    s = 1.0 / np.sqrt(w)
+    k_full = s[:, None] * k_full * s[None, :]
+    free = np.tile([True, False, True, False, True, False], n)
+    rho = float(np.abs(np.linalg.eigvals(k_full[np.ix_(free, free)])).max())
+    assert 0 < sliding < cs.pi.shape[0]
+    top = network_bound(sim)
+    assert rho <= top * (1 + 1e-9)
+    assert top <= 4.0 * rho
+
+
 def test_sphere_on_floor_closed_form():
     """One sphere pressed into a floor, frictionless: Ω² = S_n/m exactly (the dashpot of e = 0.5
     does not enter)."""
@@ -227,7 +414,7 @@ def test_run_below_the_bound_records_it(tmp_path):
     assert proc.returncode == 0, proc.stderr
     s = json.loads((tmp_path / "ok" / "summary.json").read_text())
     b = s["stiffness_bound"]
-    assert b["checks"] == 16 and b["checks_exceeded"] == 0
+    assert b["checks"] == 16 + 7 and b["checks_exceeded"] == 0  # every 100 of 1,600 steps, and 1, 2, …, 64
     # the bound is below the Rayleigh estimate in this dense, frictional sample, and the deck's
     # step is below the bound
     assert s["dt"] < b["dt_min"] < s["dt_critical"]
@@ -348,4 +535,5 @@ def test_checkpoint_state_before_any_bound_is_finite(law):
     ]
     other = _two_on_a_floor(law, particles=False)
     other.load_state(state)
-    assert other.stiffness["min_dt"] == math.inf and other.stiffness["checks"] == 0
+    assert other.stiffness["min_dt"] == math.inf
+    assert other.stiffness["checks"] == sim.stiffness["checks"]  # 0 with DEM-C; steps 1, 2, 4, 8, 16

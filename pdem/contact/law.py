@@ -41,6 +41,7 @@ twin of its force function (``force_numpy``), used by contract tests.
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -141,6 +142,35 @@ class ContactLaw:
         c_n v at once, which with a large gain makes the servo chatter. A law that does not implement
         it is taken as undamped there."""
         raise NotImplementedError
+
+    def contact_slip(
+        self,
+        coef: np.ndarray,
+        mi: np.ndarray,
+        mj: np.ndarray,
+        r_eff: np.ndarray,
+        m_eff: np.ndarray,
+        overlap: np.ndarray,
+        vn: np.ndarray,
+        hist: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Optional, penalty laws with a Coulomb cap: which touching contacts slide now, for the live
+        step bound (:mod:`pdem.contact.stability`). Arguments of :meth:`contact_stiffness` plus the
+        relative normal velocity ``vn`` (the kernel's: (v_j − v_i)·n, negative while approaching) and
+        each contact's history row ``hist`` (the law's own layout). Returns (the unit direction of
+        the tangential force's spring, shape (k, 3), zero rows for contacts that stick; the slope
+        dF_t/dδ of a sliding contact's force, μ S_n for a Coulomb cap μ F_n), or ``None`` (the
+        default): every contact counted as sticking, which keeps the bound conservative. A sliding
+        contact has no stiffness along its slip, only across it (the cap turns with the spring)."""
+        return None
+
+    def slip_slope_ratio(self, coef: np.ndarray) -> float:
+        """Optional, with :meth:`contact_slip`: an upper bound of slope / S_n over every material pair
+        (the friction coefficient μ for a Coulomb cap). The live bound asks :meth:`contact_slip` only
+        about the contacts whose bound sliding could change (those of grains with locked axes, and
+        those whose tangential mode does not dominate a coupling this large); ``inf`` (the
+        default): about every contact."""
+        return math.inf
 
     def suggested_dt(
         self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray

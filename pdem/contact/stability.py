@@ -11,27 +11,44 @@ but as a rigorous bound:
 Linearise each touching contact c between particles i and j: a normal spring S_n = dF_n/dδ and a
 tangential spring k_t acting on the relative displacement of the contact point, which involves the
 translations (masses m) and, for the tangential part, the rotations (inertias I, lever arms r). In
-mass-weighted coordinates the contact's stiffness matrix has two distinct nonzero eigenvalues::
+mass-weighted coordinates the contact's stiffness matrix A_c has two distinct nonzero eigenvalues::
 
     λ_n = S_n (1/m_i + 1/m_j)                                  (along the normal)
     λ_t = k_t (1/m_i + 1/m_j + r_i²/I_i + r_j²/I_j)            (in the tangent plane)
 
 and since the network's matrix is the sum of the contacts' and each contact touches two particles,
-its largest eigenvalue is at most Ω² = max over particles of Σ_{c ∋ i} max(λ_n, λ_t) (the quadratic
-form of every contact is at most its λ_c times the squared weighted displacement of its two
-particles). Velocity Verlet is stable for an undamped mode of frequency Ω if dt ≤ 2/Ω, so::
+its largest eigenvalue is at most Ω² = max over particles of Σ_{c ∋ i} ‖A_c‖ (for any matrices,
+|y·A_c x| ≤ ‖A_c‖ (|x_i|² + |x_j|² + |y_i|² + |y_j|²)/2; here ‖A_c‖ = max(λ_n, λ_t)). Velocity
+Verlet is stable for an undamped mode of frequency Ω if dt ≤ 2/Ω, so::
 
     dt_stiffness = 2 / Ω
 
 is a lower bound of the undamped linear limit. Walls count as infinitely massive; a frictionless
-contact has no tangential spring. The dashpots are left out on purpose: assembled the same way,
-they would bound the explicit-damping limit 2 (sqrt(Ω² + Γ²) − Γ)/Ω², which in the hopper
+contact has no tangential spring. Two refinements follow the contact's actual state:
+
+- *Sliding contacts* (:meth:`ContactLaw.contact_slip`, at the Coulomb cap) have no stiffness along
+  their slip (the force stays μ F_n whatever the slip) and k_t across it (the cap turns with the
+  spring); the normal spring drags the tangential force by μ S_n, a non-symmetric term:
+  ‖A_c‖ = max(sqrt(λ_n² + μ² S_n² g_n g_t), λ_t) with g_n, g_t the weights above. In 3-D λ_t still
+  wins; in a 2-D scene (below) a sliding contact is left with its normal spring.
+- *Locked axes* (the ``dof`` bits: a 2-D mode, grains that may not turn) remove those rows of the
+  relative displacement: ‖A_c‖ = ‖G^½ C G^½‖ with G the 3 × 3 Gram matrix of the contact's
+  directions over the free axes and C its stiffness in the basis (n, slip, across).
+
+On the 2-D shock-wave bed (docs/study/stability.md), whose struck grain's contacts slide in the
+plane while the out-of-plane direction is locked, these raised the bound's minimum from 0.82 to
+0.94 T_R (the impact's sliding phase no longer sets it; the stuck peak compression does), 1.94–1.97×
+below the step at which the bed blows up (1.82–1.85 T_R); in the 3-D experiments (nothing locked,
+λ_t ≈ 3 λ_n) they change nothing. A sliding contact is linearised for continued slip: a reversal
+sticks it again (k_t), but its force stays capped. The dashpots are left out on purpose: assembled
+the same way, they would bound the explicit-damping limit 2 (sqrt(Ω² + Γ²) − Γ)/Ω², which in the hopper
 (e = 0.1) is 0.06 T_R at the fill's impact, while that hopper runs at 0.5 T_R and fails at 0.6 T_R;
 the undamped bound there is 0.35 T_R. (A damped contact opens, and a tangential one slides at its
 Coulomb cap, before an explicit-damping oscillation can grow.) It is no guarantee for the
-nonlinear, history-dependent law, and it is loose: Ω is 1.55–1.6× the exact largest frequency of
-small jammed clusters (tests/test_stiffness_bound.py); docs/study/stability.md compares it with the
-step at which each experiment fails.
+nonlinear, history-dependent law (the spring's growth with δ, k_t'|ξ| ≤ μ S_n/3, is left out), and
+it is loose: Ω is 1.55–1.6× the exact largest frequency of small jammed clusters
+(tests/test_stiffness_bound.py); docs/study/stability.md compares it with the step at which each
+experiment fails.
 
 A law opts in by implementing :meth:`ContactLaw.contact_stiffness`; for laws that do not, the bound
 is not computed.
@@ -50,7 +67,7 @@ from typing import Any
 import numpy as np
 
 from .._jit import njit
-from ..boundaries._geometry import wall_contact
+from ..boundaries._geometry import surface_velocity, wall_contact
 from ..parallel.comm import all_max
 from ..parallel.exact import exact_sums
 
@@ -73,11 +90,91 @@ def supported(law: Any) -> bool:
     return getattr(law, "kind", "") == "penalty" and own
 
 
-def _per_contact(law, coef, mi, mj, r_eff, m_eff, overlap, inv_n, inv_t):
-    """λ_c [1/s²] per contact, with inv_n = 1/m_i + 1/m_j and inv_t = inv_n + the lever arms' r²/I."""
+def _per_contact(law, coef, mi, mj, r_eff, m_eff, overlap, sides, n, vn, hist):
+    """‖A_c‖ [1/s²] per contact (module docstring): the norm of the contact's mass-weighted
+    stiffness. ``sides``: one (inv_m, r²/I, dof) triple of arrays per free particle of the contact
+    (one for a wall contact); ``n`` the unit normals, ``vn`` the relative normal velocities and
+    ``hist`` the history rows, for :meth:`ContactLaw.contact_slip`."""
     got = law.contact_stiffness(coef, mi, mj, r_eff, m_eff, overlap)
     s_n, k_t = (np.broadcast_to(np.asarray(a, dtype=np.float64), overlap.shape) for a in got)
-    return np.maximum(s_n * inv_n, k_t * inv_t)
+    g_n = sum(side[0] for side in sides)
+    g_t = g_n + sum(side[1] for side in sides)
+    lam_n, lam_t = s_n * g_n, k_t * g_t
+    lam = np.maximum(lam_n, lam_t)  # sticking, nothing locked
+    locked = np.zeros(lam.shape, dtype=bool)
+    for side in sides:
+        locked |= side[2] != 0
+    # sliding changes ‖A_c‖ of a contact free in every axis only through the coupling, and only where
+    # λ_n sqrt(1 + (slope/S_n)² g_t/g_n) > λ_t: ask the law about those and the locked ones
+    ratio = law.slip_slope_ratio(coef)
+    ask = locked | (lam_t * lam_t < lam_n * lam_n * (1.0 + ratio * ratio * g_t / np.maximum(g_n, 1e-300)))
+    ask &= k_t > 0.0
+    sel = np.flatnonzero(ask)
+    dirs = slope = None
+    if sel.size:
+        slip = law.contact_slip(
+            coef, mi[sel], mj[sel], r_eff[sel], m_eff[sel], overlap[sel], vn[sel], hist[sel]
+        )
+        if slip is not None:
+            dirs = np.asarray(slip[0], dtype=np.float64)
+            slope = np.broadcast_to(np.asarray(slip[1], dtype=np.float64), sel.shape)
+    if dirs is not None:
+        sl = np.any(dirs != 0.0, axis=1)
+        free = sl & ~locked[sel]
+        if np.any(free):  # nothing along the slip; the normal force drags the tangential one
+            q = sel[free]
+            across = np.sqrt(lam_n[q] ** 2 + slope[free] ** 2 * g_t[q] * g_n[q])
+            lam = lam.copy()
+            lam[q] = np.maximum(across, lam_t[q])
+    if np.any(locked):
+        lam = lam.copy()
+        loc = np.flatnonzero(locked)
+        d_all = np.zeros((lam.size, 3))
+        s_all = np.zeros(lam.size)
+        if dirs is not None:
+            d_all[sel], s_all[sel] = dirs, slope
+        lam[loc] = _locked_norms(
+            s_n[loc], k_t[loc], n[loc], d_all[loc], s_all[loc],
+            [(side[0][loc], side[1][loc], side[2][loc]) for side in sides],
+        )
+    return lam
+
+
+def _free_axes(dof: np.ndarray, shift: int) -> np.ndarray:
+    """(k, 3) of 1.0 where the axis is free, from the ``dof`` bits (translation shift 0, rotation 3)."""
+    bits = np.asarray(dof, dtype=np.int64)[:, None] >> (shift + np.arange(3))[None, :]
+    return 1.0 - (bits & 1).astype(np.float64)
+
+
+def _locked_norms(s_n, k_t, n, dirs, slope, sides):
+    """‖A_c‖ for contacts of particles with locked axes (a 2-D mode, a particle that may not turn):
+    in the contact basis (n, t1, t2), t1 along the slip of a sliding contact, the relative
+    displacement of the contact point is D x with D D^T = G, the Gram matrix of the free axes'
+    mass-weighted rows, and the contact's stiffness is D^T C D, so ‖A_c‖ = ‖G^½ C G^½‖ (3 × 3)."""
+    k = n.shape[0]
+    sliding = np.zeros(k, dtype=bool) if dirs is None else np.any(dirs != 0.0, axis=1)
+    helper = np.where(np.abs(n[:, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.where(sliding[:, None], dirs if dirs is not None else helper, helper)
+    t1 = t1 - np.einsum("ij,ij->i", t1, n)[:, None] * n
+    t1 /= np.sqrt(np.einsum("ij,ij->i", t1, t1))[:, None]
+    t2 = np.cross(n, t1)
+    basis = np.stack([n, t1, t2], axis=1)  # rows: the directions a
+    turn = np.stack([np.zeros_like(n), t2, -t1], axis=1)  # n × a: the lever of a rotation on a
+    gram = np.zeros((k, 3, 3))
+    for inv_m, rot, dof in sides:
+        free_t, free_r = _free_axes(dof, 0), _free_axes(dof, 3)
+        gram += inv_m[:, None, None] * np.einsum("kac,kc,kbc->kab", basis, free_t, basis)
+        gram += rot[:, None, None] * np.einsum("kac,kc,kbc->kab", turn, free_r, turn)
+    c = np.zeros((k, 3, 3))
+    c[:, 0, 0] = s_n
+    c[:, 1, 0] = -slope  # on j along t1 = the spring's direction: −μ F_n, and δ = −ρ_n
+    c[:, 1, 1] = np.where(sliding, 0.0, k_t)
+    c[:, 2, 2] = k_t
+    w, v = np.linalg.eigh(gram)
+    half = np.einsum("kab,kb,kcb->kac", v, np.sqrt(np.clip(w, 0.0, None)), v)
+    x = half @ c @ half
+    top = np.linalg.eigvalsh(np.transpose(x, (0, 2, 1)) @ x)[:, -1]
+    return np.sqrt(np.clip(top, 0.0, None))
 
 
 _NONE = (np.zeros(0, dtype=np.int64), np.zeros(0))
@@ -90,11 +187,34 @@ def _touching(kind, prm, cand, x, r, inv_m, idx, ov):  # pragma: no cover - comp
     m = 0
     for q in range(cand.shape[0]):
         i = cand[q]
-        if inv_m[i] > 0.0:
+        if i >= 0 and inv_m[i] > 0.0:
             gap = wall_contact(kind, prm, x[i, 0], x[i, 1], x[i, 2], r[i])[0]
             if gap < 0.0:
                 idx[m] = i
                 ov[m] = -gap
+                m += 1
+    return m
+
+
+@njit
+def _touching_full(kind, prm, k, vel, omega, centre, cand, x, v, r, inv_m, idx, ov, q_of, nrm, vn):  # pragma: no cover # noqa: E501
+    """:func:`_touching` with, per contact, its candidate slot ``q_of`` (its history row), the
+    normal ``nrm`` (into the wall) and the normal velocity ``vn`` = (v_wall − v_i)·n at the contact
+    point, as the force loop computes them."""
+    m = 0
+    for q in range(cand.shape[0]):
+        i = cand[q]
+        if i >= 0 and inv_m[i] > 0.0:
+            gap, nx, ny, nz, px, py, pz = wall_contact(kind, prm, x[i, 0], x[i, 1], x[i, 2], r[i])
+            if gap < 0.0:
+                vwx, vwy, vwz, _, _, _ = surface_velocity(kind, prm, vel, omega, centre, k, px, py, pz)
+                idx[m] = i
+                ov[m] = -gap
+                q_of[m] = q
+                nrm[m, 0] = nx
+                nrm[m, 1] = ny
+                nrm[m, 2] = nz
+                vn[m] = (vwx - v[i, 0]) * nx + (vwy - v[i, 1]) * ny + (vwz - v[i, 2]) * nz
                 m += 1
     return m
 
@@ -116,6 +236,28 @@ def _row_contacts(sim: Any, row: int) -> tuple[np.ndarray, np.ndarray]:
     return idx[:m], ov[:m]
 
 
+def _row_contacts_full(sim: Any, row: int):
+    """:func:`_row_contacts` over the row's candidates, with normals, normal velocities and history
+    rows: (idx, δ, n, vn, hist) or ``None`` when nothing touches."""
+    cs = sim.contact_store
+    a, b = int(cs.cstart[row]), int(cs.cstart[row + 1])
+    if b <= a:
+        return None
+    p = sim.particles
+    cand = cs.cand_step[a:b]  # as the force loop saw them (set-aside mesh duplicates < 0)
+    c = cand.shape[0]
+    idx = np.empty(c, dtype=np.int64)
+    ov = np.empty(c)
+    q_of = np.empty(c, dtype=np.int64)
+    nrm = np.empty((c, 3))
+    vn = np.empty(c)
+    m = _touching_full(int(cs.kinds[row]), cs.params[row], row, cs.vel, cs.omega, cs.centre, cand, p.x, p.v,
+                       p.r, p.inv_m, idx, ov, q_of, nrm, vn)  # fmt: skip
+    if m == 0:
+        return None
+    return idx[:m], ov[:m], nrm[:m], vn[:m], cs.wall_hist[a + q_of[:m]]
+
+
 def network_bound(sim: Any) -> float:
     """Ω² [1/s²]: the largest per-particle sum of the contacts' λ_c over this rank's owned particles
     (the law must be :func:`supported`). Not collective."""
@@ -132,33 +274,34 @@ def network_bound(sim: Any) -> float:
         d = p.x[pj] - p.x[pi]
         dist = np.sqrt(np.einsum("ij,ij->i", d, d))
         overlap = p.r[pi] + p.r[pj] - dist
-        touch = overlap > 0.0
-        if np.any(touch):
+        touch = np.flatnonzero(overlap > 0.0)
+        touch = touch[p.inv_m[pi[touch]] + p.inv_m[pj[touch]] > 0.0]
+        if touch.size:
             a, b, ov = pi[touch], pj[touch], overlap[touch]
             ra, rb = p.r[a], p.r[b]
             ima, imb = p.inv_m[a], p.inv_m[b]
             inv_sum = ima + imb
-            live = inv_sum > 0.0
-            a, b, ov, ra, rb, ima, imb, inv_sum = (
-                q[live] for q in (a, b, ov, ra, rb, ima, imb, inv_sum)
-            )
+            n = d[touch] / dist[touch, None]
+            vn = np.einsum("ij,ij->i", p.v[b] - p.v[a], n)
+            sides = [(ima, ra * ra * p.inv_i[a], p.dof[a]), (imb, rb * rb * p.inv_i[b], p.dof[b])]
             lam = _per_contact(
-                law, coef, p.mat[a], p.mat[b], ra * rb / (ra + rb), 1.0 / inv_sum, ov,
-                inv_sum, inv_sum + ra * ra * p.inv_i[a] + rb * rb * p.inv_i[b],
+                law, coef, p.mat[a], p.mat[b], ra * rb / (ra + rb), 1.0 / inv_sum, ov, sides, n, vn,
+                cs.hist[touch],
             )
             lam_sum += np.bincount(a, weights=lam, minlength=n_rows)
             lam_sum += np.bincount(b, weights=lam, minlength=n_rows)
     # walls: the partner is infinitely massive (R* = r, m* = m, as in the wall kernel)
-    if cs.kinds.shape[0] and cs.counts.shape[0]:
-        for row in range(cs.counts.shape[0]):
-            idx, ov = _row_contacts(sim, row)
-            if idx.size == 0:
+    if cs.kinds.shape[0]:
+        for row in range(min(cs.kinds.shape[0], cs.cstart.shape[0] - 1)):
+            got = _row_contacts_full(sim, row)
+            if got is None:
                 continue
+            idx, ov, n, vn, hist = got
             r = p.r[idx]
             im = p.inv_m[idx]
             lam = _per_contact(
                 law, coef, p.mat[idx], np.full(idx.size, int(cs.wmat[row])), r, 1.0 / im, ov,
-                im, im + r * r * p.inv_i[idx],
+                [(im, r * r * p.inv_i[idx], p.dof[idx])], n, vn, hist,
             )
             lam_sum += np.bincount(idx, weights=lam, minlength=n_rows)
     return float(lam_sum[:n_own].max()) if n_own else 0.0

@@ -238,7 +238,8 @@ class RunSection(_DeckModel):
         STIFFNESS_LIMIT,
         ge=0,
         description="DEM-P: stop the run with an instability error when dt exceeds this multiple of the "
-        "step the contact network bears, bounded every 100 steps from the contacts' stiffness, "
+        "step the contact network bears, bounded at steps 1, 2, 4, …, 64 and every 100 steps from the "
+        "contacts' stiffness, "
         "coordination and friction (docs/deck.md, 'Live step bound'); 0: never stop (the bound is still "
         "recorded in summary.json and a step above it is warned of)",
     )

@@ -261,6 +261,31 @@ class HertzMindlin(ContactLaw):
         c_t = np.where(material, c_mat * c[:, 4], a * c[:, 4] * m_eff)
         return c_n, np.where(c[:, 5] > 0.0, c_t, 0.0)
 
+    def slip_slope_ratio(self, coef):
+        """μ: the slope of a sliding contact's force is μ S_n."""
+        return float(np.max(coef[:, :, 5])) if coef.size else 0.0
+
+    def contact_slip(self, coef, mi, mj, r_eff, m_eff, overlap, vn, hist):
+        """Contacts at the Coulomb cap: the kernel stores the slider's spring ξ = −F_t/k_t there, so
+        k_t |ξ| = μ F_n (F_n with its dashpot at ``vn``, clamped as the kernel does); within a part in
+        10⁹ of it counts as sliding (rounding; a contact that close to the cap slides at the next
+        nudge). Direction ξ/|ξ|, slope μ S_n."""
+        c = coef[mi, mj]
+        a = np.sqrt(r_eff * overlap)
+        material = c[:, 0] == 0.0
+        c_mat = -2.0 * SQRT56 * c[:, 3] * np.sqrt(2.0 * c[:, 1] * a * m_eff)
+        fn = np.where(material, (4.0 / 3.0) * c[:, 1] * a * overlap - c_mat * vn,
+                      a * (c[:, 1] * overlap - c[:, 3] * m_eff * vn))  # fmt: skip
+        fn = np.where((c[:, 7] != 0.0) & (fn < 0.0), 0.0, fn)
+        fcap = np.where(fn > 0.0, c[:, 5] * fn, 0.0)
+        s_n, k_t = self.contact_stiffness(coef, mi, mj, r_eff, m_eff, overlap)
+        xi = np.asarray(hist[:, 0:3], dtype=np.float64)
+        length = np.sqrt(np.einsum("ij,ij->i", xi, xi))
+        slide = (fcap > 0.0) & (k_t > 0.0) & (k_t * length >= fcap * (1.0 - 1e-9))
+        dirs = np.zeros_like(xi)
+        dirs[slide] = xi[slide] / length[slide, None]
+        return dirs, np.where(slide, c[:, 5] * s_n, 0.0)
+
     def critical_dt(self, materials, radii, mat_index, masses) -> float:
         """Material form: the Rayleigh time min T_R. Coefficient form: 2 sqrt(m*/S_n) with the
         contact stiffness S_n = 1.5 K_n sqrt(R* δ) at δ = 0.1 r for two equal spheres (for the material
