@@ -45,7 +45,7 @@ from .errors import GeometryError, InputError, InstabilityError, PdemError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor import _kernels as nk
-from .parallel.comm import SerialComm, all_max, all_min, any_rank
+from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank
 from .parallel.exact import exact_sum, global_count
 from .plugins import load_contact_law
 from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, dof_mask
@@ -92,6 +92,7 @@ class Simulation:
         self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
         self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
         self._removed_ids: list[np.ndarray] = []
+        self._n_removed = 0  # Σ len(_removed_ids), kept as the lists grow (one per removal)
         self.decomposition_dims: tuple[int, int, int] | None = None
         self.balance_threshold = 1.05  # rebalance when max/mean estimated work exceeds this
         self.materials = MaterialTable()
@@ -500,6 +501,7 @@ class Simulation:
             return 0, 0.0
         mass = math.fsum(p.mass[:n][mask])
         self._removed_ids.append(p.id[:n][mask].copy())
+        self._n_removed += count
         idx = np.flatnonzero(mask)
         p.motion[idx] = REMOVED
         p.inv_m[idx] = 0.0
@@ -976,7 +978,7 @@ class Simulation:
                 (np.concatenate([cs.pi[touching], cs.pj[touching]]), self._W_TOUCH_END),
             ):
                 ends = ends[ends < n]
-                np.add.at(w, ends, inc)
+                w += inc * np.bincount(ends, minlength=n)  # integers: as np.add.at, ~10x faster
         return w
 
     def _work_weights(self) -> None:
@@ -1012,8 +1014,10 @@ class Simulation:
         """No particle may be lost between ranks: owned counts must add up (collective)."""
         from .errors import LostParticleError
 
-        total = global_count(self.comm, self.particles.n_owned)
-        removed = global_count(self.comm, sum(len(a) for a in self._removed_ids))
+        # one reduction of both counts (a hopper removes grains in hundreds of small batches: summing
+        # their lengths in Python at every rebuild had cost 4 % of its 2-rank run)
+        counts = np.array([self.particles.n_owned, self._n_removed], dtype=np.int64)
+        total, removed = (int(c) for c in all_sum_int_array(self.comm, counts))
         if total + removed == self._n_expected:
             return
         ids = np.concatenate(self.comm.allgather(self.particles.id[: self.particles.n_owned]))
