@@ -311,7 +311,8 @@ vary = { "run.seed" = [1] }
 
 def test_live_bound_columns_and_a_run_it_stops(tmp_path):
     """study.csv carries the live step bound (its smallest value and dt over it); a run the bound
-    stops is 'failed' (exit 3) and still placed on the step axis from its message."""
+    stops is 'failed' (exit 3), of the stability class 'stopped', and still placed on the step axis
+    from its message."""
     deck = (Path(__file__).parent / "data" / "triaxial_small.toml").read_text()
     spec = _spec(tmp_path, """
 [quantities.eps_v]
@@ -330,6 +331,10 @@ vary = { "run.dt" = [2e-6, 1e-5] }
     assert ok["status"] == "ok" and ok["bound_dt"] > 2e-6 and 0 < ok["dt_over_bound"] < 1
     assert stopped["status"] == "failed" and stopped["exit_code"] == 3
     assert "run.stiffness_limit" in stopped["message"]
+    # told apart from a blow-up in the stability class (and on the map)
+    assert stopped["stability"] == "stopped"
+    assert Study.stability_class("failed", 0, None, 0.01, "the run became unstable at step 3") == "failed"
+    assert Study.stability_class("failed", 2, None, 0.01, stopped["message"]) == "uncaught"
     assert stopped["dt_ratio"] == pytest.approx(1e-5 / ok["dt"] * ok["dt_ratio"], rel=1e-3)
 
 

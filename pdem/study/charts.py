@@ -5,7 +5,7 @@
   tolerance as a dashed line;
 * ``error_vs_<knob>_<quantity>``: error against each varied knob, a line per series;
 * ``stability``: the spec's ``[stability]`` map, each run a marker by its class (stable, drift,
-  failed, uncaught, refused, timeout), with ``stability.csv``.
+  stopped by the live step bound, failed, uncaught, refused, timeout), with ``stability.csv``.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ MARKERS = "osD^v<>pP*hX"
 CLASSES = {
     "stable": ("#2ca02c", "o"),
     "drift": ("#ff7f0e", "s"),
+    "stopped": ("#e377c2", "P"),  # by the live step bound, before it could go wrong
     "failed": ("#d62728", "X"),
     "uncaught": ("#000000", "*"),
     "refused": ("#7f7f7f", "x"),
@@ -176,7 +177,12 @@ def _floor(rows: list[dict[str, Any]], ekey: str) -> float:
 def _stability(study: Study, st: Any, rows, out: Path, save, plt, title: str) -> dict[str, Path]:
     q = st.quantity or study.spec.primary
     rows = [
-        {**r, "stability": study.stability_class(r["status"], r["nonfinite"] or 0, r[f"{q}_error"], st.drift)}
+        {
+            **r,
+            "stability": study.stability_class(
+                r["status"], r["nonfinite"] or 0, r[f"{q}_error"], st.drift, r.get("message")
+            ),
+        }
         for r in rows
         if st.series is None or r["series"] in st.series
     ]

@@ -24,6 +24,9 @@ __all__ = ["Study", "RunResult"]
 
 # the overlap check's message ("dt = X s, stability estimate Y s") and the live bound's ("dt = X s
 # is … the law's estimate Y s does not see them")
+# the live step bound's stop (pdem.simulation.Simulation.check_stiffness): a run stopped before it went
+# wrong, told apart from one that blew up
+_BOUND_STOP = "the step is too large for the contacts"
 _DT_IN_MESSAGE = re.compile(
     r"dt = ([0-9.eE+-]+) s(?:, stability estimate| is .*?the law's estimate) ([0-9.eE+-]+) s"
 )
@@ -235,16 +238,21 @@ class Study:
         return abs(value - ref)
 
     @staticmethod
-    def stability_class(status: str, nonfinite: int, err: float | None, drift: float) -> str:
-        """stable / drift (error above ``drift``) / failed (caught: exit 3, nothing non-finite on
-        disk) / uncaught (a crash, or non-finite values left on disk) / refused / timeout / no value /
-        not run."""
+    def stability_class(
+        status: str, nonfinite: int, err: float | None, drift: float, message: str | None = ""
+    ) -> str:
+        """stable / drift (error above ``drift``) / stopped (exit 3 from the live step bound, before
+        the run could blow up or go silently wrong: its ``message``) / failed (caught: exit 3, nothing
+        non-finite on disk) / uncaught (a crash, or non-finite values left on disk) / refused /
+        timeout / no value / not run."""
         if status == "ok":
             if err is None:
                 return "no value"
             return "stable" if err <= drift else "drift"
         if status == "failed":
-            return "uncaught" if nonfinite else "failed"
+            if nonfinite:
+                return "uncaught"
+            return "stopped" if _BOUND_STOP in (message or "") else "failed"
         if status == "error":
             return "uncaught"
         return status
@@ -289,7 +297,9 @@ class Study:
                 row[name] = v
                 row[f"{name}_error"] = self.error(name, v, refs[name])
             nonfinite = len(r.record.nonfinite) if r.record else 0
-            row["stability"] = self.stability_class(r.status, nonfinite, row[f"{stab_q}_error"], drift)
+            row["stability"] = self.stability_class(
+                r.status, nonfinite, row[f"{stab_q}_error"], drift, r.message
+            )
             row["nonfinite"] = nonfinite
             row["message"] = r.message
             rows.append(row)
