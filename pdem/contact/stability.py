@@ -153,6 +153,9 @@ def _locked_norms(s_n, k_t, n, dirs, slope, sides):
     mass-weighted rows, and the contact's stiffness is D^T C D, so ‖A_c‖ = ‖G^½ C G^½‖ (3 × 3)."""
     k = n.shape[0]
     sliding = np.zeros(k, dtype=bool) if dirs is None else np.any(dirs != 0.0, axis=1)
+    if dirs is not None:  # a spring (nearly) along the normal has no slip direction: count it stuck
+        along = dirs - np.einsum("ij,ij->i", dirs, n)[:, None] * n
+        sliding &= np.einsum("ij,ij->i", along, along) > 1e-12
     helper = np.where(np.abs(n[:, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.where(sliding[:, None], dirs if dirs is not None else helper, helper)
     t1 = t1 - np.einsum("ij,ij->i", t1, n)[:, None] * n
@@ -167,7 +170,7 @@ def _locked_norms(s_n, k_t, n, dirs, slope, sides):
         gram += rot[:, None, None] * np.einsum("kac,kc,kbc->kab", turn, free_r, turn)
     c = np.zeros((k, 3, 3))
     c[:, 0, 0] = s_n
-    c[:, 1, 0] = -slope  # on j along t1 = the spring's direction: −μ F_n, and δ = −ρ_n
+    c[:, 1, 0] = np.where(sliding, -slope, 0.0)  # on j along t1 = the spring's direction: −μ F_n; δ = −ρ_n
     c[:, 1, 1] = np.where(sliding, 0.0, k_t)
     c[:, 2, 2] = k_t
     w, v = np.linalg.eigh(gram)
