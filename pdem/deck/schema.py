@@ -248,7 +248,8 @@ class RunSection(_DeckModel):
         description="gravitational acceleration (x, y, z) [m/s²]; none unless given (as in Simulation())",
     )
     skin: Float | None = Field(
-        None, ge=0, description="Verlet-list skin [m]; default: 0.1 of the mean particle diameter"
+        None, ge=0, description="Verlet-list skin [m]; default: chosen at every rebuild from the fastest "
+        "grain, 0.1-0.4 of the mean particle diameter (DEM-C, periodic boxes: 0.1 of it)"
     )
     max_overlap: Float = Field(
         0.25,

@@ -14,6 +14,7 @@ the rank itself).
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 
@@ -215,6 +216,19 @@ class Decomposition:
         self.set_cuts([self._spread(c, d) for d, c in enumerate(self.cuts)])
         if self.box is not None:
             self.box.check_width(min_width)
+
+    def narrowest(self) -> float:
+        """The width of the narrowest subdomain that must hold a ghost layer (interior ones, and
+        along a split periodic axis all); ``inf`` when no axis is split."""
+        out = math.inf
+        for d in range(3):
+            edges = self.cuts[d]
+            if self.periodic[d] and self.dims[d] > 1:
+                edges = np.concatenate([[self.box.lo[d]], edges, [self.box.hi[d]]])
+            widths = np.diff(edges)
+            if widths.size:
+                out = min(out, float(widths.min()))
+        return out
 
     def check_ghost_width(self, width: float) -> None:
         """Interior subdomains (and, along a split periodic axis, all) must be at least one ghost width
