@@ -53,6 +53,10 @@ from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, 
 #: the automatic skin (no ``run.skin``): room for this many steps of the fastest grain, between these
 #: fractions of the mean diameter (Simulation._choose_skin)
 SKIN_STEPS, SKIN_MIN, SKIN_MAX = 25, 0.1, 0.4
+# DEM-P pair loop: follow the storage instead of the ids when a loop in id order would jump by more
+# than SCHEDULE_JUMPS rows per pair; sort the storage again when the pairs' mean storage distance
+# exceeds twice (+ SPREAD_SLACK rows) its value after the last sort
+SCHEDULE_JUMPS, SPREAD_SLACK = 16.0, 64.0
 
 __all__ = ["Simulation"]
 
@@ -119,6 +123,8 @@ class Simulation:
         self.time = 0.0
         self.step_count = 0
         self.n_rebuilds = 0
+        self.n_storage_sorts = 0  # DEM-P: spatial sorts of the storage (_order_storage)
+        self._spread_ref = -1.0  # mean storage distance of the pairs after the last sort (< 0: sort due)
         self._next_id = 0
         self._prepared = False
         self._force_rebuild = False
@@ -793,6 +799,7 @@ class Simulation:
         store.keys = np.asarray(state["pairs/keys"], dtype=np.int64)
         store.hist = _history(state["pairs/hist"], hsize)
         store.pi = store.pj = np.zeros(0, dtype=np.int64)
+        store.key_order = None
         store.force = np.zeros((0, 3))
         store.pair_capacity = max(8 * len(g["id"]), 64)
         for k, wall in enumerate(self._wall_list):
@@ -906,6 +913,44 @@ class Simulation:
         self._list_skin = skin + self._list_envelope
         self._ghost_width = self._ghost_width_base + self._list_skin
 
+    @property
+    def _scheduled_pairs(self) -> bool:
+        """Whether the pair loop follows the storage (DEM-P) rather than the ids (DEM-C)."""
+        return self.law.kind != "complementarity"
+
+    def _order_storage(self) -> None:
+        """Storage order of the owned particles (results do not depend on it; only memory locality
+        does). DEM-P sorts them by cells in space, at the first rebuild and whenever pairs have
+        drifted apart in storage (the mean storage distance of the listed pairs more than doubled
+        since the last sort); its pair loop follows the storage (:meth:`ContactStore.set_pairs`).
+        DEM-C's loops run in id order, so its storage is kept in id order (migration appends
+        received particles)."""
+        p = self.particles
+        n = p.n_owned
+        if self._scheduled_pairs:
+            pi, pj = self.contact_store.pi, self.contact_store.pj
+            due = self._spread_ref < 0.0 or (
+                pi.size and nk.partner_spread(pi, pj) > 2.0 * self._spread_ref + SPREAD_SLACK
+            )
+            if due and n > 1:
+                x = p.x[:n]
+                lo = x.min(axis=0) - 1e-12
+                hi = x.max(axis=0) + 1e-12
+                cell = 2.0 * float(p.r[:n].max()) + self._list_skin
+                ext = np.maximum(hi - lo, cell)
+                dims = np.maximum((ext / cell).astype(np.int64), 1)
+                while int(np.prod(dims)) > 4 * n + 1000:
+                    cell *= 1.26
+                    dims = np.maximum((ext / cell).astype(np.int64), 1)
+                _, items = nk.bin_particles(x, n, lo, 1.0 / cell, dims)
+                p.permute(items)
+                self._spread_ref = -1.0  # measured on the next list
+                self.n_storage_sorts += 1
+            return
+        ids = p.id[:n]
+        if ids.size > 1 and np.any(ids[1:] < ids[:-1]):
+            p.permute(np.argsort(ids, kind="stable"))
+
     def _rebuild(self) -> None:
         p = self.particles
         if getattr(self, "_auto_skin", False):
@@ -928,12 +973,10 @@ class Simulation:
                     self._decomp.rebalance(p.x[:n_own], self._work_weights_now())
                     migrate(self)
             self._check_particle_count()
-            # migration leaves kept particles first and received ones appended; the pair loop runs in id
-            # order, so keep the storage in id order for memory locality (results do not depend on it)
-            ids = p.id[: p.n_owned]
-            if ids.size > 1 and np.any(ids[1:] < ids[:-1]):
-                self.particles.permute(np.argsort(ids, kind="stable"))
+            self._order_storage()
             borders(self, self._ghost_width)
+        else:
+            self._order_storage()
         n = p.n
         x = p.x
         r = p.r
@@ -967,7 +1010,12 @@ class Simulation:
             # meets each partner once (L >= 2 cutoffs), so its contributions stay in partner-id order
             order = np.argsort(keys, kind="stable")
             pi, pj, keys = pi[order], pj[order], keys[order]
-        store.set_pairs(pi, pj, keys)
+        schedule = -1
+        if self._scheduled_pairs and nk.row_jumps(pi) > SCHEDULE_JUMPS:
+            schedule = n  # the list in id order would jump through the storage: follow the storage
+        store.set_pairs(pi, pj, keys, schedule)
+        if self._scheduled_pairs and self._spread_ref < 0.0:
+            self._spread_ref = nk.partner_spread(store.pi, store.pj)  # the first list after a sort
         p.x_build[:] = x
         # wall candidates: particles within the skin of each row of each (active) wall, concatenated
         from .boundaries._geometry import wall_gaps

@@ -14,9 +14,11 @@ the force F on j [N] (−F acts on i) and a pure torque M on j [N m] (−M on i)
 resistance. The loops add the lever-arm torques: with
 a_i = (r_i − δ/2) n and a_j = −(r_j − δ/2) n, τ_i += a_i × (−F) − M and τ_j += a_j × F + M.
 
-Determinism: pairs are visited in the order of the pair list, which is sorted by
-(lower id, higher id). Each particle therefore receives its pair contributions in partner-id
-order; wall contributions are added afterwards, wall by wall in deck order.
+Determinism: pairs are visited in the order of the pair list: sorted by (lower id, higher id), or
+(DEM-P) a reordering of it that keeps every particle's pairs in that order
+(:func:`pdem.neighbor._kernels.schedule_pairs`). Each particle therefore receives its pair
+contributions in partner-id order; wall contributions are added afterwards, wall by wall in deck
+order.
 """
 
 from __future__ import annotations

@@ -271,8 +271,9 @@ def network_bound(sim: Any) -> float:
     n_own = p.n_owned
     lam_sum = np.zeros(n_rows)
     coef = sim.coefficients
-    # particle pairs
-    pi, pj = cs.pi, cs.pj
+    # particle pairs, in key order: the per-particle sums below do not depend on the list's order
+    ko = cs.pair_rows_in_key_order()
+    pi, pj, phist = cs.pi[ko], cs.pj[ko], cs.hist[ko]
     if pi.shape[0]:
         d = p.x[pj] - p.x[pi]
         dist = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -289,7 +290,7 @@ def network_bound(sim: Any) -> float:
             sides = [(ima, ra * ra * p.inv_i[a], p.dof[a]), (imb, rb * rb * p.inv_i[b], p.dof[b])]
             lam = _per_contact(
                 law, coef, p.mat[a], p.mat[b], ra * rb / (ra + rb), 1.0 / inv_sum, ov, sides, n, vn,
-                cs.hist[touch],
+                phist[touch],
             )
             lam_sum += np.bincount(a, weights=lam, minlength=n_rows)
             lam_sum += np.bincount(b, weights=lam, minlength=n_rows)

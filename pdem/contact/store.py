@@ -1,8 +1,10 @@
 """The contacts of one rank: grain pairs and wall candidates, with history keyed by ids.
 
-**Pairs.** ``pi``/``pj`` are storage rows with ``id[pi] < id[pj]``, sorted by the id pair; ``keys``
-are ``id_lo·2³² + id_hi``; ``hist`` holds the law's history per pair (``history_size`` floats);
-``force`` the force on the higher-id particle from the last evaluation.
+**Pairs.** ``pi``/``pj`` are storage rows with ``id[pi] < id[pj]``, built sorted by the id pair;
+``keys`` are ``id_lo·2³² + id_hi``; ``hist`` holds the law's history per pair (``history_size``
+floats); ``force`` the force on the higher-id particle from the last evaluation. A scheduled list
+(DEM-P, :meth:`ContactStore.set_pairs`) is in another order that gives every particle its pairs
+in the same order; ``key_order`` then lists its rows in key order (``None``: the list is sorted).
 
 **Walls.** ``walls`` in the order they were added. Each wall owns one or more geometry **rows**
 (one for a primitive shape, one per facet of a mesh), rows of wall w being
@@ -44,6 +46,7 @@ class ContactStore:
         self.hist = np.zeros((0, h))
         self.force = np.zeros((0, 3))
         self.pair_capacity = 64
+        self.key_order: np.ndarray | None = None  # rows in key order when the list is scheduled
         self.walls: list = []
         self.walls_changed = True
         self.moving: list[int] = []
@@ -110,12 +113,37 @@ class ContactStore:
             self.wall_hist[self.cstart[a] : self.cstart[b]] = 0.0
 
     # ------------------------------------------------------------------ rebuilds
-    def set_pairs(self, pi: np.ndarray, pj: np.ndarray, keys: np.ndarray) -> None:
-        """New pair list (sorted by key); history carried over by key."""
+    def set_pairs(self, pi: np.ndarray, pj: np.ndarray, keys: np.ndarray, schedule_rows: int = -1) -> None:
+        """New pair list (sorted by key); history carried over by key.
+
+        With ``schedule_rows`` (the number of storage rows, ghosts included) the list is then put
+        in :func:`~pdem.neighbor._kernels.schedule_pairs` order: every particle meets its pairs in
+        the same order, so the force loop gives the same bits, but it walks the storage instead of
+        the ids. ``key_order`` then lists the rows in key order (``None``: they are in key order).
+        """
+        old_keys, old_hist = self.keys_sorted()
         hist = np.empty((keys.shape[0], self.history_size))
-        nk.carry_history(self.keys, self.hist, keys, hist)
+        nk.carry_history(old_keys, old_hist, keys, hist)
+        self.key_order = None
+        if schedule_rows >= 0 and keys.shape[0] > 1:
+            order = nk.schedule_pairs(pi, pj, schedule_rows)
+            pi, pj, keys, hist = pi[order], pj[order], keys[order], hist[order]
+            inverse = np.empty_like(order)
+            inverse[order] = np.arange(order.shape[0])
+            self.key_order = inverse
         self.pi, self.pj, self.keys, self.hist = pi, pj, keys, hist
         self.force = np.zeros((keys.shape[0], 3))
+
+    def keys_sorted(self) -> tuple[np.ndarray, np.ndarray]:
+        """(keys, history) of the pairs in key order (views when the list is in key order)."""
+        if self.key_order is None:
+            return self.keys, self.hist
+        return self.keys[self.key_order], self.hist[self.key_order]
+
+    def pair_rows_in_key_order(self) -> np.ndarray | slice:
+        """Index of the pair rows in key order: for sums over pairs that must not depend on the
+        list's order."""
+        return slice(None) if self.key_order is None else self.key_order
 
     def set_wall_candidates(self, cands: list[np.ndarray], ids: np.ndarray) -> None:
         """New candidate lists (one array of particle storage rows per wall row; ``ids`` the particle
@@ -197,6 +225,8 @@ class ContactStore:
             first[1:] = keys[1:] != keys[:-1]
             setattr(self, kattr, keys[first])
             setattr(self, hattr, hist[first])
+            if kattr == "keys":
+                self.key_order = None  # now sorted; pi/pj are stale until the rebuild that follows
 
     # ------------------------------------------------------------------ checkpoints
     def wall_history_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -172,3 +172,62 @@ def brute_force_pairs(x, r, ids, n, skin):
                 out_i.append(i)
                 out_j.append(j)
     return np.array(out_i, dtype=np.int64), np.array(out_j, dtype=np.int64)
+
+
+@njit
+def schedule_pairs(pi, pj, n):
+    """An order of the pair list (given sorted by id pair) that follows the storage instead of the
+    ids, and in which every particle still meets its pairs in the list's order.
+
+    Each particle's pairs form a chain in list order (its partners by increasing id). Give pair k
+    the time T(k): the larger storage row of its two particles, or the time of the pair before it
+    in either particle's chain if that is later (one pass in list order, where those come first).
+    T never decreases along a chain, so the pairs sorted by (T, list position) keep every chain's
+    order: a loop over them adds the same terms to every particle in the same order as a loop over
+    the list, bit for bit. When the storage is sorted in space, the pairs of time t touch row t and
+    rows close behind it, as a loop over the storage would. Returns ``order``: position s of the
+    new list is pair ``order[s]`` of the old one.
+    """
+    m = pi.shape[0]
+    last = np.zeros(n, dtype=np.int64)
+    t = np.empty(m, dtype=np.int64)
+    count = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        a = pi[k]
+        b = pj[k]
+        tk = max(a, b, last[a], last[b])
+        t[k] = tk
+        last[a] = tk
+        last[b] = tk
+        count[tk + 1] += 1
+    for q in range(n):
+        count[q + 1] += count[q]
+    order = np.empty(m, dtype=np.int64)
+    for k in range(m):  # a stable counting sort by time
+        order[count[t[k]]] = k
+        count[t[k]] += 1
+    return order
+
+
+@njit
+def row_jumps(pi):
+    """Mean |pi[k] - pi[k-1]| over the list: how far a loop over it jumps through storage."""
+    m = pi.shape[0]
+    if m < 2:
+        return 0.0
+    s = 0.0
+    for k in range(1, m):
+        s += abs(pi[k] - pi[k - 1])
+    return s / (m - 1)
+
+
+@njit
+def partner_spread(pi, pj):
+    """Mean |pi[k] - pj[k]|: how far apart in storage the two particles of a pair lie."""
+    m = pi.shape[0]
+    if m == 0:
+        return 0.0
+    s = 0.0
+    for k in range(m):
+        s += abs(pi[k] - pj[k])
+    return s / m
