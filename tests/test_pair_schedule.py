@@ -156,8 +156,8 @@ def test_scheduled_loop_identical_on_1_2_3_ranks(tmp_path):
     script.write_text(_MPI_SCRIPT)
     out = {}
     for n in (1, 2, 3):
-        proc = subprocess.run([mpiexec, "-n", str(n), sys.executable, str(script), str(Path(__file__).parent)],
-                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        cmd = [mpiexec, "-n", str(n), sys.executable, str(script), str(Path(__file__).parent)]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-2000:]
         out[n] = proc.stdout.split()
     assert float(out[1][1]) == 1.0, "the schedule must run"
