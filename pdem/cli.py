@@ -182,13 +182,20 @@ def _print_summary(summary: dict, out: Path) -> None:
         )
     solver = summary.get("solver")
     if solver:
-        note = (
-            f"; {solver['unconverged_steps']} step(s) hit max_iterations = {solver['max_iterations']} "
-            f"before reaching tolerance = {solver['tolerance']:g} m/s (largest residual "
-            f"{solver['max_residual']:.3g} m/s; see solver_<stage>.csv)"
-            if solver["unconverged_steps"]
-            else "; every step converged"
-        )
+        if not solver["unconverged_steps"]:
+            note = "; every step converged"
+        elif solver.get("stage_settings"):  # [stages.contact]: the caps differ by stage
+            note = (
+                f"; {solver['unconverged_steps']} step(s) hit their stage's max_iterations before reaching "
+                f"its tolerance (the last stage's: {solver['max_iterations']}, {solver['tolerance']:g} m/s; "
+                f"largest residual {solver['max_residual']:.3g} m/s; see solver_<stage>.csv)"
+            )
+        else:
+            note = (
+                f"; {solver['unconverged_steps']} step(s) hit max_iterations = {solver['max_iterations']} "
+                f"before reaching tolerance = {solver['tolerance']:g} m/s (largest residual "
+                f"{solver['max_residual']:.3g} m/s; see solver_<stage>.csv)"
+            )
         print(
             f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "
             "on average" + note

@@ -887,6 +887,8 @@ class Runner:
                 "checks_exceeded": int(rec["exceeded"]),
             }
         solver = sim.integrator.summary() if sim.integrator is not None else None
+        if solver and any(st.contact for st in self.deck.stages):
+            solver["stage_settings"] = True  # [stages.contact]: the settings above are the last stage's
         if solver is not None:
             summary["solver"] = solver
         merged = self._merged_series()
@@ -924,6 +926,7 @@ class Runner:
         sim = self.sim
         sim.set_stage(stage.name)
         self._stage_materials(stage)
+        self._stage_contact(index, stage)
         dt = self._stage_dt(stage)
         try:
             if dt is not None and sim.dt != dt:
@@ -933,6 +936,25 @@ class Runner:
             if "stability estimate" in str(exc) and dt is not None:
                 raise type(exc)(f"{self._dt_key(index, stage)}: {exc}") from None
             raise
+
+    def _stage_contact(self, index: int, stage: Any) -> None:
+        """The law's solver settings for this stage: ``[contact]`` with ``[stages.contact]`` on top
+        (validated with the deck; a stage without the table gets ``[contact]`` back)."""
+        from .deck.load import stage_contact_values
+
+        law = self.sim.law
+        values = stage_contact_values(stage.contact, self.deck.contact.law) if stage.contact else {}
+        params = self.resolved.law_params
+        if values:
+            params = type(params)(**{**params.model_dump(), **values})
+        if getattr(params, "solver", None) == "gauss_seidel" and self.sim.comm.size > 1:
+            raise InputError(
+                f"stages.{stage.name}.contact.solver: 'gauss_seidel' runs on one rank only (it sweeps the "
+                "contacts in one sequence, so results would depend on the partition); use 'jacobi' or "
+                "'apgd' under MPI"
+            )
+        if values or law.params.model_dump() != params.model_dump():
+            law.params = params
 
     def _stage_materials(self, stage: Any) -> None:
         """The materials' contact properties for this stage: ``[stages.materials.NAME]`` where given,

@@ -211,10 +211,14 @@ class Stepper(Integrator):
 
     name = "complementarity"
 
+    @property
+    def p(self) -> ComplementarityParams:
+        """The law's parameters now (a stage may change its solver settings: ``[stages.contact]``)."""
+        return self.law.params
+
     def __init__(self, sim, law: Complementarity) -> None:
         super().__init__(sim)
         self.law = law
-        self.p = law.params
         self.n_unconverged = 0
         self.n_stalls = 0  # APGD solves stopped by a line search that could not accept a step
         self.n_resolves = 0  # steps solved again because the per-contact envelope missed a contact

@@ -208,6 +208,8 @@ def validate_deck(
 
     law_class, law_params, law_problems = _validate_law(data)
     problems += law_problems
+    if law_params is not None:
+        problems += _validate_stage_contact(data, law_class, law_params)
     source_classes, sources, src_problems = _validate_sources(data, context)
     problems += src_problems
     boundary_classes, boundaries, bnd_problems = _validate_boundaries(data)
@@ -368,6 +370,74 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
             [(("contact",), f"contact law '{law}' rejected its parameters: {type(exc).__name__}: {exc}")],
         )
     return cls, params, []
+
+
+def stage_contact_values(table: dict, law: str, known: set[str] | None = None) -> dict[str, Any]:
+    """The law settings a stage's ``[stages.contact]`` table gives law ``law``: its own keys and those
+    of its ``[stages.contact.<law>]`` table (the tables of other laws are left out)."""
+    if known is None:
+        known = set(plugins.available("contact_laws"))
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        if isinstance(v, dict) and k in known:
+            if k == law:
+                out.update(v)
+        else:
+            out[k] = v
+    return out
+
+
+def _validate_stage_contact(data: dict, cls: type, params: BaseModel) -> list[tuple[Loc, str]]:
+    """``[stages.contact]``: only the law's resumable settings, valid with the rest of [contact]; the
+    tables of other laws only with their own resumable keys (checked once the deck switches law)."""
+    stages = data.get("stages")
+    if not isinstance(stages, list):
+        return []
+    law = data.get("contact", {}).get("law", DEFAULT_LAW)
+    known = set(plugins.available("contact_laws"))
+    problems: list[tuple[Loc, str]] = []
+    base = _plain(params)
+    for i, stage in enumerate(stages):
+        table = stage.get("contact") if isinstance(stage, dict) else None
+        if not isinstance(table, dict) or not table:
+            continue
+        loc0 = ("stages", i, "contact")
+        for name in sorted(k for k, v in table.items() if isinstance(v, dict) and k in known and k != law):
+            other, err = _load_plugin("contact_laws", name)
+            other_params = getattr(other, "Params", None)
+            allowed = None if err is not None else getattr(other_params, "resumable", frozenset())
+            for key in sorted(table[name]) if allowed is not None else []:
+                if key not in allowed:
+                    problems.append(((*loc0, name, key), _stage_key_message(name, allowed)))
+        values = stage_contact_values(table, law, known)
+        allowed = frozenset(getattr(cls.Params, "resumable", frozenset()))
+        bad = [k for k in values if k not in allowed]
+        for key in bad:
+            in_table = isinstance(table.get(law), dict) and key in table[law]
+            where = (*loc0, law, key) if in_table else (*loc0, key)
+            problems.append((where, _stage_key_message(law, allowed)))
+        if bad:
+            continue
+        merged = {**base, **values}
+        try:
+            cls.Params.model_validate_json(_to_json(merged), strict=True)
+        except ValidationError as exc:
+            own = table.get(law) if isinstance(table.get(law), dict) else {}
+            for loc, msg in translate(exc, cls.Params, loc0):
+                key = loc[len(loc0)] if len(loc) > len(loc0) else None
+                if key in own:  # given in [stages.contact.<law>]: name that table
+                    loc = (*loc0, law, *loc[len(loc0) :])
+                problems.append((loc, msg))
+    return problems
+
+
+def _stage_key_message(law: str, allowed: frozenset[str]) -> str:
+    if not allowed:
+        return f"contact law '{law}' has no settings a stage can change; set them in [contact] (whole run)"
+    return (
+        f"not a setting of contact law '{law}' that a stage can change; a stage can change: "
+        f"{', '.join(sorted(allowed))} (the rest of [contact] holds for the whole run)"
+    )
 
 
 def _unused_law_tables(raw: dict, law: str, known: set[str]) -> list[tuple[Loc, str]]:

@@ -8,7 +8,8 @@ is validated like any deck; then :func:`resume_changes` compares the two resolve
 What a resume may change is what decides *how the run goes on*, never the scene the checkpoint holds:
 
 * the current stage's end conditions (``stages.<name>.end.*``, e.g. a ``max_time`` that was reached),
-  its ``dt`` and its ``output`` cadence; everything about the stages after it (they have not started),
+  its ``dt``, its ``output`` cadence and its solver settings (``stages.<name>.contact.*``);
+  everything about the stages after it (they have not started),
   and stages added at the end;
 * ``output.*`` (snapshot cadence, formats, fields, series, checkpoints) except ``output.directory``
   (``pdem resume --output DIR`` chooses where the continuation goes);
@@ -44,8 +45,9 @@ RESUMABLE_RUN_KEYS = frozenset(
 )
 
 ALLOWED = (
-    "a resume may change the current stage's end conditions, dt and output (stages.<name>.end.*, "
-    "stages.<name>.dt, stages.<name>.output.*), anything in later stages, stages added at the end, "
+    "a resume may change the current stage's end conditions, dt, output and solver settings "
+    "(stages.<name>.end.*, stages.<name>.dt, stages.<name>.output.*, stages.<name>.contact.*), "
+    "anything in later stages, stages added at the end, "
     "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.stiffness_limit, "
     "run.max_particles, "
     "run.balance_threshold, run.decomposition, title and the contact law's solver settings (DEM-C: "
@@ -232,12 +234,13 @@ def resume_changes(
                         f"stages.{len(new_stages)}.name=more --set stages.{len(new_stages)}.end.time=...",
                     )
                 )
-            elif key not in ("end", "dt", "output"):
+            elif key not in ("end", "dt", "output", "contact"):
                 problems.append(
                     (
                         loc,
-                        f"stage '{name}' is under way in the checkpoint: only its end conditions, dt and "
-                        f"output may change on resume (stages.{name}.end.*, .dt, .output.*)",
+                        f"stage '{name}' is under way in the checkpoint: only its end conditions, dt, "
+                        f"output and solver settings may change on resume (stages.{name}.end.*, .dt, "
+                        ".output.*, .contact.*)",
                     )
                 )
     return problems

@@ -817,6 +817,13 @@ class Stage(_DeckModel):
         "frictionless grains "
         "while a dense sample is prepared; the other stages use [materials]",
     )
+    contact: dict[Str, Any] = Field(
+        {},
+        description="the contact law's solver settings during this stage only (table [stages.contact]; "
+        "a [stages.contact.<law>] table applies only when contact.law is that law, like "
+        "[contact.<law>]): the keys a resume may change, e.g. DEM-C's max_iterations, tolerance, "
+        "solver, check_every; the other stages use [contact]",
+    )
 
 
 class OutputSection(_DeckModel):
