@@ -97,8 +97,8 @@ def test_a_dem_p_deck_ignores_another_laws_stage_table(tmp_path):
     [
         ("stages.b.contact.complementarity.max_travel=0.5", "stages.1.contact.complementarity.max_travel",
          "a stage can change: apgd_start, check_every"),
-        ("stages.b.contact.complementarity.max_iterations=0", "stages.1.contact.complementarity.max_iterations",
-         "must be > 0"),
+        ("stages.b.contact.complementarity.max_iterations=0",
+         "stages.1.contact.complementarity.max_iterations", "must be > 0"),
         ('stages.b.contact.solver="sor"', "stages.1.contact.solver", "must be one of"),
         ("stages.b.contact.cone=1", "stages.1.contact.cone", "a stage can change"),
     ],
@@ -126,3 +126,28 @@ def test_a_resume_inside_a_stage_may_change_its_settings(tmp_path):
     b = _iterations(out, "b")
     assert b[:10] == [3] * 10 and b[10:] == [5] * 10
     assert max(_iterations(out, "c")) == 40
+
+
+def test_a_stage_may_switch_solver_and_stays_identical_on_2_ranks(tmp_path):
+    import shutil
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from pdem.io.checkpoint import read_checkpoint
+
+    deck = _deck(tmp_path, DECK.replace("max_iterations = 3\n", 'max_iterations = 7\nsolver = "apgd"\n'))
+    runs = {}
+    mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+    for n in (1, 2) if mpiexec else (1,):
+        out = tmp_path / f"out{n}"
+        cmd = [sys.executable, "-m", "pdem", str(deck), "--output", str(out), "--quiet"]
+        proc = subprocess.run([mpiexec, "-n", str(n), *cmd] if n > 1 else cmd, capture_output=True, text=True,
+                              timeout=300)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert max(_iterations(out, "b")) == 7 and max(_iterations(out, "c")) == 40
+        state, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+        runs[n] = np.asarray(state["particles/x"]), np.asarray(state["particles/v"])
+    if 2 in runs:
+        assert all(np.array_equal(a, b) for a, b in zip(runs[1], runs[2], strict=True))
