@@ -172,7 +172,7 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     def apgd_iteration(check_every: int) -> float:
         step_times, step_its = {}, {}
         for cap in (1, 41):
-            sta.p = sta.p.model_copy(update={"max_iterations": cap, "check_every": check_every})
+            sta.law.params = sta.p.model_copy(update={"max_iterations": cap, "check_every": check_every})
             ts, its = [], []
             for _ in range(repeat):
                 sta.gam[:nca] = 0.0
