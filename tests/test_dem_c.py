@@ -822,3 +822,21 @@ def test_apgd_check_every_forms_fewer_residuals_on_the_same_iterates():
 def test_check_every_is_validated():
     with pytest.raises(Exception, match="check_every"):
         pdem.Simulation(law="complementarity", check_every=0)
+
+
+def test_cost_study_tool_runs_on_its_block():
+    """tools/dem_c_study.py's per-contact cost (part 3, the figures of docs/dem_c.md) runs against the
+    current solver API, on a block whose every neighbour pair is a contact for both methods:
+    19·20·10 + 20·19·10 + 20·20·9 = 11,200 pairs of the 20 × 20 × 10 lattice."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "dem_c_study.py"
+    spec = importlib.util.spec_from_file_location("dem_c_study", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.cost_per_contact(repeat=1)
+    pairs = 19 * 20 * 10 + 20 * 19 * 10 + 20 * 20 * 9
+    assert out["contacts_dem_c"] == out["touching_pairs_dem_p"] == pairs
+    for kind in ("jacobi_iteration", "apgd_iteration", "dem_p_force"):
+        assert 0.0 < out[f"{kind}_ns_per_contact"] < 1e6
