@@ -918,6 +918,20 @@ class Simulation:
         """Whether the pair loop follows the storage (DEM-P) rather than the ids (DEM-C)."""
         return self.law.kind != "complementarity"
 
+    def _cell_grid(self, x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """(lo, 1/cell, dims) of the cell grid over positions ``x``: cells of the largest pair reach
+        (2 r_max + list skin), widened by 1.26× until there are at most 4 n + 1000 of them."""
+        lo = x.min(axis=0) - 1e-12
+        hi = x.max(axis=0) + 1e-12
+        cell = 2.0 * float(r.max()) + self._list_skin
+        ext = np.maximum(hi - lo, cell)
+        while True:
+            dims = np.maximum((ext / cell).astype(np.int64), 1)
+            if int(np.prod(dims)) <= 4 * x.shape[0] + 1000:
+                break
+            cell *= 1.26
+        return lo, 1.0 / cell, dims
+
     def _order_storage(self) -> None:
         """Storage order of the owned particles (results do not depend on it; only memory locality
         does). DEM-P sorts them by cells in space, at the first rebuild and whenever pairs have
@@ -933,16 +947,8 @@ class Simulation:
                 pi.size and nk.partner_spread(pi, pj) > 2.0 * self._spread_ref + SPREAD_SLACK
             )
             if due and n > 1:
-                x = p.x[:n]
-                lo = x.min(axis=0) - 1e-12
-                hi = x.max(axis=0) + 1e-12
-                cell = 2.0 * float(p.r[:n].max()) + self._list_skin
-                ext = np.maximum(hi - lo, cell)
-                dims = np.maximum((ext / cell).astype(np.int64), 1)
-                while int(np.prod(dims)) > 4 * n + 1000:
-                    cell *= 1.26
-                    dims = np.maximum((ext / cell).astype(np.int64), 1)
-                _, items = nk.bin_particles(x, n, lo, 1.0 / cell, dims)
+                lo, inv_cell, dims = self._cell_grid(p.x[:n], p.r[:n])
+                _, items = nk.bin_particles(p.x[:n], n, lo, inv_cell, dims)
                 p.permute(items)
                 self._spread_ref = -1.0  # measured on the next list
                 self.n_storage_sorts += 1
@@ -982,16 +988,7 @@ class Simulation:
         r = p.r
         store = self.contact_store
         if n:
-            lo = x.min(axis=0) - 1e-12
-            hi = x.max(axis=0) + 1e-12
-            cell = 2.0 * float(r.max()) + self._list_skin
-            ext = np.maximum(hi - lo, cell)
-            while True:
-                dims = np.maximum((ext / cell).astype(np.int64), 1)
-                if int(np.prod(dims)) <= 4 * n + 1000:
-                    break
-                cell *= 1.26
-            inv_cell = 1.0 / cell
+            lo, inv_cell, dims = self._cell_grid(x, r)
             while True:
                 pi, pj, count = nk.build_pairs(
                     x, r, p.id, p.n_owned, n, self._list_skin, lo, inv_cell, dims, store.pair_capacity
