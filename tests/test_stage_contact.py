@@ -101,6 +101,8 @@ def test_a_dem_p_deck_ignores_another_laws_stage_table(tmp_path):
          "stages.1.contact.complementarity.max_iterations", "must be > 0"),
         ('stages.b.contact.solver="sor"', "stages.1.contact.solver", "must be one of"),
         ("stages.b.contact.cone=1", "stages.1.contact.cone", "a stage can change"),
+        ("stages.b.contact.complementarity.tolerance=inf", "stages.1.contact.complementarity.tolerance",
+         "must be a finite number"),
     ],
 )  # fmt: skip
 def test_bad_stage_settings_name_the_key(tmp_path, override, where, words):

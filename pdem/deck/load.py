@@ -402,6 +402,10 @@ def _validate_stage_contact(data: dict, cls: type, params: BaseModel) -> list[tu
         if not isinstance(table, dict) or not table:
             continue
         loc0 = ("stages", i, "contact")
+        non_finite = _non_finite(table, loc0)
+        if non_finite:
+            problems += non_finite
+            continue
         for name in sorted(k for k, v in table.items() if isinstance(v, dict) and k in known and k != law):
             other, err = _load_plugin("contact_laws", name)
             other_params = getattr(other, "Params", None)
