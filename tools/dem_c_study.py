@@ -107,46 +107,56 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     st = sim.integrator
     p = sim.particles
     nc = st.log[-1][3]
-    times_it, times_acc, times_fused, times_unchecked, times_gs = [], [], [], [], []
+    width = st.gam.shape[1]
     P = np.zeros((p.n, 3))
     L = np.zeros((p.n, 3))
     v0, w0 = p.v[: p.n].copy(), p.w[: p.n].copy()
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(20):
-            ck.jacobi_update(
-                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w, nc,
-                0.3,
-            )  # fmt: skip
-        t1 = time.perf_counter()
-        for _ in range(20):
-            ck.accumulate(st.cb, st.cn, st.ca, st.croll, st.gam, nc, P, L)
-        t2 = time.perf_counter()
-        for _ in range(20):  # what an iteration runs: the fused sweep, then the velocities
-            ck.jacobi_sweep(
-                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w, nc,
-                0.3, True, P, L,
-            )  # fmt: skip
-            ck.velocities(p.v, p.w, v0, w0, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
-        t3 = time.perf_counter()
-        for _ in range(20):  # an iteration whose residual is not formed (check_every > 1)
-            ck.jacobi_sweep(
-                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w, nc,
-                0.3, True, P, L, False,
-            )  # fmt: skip
-            ck.velocities(p.v, p.w, v0, w0, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
-        t4 = time.perf_counter()
-        for _ in range(20):  # a Gauss–Seidel sweep (its iteration: velocities updated in place)
-            ck.gauss_seidel_sweep(
-                st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
-                st.IM, st.II, st.DOF, nc, 0.3, True,
-            )  # fmt: skip
-        t5 = time.perf_counter()
-        times_unchecked.append((t4 - t3) / 20 / nc)
-        times_gs.append((t5 - t4) / 20 / nc)
-        times_it.append((t1 - t0) / 20 / nc)
-        times_acc.append((t2 - t1) / 20 / nc)
-        times_fused.append((t3 - t2) / 20 / nc)
+    G = np.ascontiguousarray(st.gam[:nc].T)
+    U = np.empty((width, nc))
+    RES = np.empty(nc)
+
+    def gather():
+        ck.jacobi_gather(st.cb, st.cn, st.ca, st.cvw, st.cbias, st.croll, p.v, p.w, nc, U)
+
+    def project(check):
+        ck.jacobi_project(U, G, st.cmu, st.cscale, st.croll, nc, 0.3, True, check, RES)
+
+    def scatter():
+        ck.accumulate_columns(st.cb, st.cn, st.ca, st.croll, G, nc, P, L)
+
+    def velocities():
+        ck.velocities(p.v, p.w, v0, w0, P, L, p.inv_m, p.inv_i, p.dof, p.n_owned)
+
+    def iteration(check):  # the kernels of one sweep, as Stepper._jacobi runs them
+        gather()
+        project(check)
+        scatter()
+        if check:
+            ck.max_nonneg(RES, nc)
+        velocities()
+
+    def per_contact(fn, reps=20):
+        fn()
+        ts = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            for _ in range(reps):
+                fn()
+            ts.append((time.perf_counter() - t0) / reps / nc)
+        return float(np.median(ts))
+
+    t_gather = per_contact(gather)
+    t_project = per_contact(lambda: project(True))
+    t_project_u = per_contact(lambda: project(False))
+    t_scatter = per_contact(scatter)
+    t_it = per_contact(lambda: iteration(True))
+    t_unchecked = per_contact(lambda: iteration(False))
+    t_gs = per_contact(
+        lambda: ck.gauss_seidel_sweep(
+            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
+            st.IM, st.II, st.DOF, nc, 0.3, True,
+        )  # fmt: skip
+    )
     hm = pdem.Simulation(law="hertz_mindlin")
     hm.add_material("glass", **(MAT | roll))
     hm.add_particles(x, R, material="glass")
@@ -160,16 +170,21 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
         for _ in range(20):
             hm.compute_forces()
         times_p.append((time.perf_counter() - t0) / 20 / max(touching, 1))
+    t_p = float(np.median(times_p))
     # an APGD iteration as the solver runs it (line-search trials, exact sums, Python between the
     # kernels), on the rows of the first step: solves capped at 41 and at 1 iteration (tolerance out
     # of reach), the difference per iteration and contact
-    sta = block_step(solver="apgd", tolerance=1e-30).integrator
-    nca = sta.log[-1][3]
     vf = np.zeros((p.n, 3))
     wf = np.zeros((p.n, 3))
     Pa = np.zeros((p.n, 3))
     La = np.zeros((p.n, 3))
-    def apgd_iteration(check_every: int) -> float:
+
+    def solver_iteration(solver: str, check_every: int) -> float:
+        """Seconds per iteration and contact of the solver as the stepper runs it (its kernels and
+        the Python between them), on the rows of the first step: solves capped at 41 and at 1
+        iteration (tolerance out of reach), the difference per iteration and contact."""
+        sta = block_step(solver=solver, tolerance=1e-30).integrator
+        nca = sta.log[-1][3]
         step_times, step_its = {}, {}
         for cap in (1, 41):
             sta.law.params = sta.p.model_copy(update={"max_iterations": cap, "check_every": check_every})
@@ -177,29 +192,38 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
             for _ in range(repeat):
                 sta.gam[:nca] = 0.0
                 t0 = time.perf_counter()
-                it, _res = sta._apgd(nca, vf, wf, Pa, La)
+                it, _res = sta._solve(nca, vf, wf, Pa, La)
                 ts.append(time.perf_counter() - t0)
                 its.append(it)
             step_times[cap], step_its[cap] = float(np.median(ts)), float(np.median(its))
         return (step_times[41] - step_times[1]) / (step_its[41] - step_its[1]) / nca
 
-    apgd_it = apgd_iteration(1)
-    apgd_it5 = apgd_iteration(5)  # the residual on every 5th iteration
+    apgd_it = solver_iteration("apgd", 1)
+    apgd_it5 = solver_iteration("apgd", 5)  # the residual on every 5th iteration
+    jacobi_solver_it = solver_iteration("jacobi", 1)
+    jacobi_solver_it5 = solver_iteration("jacobi", 5)
+    ns = 1e9
     return {
         "contacts_dem_c": nc,
         "touching_pairs_dem_p": touching,
-        "apgd_iteration_ns_per_contact": 1e9 * apgd_it,
-        "apgd_iteration_over_dem_p": apgd_it / float(np.median(times_p)),
-        "apgd_iteration_check_every_5_ns_per_contact": 1e9 * apgd_it5,
-        "apgd_iteration_check_every_5_over_dem_p": apgd_it5 / float(np.median(times_p)),
-        "jacobi_sweep_ns_per_contact": 1e9 * float(np.median(times_it)),
-        "accumulate_ns_per_contact": 1e9 * float(np.median(times_acc)),
-        "jacobi_iteration_ns_per_contact": 1e9 * float(np.median(times_fused)),
-        "jacobi_iteration_unchecked_ns_per_contact": 1e9 * float(np.median(times_unchecked)),
-        "gauss_seidel_iteration_ns_per_contact": 1e9 * float(np.median(times_gs)),
-        "dem_p_force_ns_per_contact": 1e9 * float(np.median(times_p)),
-        "iteration_over_dem_p": float(np.median(times_fused)) / float(np.median(times_p)),
-        "unchecked_iteration_over_dem_p": float(np.median(times_unchecked)) / float(np.median(times_p)),
+        "dem_p_force_ns_per_contact": ns * t_p,
+        "jacobi_gather_ns_per_contact": ns * t_gather,
+        "jacobi_project_ns_per_contact": ns * t_project,
+        "jacobi_project_unchecked_ns_per_contact": ns * t_project_u,
+        "jacobi_scatter_ns_per_contact": ns * t_scatter,
+        "jacobi_iteration_ns_per_contact": ns * t_it,
+        "jacobi_iteration_unchecked_ns_per_contact": ns * t_unchecked,
+        "jacobi_solver_iteration_ns_per_contact": ns * jacobi_solver_it,
+        "jacobi_solver_iteration_check_every_5_ns_per_contact": ns * jacobi_solver_it5,
+        "gauss_seidel_iteration_ns_per_contact": ns * t_gs,
+        "apgd_iteration_ns_per_contact": ns * apgd_it,
+        "apgd_iteration_check_every_5_ns_per_contact": ns * apgd_it5,
+        "iteration_over_dem_p": t_it / t_p,
+        "unchecked_iteration_over_dem_p": t_unchecked / t_p,
+        "jacobi_solver_iteration_over_dem_p": jacobi_solver_it / t_p,
+        "jacobi_solver_iteration_check_every_5_over_dem_p": jacobi_solver_it5 / t_p,
+        "apgd_iteration_over_dem_p": apgd_it / t_p,
+        "apgd_iteration_check_every_5_over_dem_p": apgd_it5 / t_p,
     }
 
 

@@ -677,25 +677,34 @@ class Stepper(Integrator):
         sim.forward_ghosts()
 
     def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
+        """Projected Jacobi: each sweep gathers every contact's velocity, projects all impulses at
+        once (on columns: ``G`` holds γ transposed, vectorized) and scatters them onto the bodies."""
         sim = self.sim
         pr = self.p
         self._sync_velocities(nc, v_free, w_free, P, L)
-        res = 0.0
+        width = self.gam.shape[1]
+        G = np.ascontiguousarray(self.gam[:nc].T)
+        U = np.empty((width, nc))
+        RES = np.empty(nc)
         it = 0
         k = pr.check_every
         res = math.inf
         while it < pr.max_iterations:
             check = it % k == 0  # sweeps 1, k + 1, 2k + 1, …: residual of the impulses before them
-            local = ck.jacobi_sweep(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.croll, self.gam,
-                self.V, self.W, nc, pr.relaxation, self.corrected, P, L, check,
-            )  # fmt: skip
+            ck.jacobi_gather(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, U
+            )
+            ck.jacobi_project(
+                U, G, self.cmu, self.cscale, self.croll, nc, pr.relaxation, self.corrected, check, RES
+            )
+            ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, G, nc, P, L)
             it += 1
-            self._apply_impulses(nc, v_free, w_free, P, L)
+            self._apply_impulses(nc, v_free, w_free, P, L, G.T)
             if check:
-                res = all_max(sim.comm, local)
+                res = all_max(sim.comm, ck.max_nonneg(RES, nc))
                 if res <= pr.tolerance:
                     break
+        self.gam[:nc] = G.T
         if res > pr.tolerance:
             # the residual above is that of the impulses before the last sweep: measure the final one
             res = all_max(sim.comm, self._residual(nc))
