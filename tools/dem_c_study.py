@@ -13,7 +13,7 @@
    solve moves the whole chain at once (infinite speed), and with an iteration cap k the front moves
    at most k contacts per step, i.e. ≤ k d / h: the speed is a numerical artefact of k and h, which is
    why DEM-C cannot capture shock propagation (the study's conclusion).
-3. **Cost per iteration per contact** of the Jacobi sweep (and of one accumulation of impulses)
+3. **Cost per iteration per contact** of the Jacobi sweep (its three passes and the whole iteration)
    against one DEM-P pair-force evaluation per contact, on the same block of touching spheres.
 """
 
@@ -83,7 +83,7 @@ def chain_front_speed(n: int, method: str, dt: float, cap: int | None = None, t_
     return float("nan")
 
 
-def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]:
+def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]:
     """Kernel time per contact on a simple-cubic block of 4,000 spheres overlapping their six
     neighbours by 0.5 % of the diameter (every neighbour pair is a contact for both methods).
     ``rolling``: the material has rolling and spinning friction (DEM-C's rolling rows active)."""
@@ -135,28 +135,6 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
             ck.max_nonneg(RES, nc)
         velocities()
 
-    def per_contact(fn, reps=20):
-        fn()
-        ts = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            for _ in range(reps):
-                fn()
-            ts.append((time.perf_counter() - t0) / reps / nc)
-        return float(np.median(ts))
-
-    t_gather = per_contact(gather)
-    t_project = per_contact(lambda: project(True))
-    t_project_u = per_contact(lambda: project(False))
-    t_scatter = per_contact(scatter)
-    t_it = per_contact(lambda: iteration(True))
-    t_unchecked = per_contact(lambda: iteration(False))
-    t_gs = per_contact(
-        lambda: ck.gauss_seidel_sweep(
-            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
-            st.IM, st.II, st.DOF, nc, 0.3, True,
-        )  # fmt: skip
-    )
     hm = pdem.Simulation(law="hertz_mindlin")
     hm.add_material("glass", **(MAT | roll))
     hm.add_particles(x, R, material="glass")
@@ -164,13 +142,42 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
     hm.prepare()
     cs = hm.contact_store
     touching = int(np.count_nonzero(np.any(cs.force[: len(cs.pi)] != 0.0, axis=1)))
-    times_p = []
+
+    def gauss_seidel():
+        ck.gauss_seidel_sweep(
+            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
+            st.IM, st.II, st.DOF, nc, 0.3, True,
+        )  # fmt: skip
+
+    # (kernel, contacts it runs over); timed in rounds, each kernel once per round (20 calls), so
+    # that the machine's drift touches every kernel alike; ratios to DEM-P are medians over rounds
+    kernels = {
+        "gather": (gather, nc),
+        "project": (lambda: project(True), nc),
+        "project_unchecked": (lambda: project(False), nc),
+        "scatter": (scatter, nc),
+        "iteration": (lambda: iteration(True), nc),
+        "iteration_unchecked": (lambda: iteration(False), nc),
+        "gauss_seidel": (gauss_seidel, nc),
+        "dem_p": (hm.compute_forces, max(touching, 1)),
+    }
+    times = {k: [] for k in kernels}
+    for fn, _count in kernels.values():
+        fn()  # compiled and warm
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(20):
-            hm.compute_forces()
-        times_p.append((time.perf_counter() - t0) / 20 / max(touching, 1))
-    t_p = float(np.median(times_p))
+        for name, (fn, count) in kernels.items():
+            t0 = time.perf_counter()
+            for _ in range(20):
+                fn()
+            times[name].append((time.perf_counter() - t0) / 20 / count)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+
+    def over_dem_p(name):
+        return float(np.median(np.array(times[name]) / np.array(times["dem_p"])))
+
+    t_gather, t_project, t_project_u = med["gather"], med["project"], med["project_unchecked"]
+    t_scatter, t_it, t_unchecked = med["scatter"], med["iteration"], med["iteration_unchecked"]
+    t_gs, t_p = med["gauss_seidel"], med["dem_p"]
     # an APGD iteration as the solver runs it (line-search trials, exact sums, Python between the
     # kernels), on the rows of the first step: solves capped at 41 and at 1 iteration (tolerance out
     # of reach), the difference per iteration and contact
@@ -218,8 +225,8 @@ def cost_per_contact(repeat: int = 5, rolling: bool = False) -> dict[str, float]
         "gauss_seidel_iteration_ns_per_contact": ns * t_gs,
         "apgd_iteration_ns_per_contact": ns * apgd_it,
         "apgd_iteration_check_every_5_ns_per_contact": ns * apgd_it5,
-        "iteration_over_dem_p": t_it / t_p,
-        "unchecked_iteration_over_dem_p": t_unchecked / t_p,
+        "iteration_over_dem_p": over_dem_p("iteration"),
+        "unchecked_iteration_over_dem_p": over_dem_p("iteration_unchecked"),
         "jacobi_solver_iteration_over_dem_p": jacobi_solver_it / t_p,
         "jacobi_solver_iteration_check_every_5_over_dem_p": jacobi_solver_it5 / t_p,
         "apgd_iteration_over_dem_p": apgd_it / t_p,
@@ -270,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             )
     results["chain_front_speed"] = chain
 
-    print("\n3. cost per contact (median of 5 × 20 repetitions)")
+    print("\n3. cost per contact (medians of 9 rounds of 20 calls, kernels interleaved)")
     cost = cost_per_contact() if 3 in args.parts else {}
     for k, v in cost.items():
         print(f"{k:32s} {v:10.2f}")
