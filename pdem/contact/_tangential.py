@@ -11,7 +11,7 @@ import math
 
 from .._jit import njit
 
-__all__ = ["tangential_spring"]
+__all__ = ["tangential_spring", "tangential_spring_values"]
 
 
 @njit(inline="always")
@@ -24,37 +24,51 @@ def tangential_spring(hist, k, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt):
     damping too, ξ = −(F_t + c_t v_t)/k_t, reverses friction early in damped contacts because k_t
     grows faster than c_t; see pdem.laws.hertz_mindlin). Returns (F_tx, F_ty, F_tz).
     """
-    sx = hist[k, 0]
-    sy = hist[k, 1]
-    sz = hist[k, 2]
-    old2 = sx * sx + sy * sy + sz * sz
-    if old2 > 0.0:
-        sn = sx * nx + sy * ny + sz * nz
-        sx -= sn * nx
-        sy -= sn * ny
-        sz -= sn * nz
-        new2 = sx * sx + sy * sy + sz * sz
-        if new2 > 0.0:
-            scale = math.sqrt(old2 / new2)
-            sx *= scale
-            sy *= scale
-            sz *= scale
-    sx += vtx * dt
-    sy += vty * dt
-    sz += vtz * dt
-    ftx = -k_t * sx - c_t * vtx
-    fty = -k_t * sy - c_t * vty
-    ftz = -k_t * sz - c_t * vtz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
-    if ft2 > fcap * fcap:
-        scale = fcap / math.sqrt(ft2)
-        ftx *= scale
-        fty *= scale
-        ftz *= scale
-        sx = -ftx / k_t
-        sy = -fty / k_t
-        sz = -ftz / k_t
+    ftx, fty, ftz, sx, sy, sz = tangential_spring_values(
+        hist[k, 0], hist[k, 1], hist[k, 2], nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt
+    )
     hist[k, 0] = sx
     hist[k, 1] = sy
     hist[k, 2] = sz
     return ftx, fty, ftz
+
+
+@njit(inline="always")
+def tangential_spring_values(sx, sy, sz, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt):
+    """:func:`tangential_spring` on scalars: from the spring (sx, sy, sz) to (F_t, the new spring).
+
+    Every path is computed and the right one selected, without branches, so that a loop over
+    contacts held in columns vectorizes (DEM-P's Hertz–Mindlin pair loop); the values are those of
+    the branching form, bit for bit (a zero-length spring or tangent gives inf or nan in a product
+    that is never selected)."""
+    old2 = sx * sx + sy * sy + sz * sz
+    sn = sx * nx + sy * ny + sz * nz
+    px = sx - sn * nx
+    py = sy - sn * ny
+    pz = sz - sn * nz
+    new2 = px * px + py * py + pz * pz
+    scale = math.sqrt(old2 / new2)
+    turn = old2 > 0.0
+    stretch = turn & (new2 > 0.0)
+    ux = (px * scale if stretch else px) if turn else sx
+    uy = (py * scale if stretch else py) if turn else sy
+    uz = (pz * scale if stretch else pz) if turn else sz
+    ux += vtx * dt
+    uy += vty * dt
+    uz += vtz * dt
+    ftx = -k_t * ux - c_t * vtx
+    fty = -k_t * uy - c_t * vty
+    ftz = -k_t * uz - c_t * vtz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    cap = ft2 > fcap * fcap
+    s = fcap / math.sqrt(ft2)
+    gx = ftx * s
+    gy = fty * s
+    gz = ftz * s
+    ox = gx if cap else ftx
+    oy = gy if cap else fty
+    oz = gz if cap else ftz
+    ux = -gx / k_t if cap else ux
+    uy = -gy / k_t if cap else uy
+    uz = -gz / k_t if cap else uz
+    return ox, oy, oz, ux, uy, uz

@@ -49,7 +49,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..api import ContactLaw, LawParams, njit, pair_forces, tangential_spring, wall_forces
+from ..api import ContactLaw, LawParams, njit, pair_forces, wall_forces
+from ..contact._tangential import tangential_spring_values
 from ..materials import MaterialTable, effective_moduli, rayleigh_time
 
 __all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]
@@ -66,53 +67,92 @@ def damping_ratio(e: float) -> float:
 
 
 @njit(inline="always")
-def hertz_mindlin_force(
-    delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj, hist, k, dt
+def hertz_mindlin_values(
+    delta, nx, ny, nz, vx, vy, vz, r_eff, m_eff, c0, c1, c2, c3, c4, c5, c7, sx, sy, sz, dt
 ):
+    """The normal and tangential force of a contact on scalars: (F on j, F_n, the new tangential
+    spring). ``c0``–``c7``: the pair's coefficient row (form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t,
+    μ, –, clamp). Both parameterisations are computed and one selected, without branches, so that a
+    loop over contacts in columns vectorizes; the values are those of branching code, bit for bit."""
     a = math.sqrt(r_eff * delta)
     vn = vx * nx + vy * ny + vz * nz
     vtx = vx - vn * nx
     vty = vy - vn * ny
     vtz = vz - vn * nz
-    if coef[mi, mj, 0] == 0.0:
-        e_star = coef[mi, mj, 1]
-        k_t = 8.0 * coef[mi, mj, 2] * a
-        # c_n = −2 sqrt(5/6) β sqrt(S_n m*), S_n = 2 E* a; c_t = c_n sqrt(k_t/S_n) = c_n sqrt(4 G*/E*)
-        c_n = -2.0 * SQRT56 * coef[mi, mj, 3] * math.sqrt(2.0 * e_star * a * m_eff)
-        fn = (4.0 / 3.0) * e_star * a * delta - c_n * vn
-        c_t = c_n * coef[mi, mj, 4]
-    else:
-        fn = a * (coef[mi, mj, 1] * delta - coef[mi, mj, 3] * m_eff * vn)
-        k_t = a * coef[mi, mj, 2]
-        c_t = a * coef[mi, mj, 4] * m_eff
-    if coef[mi, mj, 7] != 0.0 and fn < 0.0:
-        fn = 0.0
-    fcap = coef[mi, mj, 5] * fn if fn > 0.0 else 0.0
-    ftx, fty, ftz = tangential_spring(hist, k, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt)
+    # from materials: c_n = −2 sqrt(5/6) β sqrt(S_n m*), S_n = 2 E* a;
+    # c_t = c_n sqrt(k_t/S_n) = c_n sqrt(4 G*/E*)
+    k_t_m = 8.0 * c2 * a
+    c_n = -2.0 * SQRT56 * c3 * math.sqrt(2.0 * c1 * a * m_eff)
+    fn_m = (4.0 / 3.0) * c1 * a * delta - c_n * vn
+    c_t_m = c_n * c4
+    # from coefficients (the study's equation 1)
+    fn_c = a * (c1 * delta - c3 * m_eff * vn)
+    k_t_c = a * c2
+    c_t_c = a * c4 * m_eff
+    material = c0 == 0.0
+    fn = fn_m if material else fn_c
+    k_t = k_t_m if material else k_t_c
+    c_t = c_t_m if material else c_t_c
+    fn = 0.0 if ((c7 != 0.0) & (fn < 0.0)) else fn
+    fcap = c5 * fn if fn > 0.0 else 0.0
+    ftx, fty, ftz, sx, sy, sz = tangential_spring_values(
+        sx, sy, sz, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt
+    )
+    return fn * nx + ftx, fn * ny + fty, fn * nz + ftz, fn, sx, sy, sz
+
+
+@njit(inline="always")
+def hertz_mindlin_moments(mu_r, mu_s, fn, nx, ny, nz, wx, wy, wz, r_eff, i_eff, dt):
+    """Rolling and spinning resistance: the pure torque on j (zero unless μ_r or μ_s > 0 and
+    F_n > 0)."""
     mx = 0.0
     my = 0.0
     mz = 0.0
-    if coef[mi, mj, 6] > 0.0 and fn > 0.0:
+    if mu_r > 0.0 and fn > 0.0:
         wn = wx * nx + wy * ny + wz * nz
         rx = wx - wn * nx
         ry = wy - wn * ny
         rz = wz - wn * nz
         wr = math.sqrt(rx * rx + ry * ry + rz * rz)
         if wr > 0.0:
-            mag = min(coef[mi, mj, 6] * r_eff * fn, i_eff * wr / dt)
+            mag = min(mu_r * r_eff * fn, i_eff * wr / dt)
             mx = -mag * rx / wr
             my = -mag * ry / wr
             mz = -mag * rz / wr
-    if coef[mi, mj, 8] > 0.0 and fn > 0.0:
+    if mu_s > 0.0 and fn > 0.0:
         wn = wx * nx + wy * ny + wz * nz
         if wn != 0.0:
-            mag = min(coef[mi, mj, 8] * r_eff * fn, i_eff * abs(wn) / dt)
+            mag = min(mu_s * r_eff * fn, i_eff * abs(wn) / dt)
             if wn > 0.0:
                 mag = -mag
             mx += mag * nx
             my += mag * ny
             mz += mag * nz
-    return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, mx, my, mz)
+    return mx, my, mz
+
+
+@njit(inline="always")
+def hertz_mindlin_force(
+    delta, nx, ny, nz, vx, vy, vz, wx, wy, wz, r_eff, m_eff, i_eff, coef, mi, mj, hist, k, dt
+):
+    c0 = coef[mi, mj, 0]
+    c1 = coef[mi, mj, 1]
+    c2 = coef[mi, mj, 2]
+    c3 = coef[mi, mj, 3]
+    c4 = coef[mi, mj, 4]
+    c5 = coef[mi, mj, 5]
+    c6 = coef[mi, mj, 6]
+    c7 = coef[mi, mj, 7]
+    c8 = coef[mi, mj, 8]
+    fx, fy, fz, fn, sx, sy, sz = hertz_mindlin_values(
+        delta, nx, ny, nz, vx, vy, vz, r_eff, m_eff, c0, c1, c2, c3, c4, c5, c7, hist[k, 0], hist[k, 1],
+        hist[k, 2], dt,
+    )  # fmt: skip
+    hist[k, 0] = sx
+    hist[k, 1] = sy
+    hist[k, 2] = sz
+    mx, my, mz = hertz_mindlin_moments(c6, c8, fn, nx, ny, nz, wx, wy, wz, r_eff, i_eff, dt)
+    return (fx, fy, fz, mx, my, mz)
 
 
 # fmt: off
