@@ -7,7 +7,10 @@ Contact laws (``pdem.contact_laws``)
     configuration: cache on, fastmath off), the generic loops :func:`pair_forces` and
     :func:`wall_forces`, :func:`tangential_spring` (history, Coulomb cap) and the flag bits
     ``FLAG_OVERLAP``, ``FLAG_NONFINITE``, ``FLAG_COINCIDENT``; contract checks in
-    :mod:`pdem.testing.law_contract`.
+    :mod:`pdem.testing.law_contract`. A law whose force can be computed on columns (vectorized)
+    runs the pair loop in passes: :func:`pair_columns` (touching test, geometry into the rows
+    ``COL_*``), its own loop over the columns (writing the rows ``OUT_*``; branch-free helpers such
+    as :func:`tangential_spring_values`), :func:`scatter_pair_columns` (as Hertz–Mindlin does).
 Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
     wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
@@ -60,8 +63,39 @@ from .boundaries.walls import (
     Wall,
     rotation_matrix,
 )
-from .contact._kernels import FLAG_COINCIDENT, FLAG_NONFINITE, FLAG_OVERLAP, pair_forces, wall_forces
-from .contact._tangential import tangential_spring
+from .contact._kernels import (
+    COL_AI,
+    COL_AJ,
+    COL_DELTA,
+    COL_HIST,
+    COL_IEFF,
+    COL_MEFF,
+    COL_NX,
+    COL_NY,
+    COL_NZ,
+    COL_REFF,
+    COL_VX,
+    COL_VY,
+    COL_VZ,
+    COL_WX,
+    COL_WY,
+    COL_WZ,
+    FLAG_COINCIDENT,
+    FLAG_NONFINITE,
+    FLAG_OVERLAP,
+    OUT_FX,
+    OUT_FY,
+    OUT_FZ,
+    OUT_HIST,
+    OUT_MX,
+    OUT_MY,
+    OUT_MZ,
+    pair_columns,
+    pair_forces,
+    scatter_pair_columns,
+    wall_forces,
+)  # fmt: skip
+from .contact._tangential import tangential_spring, tangential_spring_values
 from .contact.law import ContactLaw, LawParams
 from .contact.stability import servo_gain, wall_stiffness
 from .contact.store import ContactStore
@@ -88,6 +122,10 @@ from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
 __all__ = [
     "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "surface_velocity",
+    "pair_columns", "scatter_pair_columns", "tangential_spring_values",
+    "COL_DELTA", "COL_NX", "COL_NY", "COL_NZ", "COL_VX", "COL_VY", "COL_VZ", "COL_WX", "COL_WY", "COL_WZ",
+    "COL_REFF", "COL_MEFF", "COL_IEFF", "COL_AI", "COL_AJ", "COL_HIST",
+    "OUT_FX", "OUT_FY", "OUT_FZ", "OUT_MX", "OUT_MY", "OUT_MZ", "OUT_HIST",
     "exact_accumulator", "exact_add", "exact_partials",
     "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",

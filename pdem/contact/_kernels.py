@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 
-from .._jit import njit_nocache
+from .._jit import njit, njit_nocache
 from ..boundaries._geometry import surface_velocity, wall_contact
 
 FLAG_OVERLAP = 1
@@ -121,6 +121,134 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
         fpair[k, 1] = fy
         fpair[k, 2] = fz
     return flags
+
+
+# ---------------------------------------------------------------------------------------------
+# The pair loop in passes, for laws whose force can be computed on columns (DEM-P's Hertz–Mindlin):
+# 1. pair_columns: the touching test of every listed pair (non-touching ones get zero history and
+#    force, as in pair_forces) and the geometry of the touching ones, into columns (one array row
+#    per quantity, one column per contact, in list order);
+# 2. the law, on the columns (vectorized: no branches, scalars only);
+# 3. scatter_pair_columns: forces and torques onto the particles in list order, the pair forces
+#    and the new histories into their rows.
+# Each particle receives the same terms in the same order as in pair_forces: the same bits.
+
+#: rows of the geometry columns (C); the history follows at COL_HIST
+COL_DELTA, COL_NX, COL_NY, COL_NZ, COL_VX, COL_VY, COL_VZ, COL_WX, COL_WY, COL_WZ = range(10)
+COL_REFF, COL_MEFF, COL_IEFF, COL_AI, COL_AJ, COL_HIST = range(10, 16)
+#: rows of the law's output (O): force on j, torque on j, the new history from OUT_HIST
+OUT_FX, OUT_FY, OUT_FZ, OUT_MX, OUT_MY, OUT_MZ, OUT_HIST = range(7)
+
+
+@njit
+def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk):
+    """Pass 1: returns (m, flags), m the touching pairs, whose list indices go to ``tk[:m]`` and
+    whose geometry, relative velocities, effective radius, mass and inertia, lever lengths and
+    history go to columns ``C[:, :m]`` (the arithmetic of :func:`pair_forces`)."""
+    flags = 0
+    hsize = hist.shape[1]
+    m = 0
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        rsum = r[i] + r[j]
+        if d2 >= rsum * rsum or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
+            for h in range(hsize):
+                hist[k, h] = 0.0
+            fpair[k, 0] = 0.0
+            fpair[k, 1] = 0.0
+            fpair[k, 2] = 0.0
+            continue
+        dist = math.sqrt(d2)
+        if dist == 0.0:
+            flags |= FLAG_COINCIDENT
+            continue
+        inv_dist = 1.0 / dist
+        nx = dx * inv_dist
+        ny = dy * inv_dist
+        nz = dz * inv_dist
+        delta = rsum - dist
+        if delta > max_overlap * min(r[i], r[j]):
+            flags |= FLAG_OVERLAP
+        ai = r[i] - 0.5 * delta
+        aj = r[j] - 0.5 * delta
+        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+        vjx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
+        vjy = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
+        vjz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
+        C[COL_DELTA, m] = delta
+        C[COL_NX, m] = nx
+        C[COL_NY, m] = ny
+        C[COL_NZ, m] = nz
+        C[COL_VX, m] = vjx - vix
+        C[COL_VY, m] = vjy - viy
+        C[COL_VZ, m] = vjz - viz
+        C[COL_WX, m] = w[j, 0] - w[i, 0]
+        C[COL_WY, m] = w[j, 1] - w[i, 1]
+        C[COL_WZ, m] = w[j, 2] - w[i, 2]
+        C[COL_REFF, m] = r[i] * r[j] / rsum
+        C[COL_MEFF, m] = 1.0 / (inv_m[i] + inv_m[j])
+        C[COL_IEFF, m] = 1.0 / (inv_i[i] + inv_i[j])
+        C[COL_AI, m] = ai
+        C[COL_AJ, m] = aj
+        for h in range(hsize):
+            C[COL_HIST + h, m] = hist[k, h]
+        tk[m] = k
+        m += 1
+    return m, flags
+
+
+@njit
+def scatter_pair_columns(tk, m, pi, pj, C, O, moments, f, t, fpair, hist):
+    """Pass 3: the law's forces ``O[OUT_F*]`` (and torques ``O[OUT_M*]`` when ``moments``, else
+    zero) onto the particles in list order as :func:`pair_forces` adds them; the pair forces and the
+    new histories ``O[OUT_HIST:]`` into their rows."""
+    hsize = hist.shape[1]
+    for q in range(m):
+        k = tk[q]
+        i = pi[k]
+        j = pj[k]
+        fx = O[OUT_FX, q]
+        fy = O[OUT_FY, q]
+        fz = O[OUT_FZ, q]
+        mx = O[OUT_MX, q]
+        my = O[OUT_MY, q]
+        mz = O[OUT_MZ, q]
+        if not moments:
+            mx = 0.0
+            my = 0.0
+            mz = 0.0
+        nx = C[COL_NX, q]
+        ny = C[COL_NY, q]
+        nz = C[COL_NZ, q]
+        ai = C[COL_AI, q]
+        aj = C[COL_AJ, q]
+        f[i, 0] -= fx
+        f[i, 1] -= fy
+        f[i, 2] -= fz
+        f[j, 0] += fx
+        f[j, 1] += fy
+        f[j, 2] += fz
+        cx = ny * fz - nz * fy
+        cy = nz * fx - nx * fz
+        cz = nx * fy - ny * fx
+        t[i, 0] += -ai * cx - mx
+        t[i, 1] += -ai * cy - my
+        t[i, 2] += -ai * cz - mz
+        t[j, 0] += -aj * cx + mx
+        t[j, 1] += -aj * cy + my
+        t[j, 2] += -aj * cz + mz
+        fpair[k, 0] = fx
+        fpair[k, 1] = fy
+        fpair[k, 2] = fz
+        for h in range(hsize):
+            hist[k, h] = O[OUT_HIST + h, q]
 
 
 @njit_nocache(inline="always")

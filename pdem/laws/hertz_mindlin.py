@@ -44,13 +44,14 @@ Coefficient row layout: ``[form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ, �
 from __future__ import annotations
 
 import math
+import threading
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..api import ContactLaw, LawParams, njit, pair_forces, wall_forces
-from ..contact._tangential import tangential_spring_values
+from .. import api as pk
+from ..api import ContactLaw, LawParams, njit, pair_forces, tangential_spring_values, wall_forces
 from ..materials import MaterialTable, effective_moduli, rayleigh_time
 
 __all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]
@@ -155,10 +156,107 @@ def hertz_mindlin_force(
     return (fx, fy, fz, mx, my, mz)
 
 
+@njit
+def hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K):
+    """The coefficients the column pass needs (form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ,
+    clamp), one column per touching pair, and whether any pair has rolling or spinning friction."""
+    moments = False
+    for q in range(m):
+        k = tk[q]
+        mi = mat[pi[k]]
+        mj = mat[pj[k]]
+        K[0, q] = coef[mi, mj, 0]
+        K[1, q] = coef[mi, mj, 1]
+        K[2, q] = coef[mi, mj, 2]
+        K[3, q] = coef[mi, mj, 3]
+        K[4, q] = coef[mi, mj, 4]
+        K[5, q] = coef[mi, mj, 5]
+        K[6, q] = coef[mi, mj, 7]
+        if coef[mi, mj, 6] > 0.0 or coef[mi, mj, 8] > 0.0:
+            moments = True
+    return moments
+
+
+@njit
+def hertz_mindlin_columns(C, K, m, dt, O, FN):
+    """The normal and tangential forces of the touching pairs held in columns (vectorized)."""
+    d_, nx_, ny_, nz_ = C[pk.COL_DELTA], C[pk.COL_NX], C[pk.COL_NY], C[pk.COL_NZ]
+    vx_, vy_, vz_, re_, me_ = C[pk.COL_VX], C[pk.COL_VY], C[pk.COL_VZ], C[pk.COL_REFF], C[pk.COL_MEFF]
+    s0_, s1_, s2_ = C[pk.COL_HIST], C[pk.COL_HIST + 1], C[pk.COL_HIST + 2]
+    c0_, c1_, c2_, c3_, c4_, c5_, c7_ = K[0], K[1], K[2], K[3], K[4], K[5], K[6]
+    fx_, fy_, fz_ = O[pk.OUT_FX], O[pk.OUT_FY], O[pk.OUT_FZ]
+    h0_, h1_, h2_ = O[pk.OUT_HIST], O[pk.OUT_HIST + 1], O[pk.OUT_HIST + 2]
+    for q in range(m):
+        fx_[q], fy_[q], fz_[q], FN[q], h0_[q], h1_[q], h2_[q] = hertz_mindlin_values(
+            d_[q], nx_[q], ny_[q], nz_[q], vx_[q], vy_[q], vz_[q], re_[q], me_[q], c0_[q], c1_[q], c2_[q],
+            c3_[q], c4_[q], c5_[q], c7_[q], s0_[q], s1_[q], s2_[q], dt,
+        )  # fmt: skip
+
+
+@njit
+def hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O):
+    """Rolling and spinning torques of the touching pairs (scalar: taken by few scenes)."""
+    for q in range(m):
+        k = tk[q]
+        mi = mat[pi[k]]
+        mj = mat[pj[k]]
+        O[pk.OUT_MX, q], O[pk.OUT_MY, q], O[pk.OUT_MZ, q] = hertz_mindlin_moments(
+            coef[mi, mj, 6], coef[mi, mj, 8], FN[q], C[pk.COL_NX, q], C[pk.COL_NY, q], C[pk.COL_NZ, q],
+            C[pk.COL_WX, q], C[pk.COL_WY, q], C[pk.COL_WZ, q], C[pk.COL_REFF, q], C[pk.COL_IEFF, q], dt,
+        )  # fmt: skip
+
+
+@njit
+def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap,
+                         C, K, O, FN, tk):  # fmt: skip
+    m, flags = pk.pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk)
+    moments = hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K)
+    hertz_mindlin_columns(C, K, m, dt, O, FN)
+    if moments:
+        hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O)
+    pk.scatter_pair_columns(tk, m, pi, pj, C, O, moments, f, t, fpair, hist)
+    return flags
+
+
+class _Columns(threading.local):
+    """Work columns of the pair kernel, kept between steps (per thread), grown as the list grows:
+    allocating megabytes at every step would cost page faults."""
+
+    def __init__(self) -> None:
+        self.cap = 0
+
+    def get(self, n: int):
+        if n > self.cap:
+            self.cap = int(n * 1.25) + 256
+            self.C = np.empty((pk.COL_HIST + 3, self.cap))
+            self.K = np.empty((7, self.cap))
+            self.O = np.empty((pk.OUT_HIST + 3, self.cap))
+            self.FN = np.empty(self.cap)
+            self.tk = np.empty(self.cap, dtype=np.int64)
+        return self.C, self.K, self.O, self.FN, self.tk
+
+
+_columns = _Columns()
+
+
+def hertz_mindlin_pair_kernel(
+    pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
+):
+    """The pair loop of :func:`pdem.api.pair_forces` with this law, in passes over columns (see
+    :mod:`pdem.contact._kernels`): the touching pairs' forces are computed four at a time. The same
+    bits as the generic loop (``hertz_mindlin_pair_kernel_generic``; tests/test_pair_columns.py)."""
+    C, K, O, FN, tk = _columns.get(pi.shape[0])
+    return _pair_kernel_columns(
+        pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap, C, K, O, FN, tk
+    )
+
+
 # fmt: off
 @njit
-def hertz_mindlin_pair_kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt,
-                              max_overlap):
+def hertz_mindlin_pair_kernel_generic(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt,
+                                      max_overlap):
+    """The generic pair loop with this law, one contact at a time (the reference of the column
+    kernel)."""
     return pair_forces(hertz_mindlin_force, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair,
                        dt, max_overlap)
 

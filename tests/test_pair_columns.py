@@ -1,0 +1,137 @@
+"""DEM-P's Hertz–Mindlin pair kernel in passes over columns against the generic pair loop.
+
+``HertzMindlin.pair_kernel`` tests every listed pair, gathers the touching ones into columns,
+computes their forces without branches (vectorized) and scatters them in list order. It must give
+exactly what the generic loop (:func:`pdem.api.pair_forces` with :func:`hertz_mindlin_force`, one
+pair at a time) gives: forces, torques, pair forces, histories and flags, bit for bit, on pairs
+that take every path (apart, touching, fixed pairs, sliding and sticking, springs of zero length or
+along the normal, attractive damping with and without the clamp, rolling and spinning resistance,
+both parameterisations, several materials).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pdem.contact._kernels import FLAG_COINCIDENT, FLAG_OVERLAP
+from pdem.laws.hertz_mindlin import (
+    HertzMindlin,
+    hertz_mindlin_pair_kernel,
+    hertz_mindlin_pair_kernel_generic,
+)
+from pdem.materials import Material, MaterialTable
+
+R = 1e-3
+
+
+def materials(rolling: bool) -> MaterialTable:
+    table = MaterialTable()
+    extra = {"rolling_friction": 0.2, "spinning_friction": 0.1} if rolling else {}
+    table.add(Material("a", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
+                       friction=0.5, **extra))  # fmt: skip
+    table.add(Material("b", density=7800.0, youngs_modulus=2e8, poisson_ratio=0.25, restitution=0.8,
+                       friction=0.2))  # fmt: skip
+    table.add(Material("c", density=1000.0, youngs_modulus=1e7, poisson_ratio=0.4, restitution=0.05,
+                       friction=0.0))  # fmt: skip
+    return table
+
+
+def scene(rng, n=4000, npairs=4000):
+    """Random spheres; pairs (2q, 2q + 1) placed in contact (overlaps up to 3 %), the other listed
+    pairs random (mostly apart), in a random order."""
+    x = rng.uniform(0.0, 12 * R, (n, 3))
+    r = rng.uniform(0.7 * R, 1.3 * R, n)
+    nt = min(n // 2, npairs // 2)
+    ti, tj = 2 * np.arange(nt), 2 * np.arange(nt) + 1
+    d = rng.normal(size=(nt, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    x[tj] = x[ti] + d * ((r[ti] + r[tj]) * rng.uniform(0.97, 1.0, nt))[:, None]
+    pi = np.concatenate([ti, rng.integers(0, n, npairs - nt)])
+    pj = np.concatenate([tj, rng.integers(0, n, npairs - nt)])
+    keep = pi != pj
+    pi, pj = np.minimum(pi[keep], pj[keep]), np.maximum(pi[keep], pj[keep])
+    order = rng.permutation(pi.size)
+    pi, pj = pi[order], pj[order]
+    v = rng.normal(scale=1.0, size=(n, 3))
+    w = rng.normal(scale=300.0, size=(n, 3))
+    m = 2500.0 * 4.0 / 3.0 * np.pi * r**3
+    inv_m = 1.0 / m
+    inv_i = 1.0 / (0.4 * m * r * r)
+    fixed = rng.random(n) < 0.1
+    inv_m[fixed] = 0.0
+    inv_i[fixed] = 0.0
+    mat = rng.integers(0, 3, n).astype(np.int32)
+    hist = rng.normal(scale=1e-6, size=(pi.size, 3))
+    hist[rng.random(pi.size) < 0.2] = 0.0  # new contacts
+    along = rng.random(pi.size) < 0.05  # springs along the normal: nothing left after the turn
+    d = x[pj] - x[pi]
+    hist[along] = 1e-6 * d[along] / np.linalg.norm(d[along], axis=1)[:, None]
+    return pi.astype(np.int64), pj.astype(np.int64), x, v, w, r, inv_m, inv_i, mat, hist
+
+
+def run(kernel, coef, args, dt, max_overlap):
+    pi, pj, x, v, w, r, inv_m, inv_i, mat, hist = (a.copy() for a in args)
+    n = x.shape[0]
+    f = np.full((n, 3), 0.5)
+    t = np.full((n, 3), -0.5)
+    fpair = np.full((pi.size, 3), 9.0)
+    flags = kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap)
+    return flags, f, t, fpair, hist
+
+
+def same_bits(a, b):
+    return np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).view(np.int64))
+
+
+@pytest.mark.parametrize("rolling", [False, True])
+@pytest.mark.parametrize("parameterisation", ["material", "coefficients"])
+@pytest.mark.parametrize("clamp", [False, True])
+def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation, clamp):
+    rng = np.random.default_rng(7 + 2 * rolling + 4 * clamp + 8 * (parameterisation == "material"))
+    kw = {"kn": 1e8, "kt": 5e7, "cn": 2e9, "ct": 1e9} if parameterisation == "coefficients" else {}
+    law = HertzMindlin(parameterisation=parameterisation, clamp_normal=clamp, **kw)
+    coef = law.coefficients(materials(rolling))
+    args = scene(rng)
+    ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 0.02)
+    got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 0.02)
+    assert ref[0] == got[0]
+    assert ref[0] & FLAG_OVERLAP  # some overlaps are above 2 % of the smaller radius
+    for a, b in zip(ref[1:], got[1:], strict=True):
+        assert same_bits(a, b)
+    # every path was taken
+    fpair = ref[3]
+    touching = np.any(fpair != 0.0, axis=1)
+    assert 0.2 * len(touching) < touching.sum() < 0.8 * len(touching)
+    mu = coef[args[8][args[0]], args[8][args[1]], 5]
+    fn = np.einsum("ij,ij->i", fpair, (args[2][args[1]] - args[2][args[0]]))
+    assert (mu == 0.0).any()
+    assert (touching & (fn < 0)).any() != clamp  # damping pulls some pairs together unless clamped
+    if rolling:  # the torques include rolling and spinning resistance
+        no_rolling = coef * [1, 1, 1, 1, 1, 1, 0, 1, 0]
+        assert not same_bits(ref[2], run(hertz_mindlin_pair_kernel_generic, no_rolling, args, 1e-6, 0.02)[2])
+
+
+def test_coincident_pair_is_flagged_and_left_alone_like_the_generic_loop():
+    rng = np.random.default_rng(3)
+    coef = HertzMindlin().coefficients(materials(False))
+    pi, pj, x, v, w, r, inv_m, inv_i, mat, hist = scene(rng, n=50, npairs=200)
+    x[pj[0]] = x[pi[0]]
+    inv_m[[pi[0], pj[0]]] = 1.0
+    args = (pi, pj, x, v, w, r, inv_m, inv_i, mat, hist)
+    ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 1.0)
+    got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 1.0)
+    assert ref[0] & FLAG_COINCIDENT and got[0] == ref[0]
+    for a, b in zip(ref[1:], got[1:], strict=True):
+        assert same_bits(a, b)
+
+
+def test_work_columns_grow_with_the_pair_list():
+    rng = np.random.default_rng(11)
+    coef = HertzMindlin().coefficients(materials(False))
+    for npairs in (10, 5000, 300, 20000):
+        args = scene(rng, n=2000, npairs=npairs)
+        ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 1.0)
+        got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 1.0)
+        for a, b in zip(ref, got, strict=True):
+            assert same_bits(a, b)
