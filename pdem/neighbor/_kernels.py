@@ -85,29 +85,32 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
         cy = min(max(int((x[i, 1] - lo[1]) * inv_cell), 0), dims[1] - 1)
         cz = min(max(int((x[i, 2] - lo[2]) * inv_cell), 0), dims[2] - 1)
         nc = 0
+        ex0 = max(cx - 1, 0)
+        ex1 = min(cx + 1, dims[0] - 1)
         for ez in range(max(cz - 1, 0), min(cz + 2, dims[2])):
             for ey in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for ex in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-                    c = (ez * dims[1] + ey) * dims[0] + ex
-                    for s in range(cell_start[c], cell_start[c + 1]):
-                        idj = ids_s[s]
-                        if idj <= idi or (ghost_i and not own_s[s]):
-                            continue
-                        dx = xs[s, 0] - xi0
-                        dy = xs[s, 1] - xi1
-                        dz = xs[s, 2] - xi2
-                        cut = ri + rs[s] + skin
-                        if dx * dx + dy * dy + dz * dz < cut * cut:
-                            j = cell_items[s]
-                            # insertion by id keeps the candidates sorted
-                            p = nc
-                            while p > 0 and cand_id[p - 1] > idj:
-                                cand_id[p] = cand_id[p - 1]
-                                cand[p] = cand[p - 1]
-                                p -= 1
-                            cand_id[p] = idj
-                            cand[p] = j
-                            nc += 1
+                # a row's three cells are consecutive, and so are their particles (in cell order):
+                # one loop over them instead of three short ones (their exits were mispredicted)
+                row = (ez * dims[1] + ey) * dims[0]
+                for s in range(cell_start[row + ex0], cell_start[row + ex1 + 1]):
+                    idj = ids_s[s]
+                    if idj <= idi or (ghost_i and not own_s[s]):
+                        continue
+                    dx = xs[s, 0] - xi0
+                    dy = xs[s, 1] - xi1
+                    dz = xs[s, 2] - xi2
+                    cut = ri + rs[s] + skin
+                    if dx * dx + dy * dy + dz * dz < cut * cut:
+                        j = cell_items[s]
+                        # insertion by id keeps the candidates sorted
+                        p = nc
+                        while p > 0 and cand_id[p - 1] > idj:
+                            cand_id[p] = cand_id[p - 1]
+                            cand[p] = cand[p - 1]
+                            p -= 1
+                        cand_id[p] = idj
+                        cand[p] = j
+                        nc += 1
         for s in range(nc):
             if count < capacity:
                 pi[count] = i
