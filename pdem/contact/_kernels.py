@@ -144,9 +144,14 @@ OUT_FX, OUT_FY, OUT_FZ, OUT_MX, OUT_MY, OUT_MZ, OUT_HIST = range(7)
 def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk):
     """Pass 1: returns (m, flags), m the touching pairs, whose list indices go to ``tk[:m]`` and
     whose geometry, relative velocities, effective radius, mass and inertia, lever lengths and
-    history go to columns ``C[:, :m]`` (the arithmetic of :func:`pair_forces`)."""
+    history go to columns ``C[:, :m]`` (the arithmetic of :func:`pair_forces`).
+
+    If m exceeds the columns (``C.shape[1]``), the pairs beyond are counted but not written: call
+    again with at least m columns (the pass changes nothing else a second call would see
+    differently: it only zeroes the non-touching pairs' history and force)."""
     flags = 0
     hsize = hist.shape[1]
+    room = min(C.shape[1], tk.shape[0])
     m = 0
     for k in range(pi.shape[0]):
         i = pi[k]
@@ -166,6 +171,9 @@ def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, 
         dist = math.sqrt(d2)
         if dist == 0.0:
             flags |= FLAG_COINCIDENT
+            continue
+        if m >= room:
+            m += 1
             continue
         inv_dist = 1.0 / dist
         nx = dx * inv_dist

@@ -210,6 +210,8 @@ def hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O):
 def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap,
                          C, K, O, FN, tk):  # fmt: skip
     m, flags = pk.pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk)
+    if m > C.shape[1]:
+        return -m  # too few columns: the caller grows them and calls again
     moments = hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K)
     hertz_mindlin_columns(C, K, m, dt, O, FN)
     if moments:
@@ -219,21 +221,20 @@ def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t
 
 
 class _Columns(threading.local):
-    """Work columns of the pair kernel, kept between steps (per thread), grown as the list grows:
-    allocating megabytes at every step would cost page faults."""
+    """Work columns of the pair kernel (one per touching pair: ~300 bytes), kept between steps (per
+    thread; allocating megabytes at every step would cost page faults), grown when the touching
+    pairs outnumber them."""
 
     def __init__(self) -> None:
-        self.cap = 0
+        self.grow(0)
 
-    def get(self, n: int):
-        if n > self.cap:
-            self.cap = int(n * 1.25) + 256
-            self.C = np.empty((pk.COL_HIST + 3, self.cap))
-            self.K = np.empty((7, self.cap))
-            self.O = np.empty((pk.OUT_HIST + 3, self.cap))
-            self.FN = np.empty(self.cap)
-            self.tk = np.empty(self.cap, dtype=np.int64)
-        return self.C, self.K, self.O, self.FN, self.tk
+    def grow(self, n: int) -> None:
+        self.cap = cap = int(n * 1.25) + 256
+        self.C = np.empty((pk.COL_HIST + 3, cap))
+        self.K = np.empty((7, cap))
+        self.O = np.empty((pk.OUT_HIST + 3, cap))
+        self.FN = np.empty(cap)
+        self.tk = np.empty(cap, dtype=np.int64)
 
 
 _columns = _Columns()
@@ -245,10 +246,15 @@ def hertz_mindlin_pair_kernel(
     """The pair loop of :func:`pdem.api.pair_forces` with this law, in passes over columns (see
     :mod:`pdem.contact._kernels`): the touching pairs' forces are computed four at a time. The same
     bits as the generic loop (``hertz_mindlin_pair_kernel_generic``; tests/test_pair_columns.py)."""
-    C, K, O, FN, tk = _columns.get(pi.shape[0])
-    return _pair_kernel_columns(
-        pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap, C, K, O, FN, tk
-    )
+    cols = _columns
+    while True:
+        flags = _pair_kernel_columns(
+            pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap, cols.C, cols.K,
+            cols.O, cols.FN, cols.tk,
+        )  # fmt: skip
+        if flags >= 0:
+            return flags
+        cols.grow(-flags)
 
 
 # fmt: off
