@@ -84,7 +84,8 @@ def three_pass_sweep(rows, nc, omega, corrected, want_res):
     U = np.empty((width, nc))
     RES = np.empty(nc)
     ck.jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U)
-    ck.jacobi_project(U, G, cmu, cscale, croll, nc, omega, corrected, want_res, RES)
+    CR = np.ascontiguousarray(croll[:nc].T)
+    ck.jacobi_project(U, G, cmu, cscale, CR, nc, omega, corrected, want_res, RES)
     return G.T.copy(), (ck.max_nonneg(RES, nc) if want_res else 0.0)
 
 

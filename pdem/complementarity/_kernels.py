@@ -742,12 +742,13 @@ def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, mu, omega_relax, correcte
 
 
 @njit
-def jacobi_project(U, G, cmu, cscale, croll, nc, omega_relax, corrected, want_res, RES):
+def jacobi_project(U, G, cmu, cscale, CR, nc, omega_relax, corrected, want_res, RES):
     """Jacobi pass 2: γ_c ← Π_K(γ_c − ω B_c u_c) for every column (ũ when ``corrected``), then the
     rolling rows clamped to the bounds of the new γ_n (Chrono's order), as :func:`_update` and
     :func:`_update_roll`. With ``want_res``, ``RES[c]`` = the residual of the old impulses (its
-    maximum: :func:`max_nonneg`). ``U`` is overwritten. (One loop per case, its flags constant,
-    so that each vectorizes.)"""
+    maximum: :func:`max_nonneg`). ``U`` is overwritten. ``CR``: the rows' ``croll`` in columns
+    (read only with rolling rows, G of 8 rows). (One loop per case, its flags constant, so that
+    each vectorizes.)"""
     u0a, u1a, u2a, u3a = U[0], U[1], U[2], U[3]
     g0a, g1a, g2a, g3a = G[0], G[1], G[2], G[3]
     o = omega_relax
@@ -777,40 +778,57 @@ def jacobi_project(U, G, cmu, cscale, croll, nc, omega_relax, corrected, want_re
                 False, True,
             )  # fmt: skip
     if G.shape[0] == 8:
-        _jacobi_project_roll(U, G, croll, nc, omega_relax, want_res, RES)
+        _jacobi_project_roll(U, G, CR, nc, omega_relax, want_res, RES)
+
+
+@njit(inline="always")
+def _clamp_abs_select(x, bound):
+    """:func:`clamp_abs` as selects (the same values)."""
+    return bound if x > bound else (-bound if x < -bound else x)
+
+
+@njit(inline="always")
+def _roll_values(r0, r1, r2, r3, u4, u5, u6, u7, bn, bn_new, br, mu_r, mu_s, rs, omega_relax, want_res, rc):
+    """One contact's rolling rows in :func:`jacobi_project`, on scalars and without branches: the
+    new (ρ, σ) (unchanged where R* = 0) and the residual ``rc`` raised to the rolling rows' (the
+    arithmetic of :func:`_update_roll` and :func:`_roll_residual`)."""
+    s = omega_relax * br
+    n4, n5, n6 = _clamp_norm_select(r0 - s * u4, r1 - s * u5, r2 - s * u6, mu_r * bn_new)
+    n7 = _clamp_abs_select(r3 - s * u7, mu_s * bn_new)
+    on = rs > 0.0
+    if want_res:
+        p4, p5, p6 = _clamp_norm_select(r0 - br * u4, r1 - br * u5, r2 - br * u6, mu_r * bn)
+        p7 = _clamp_abs_select(r3 - br * u7, mu_s * bn)
+        d4 = r0 - p4
+        d5 = r1 - p5
+        d6 = r2 - p6
+        rr = max(math.sqrt(d4 * d4 + d5 * d5 + d6 * d6), abs(r3 - p7)) / br
+        rc = rr if (on & ((rr > rc) | (rr != rr))) else rc
+    return (n4 if on else r0), (n5 if on else r1), (n6 if on else r2), (n7 if on else r3), rc
 
 
 @njit
-def _jacobi_project_roll(U, G, croll, nc, omega_relax, want_res, RES):
+def _jacobi_project_roll(U, G, CR, nc, omega_relax, want_res, RES):
     """The rolling rows of :func:`jacobi_project` (after the sliding cone: the bounds are the new
     γ_n, in ``G[0]``, and for the residual the fully projected old one, left in ``U[0]`` by a
-    checked sweep)."""
-    for c in range(nc):
-        rs = croll[c, 2]
-        br = croll[c, 3]
-        mu_r = croll[c, 0]
-        mu_s = croll[c, 1]
-        bn = U[0, c]
-        bn_new = G[0, c]
-        u4 = U[4, c]
-        u5 = U[5, c]
-        u6 = U[6, c]
-        u7 = U[7, c]
-        r0 = G[4, c]
-        r1 = G[5, c]
-        r2 = G[6, c]
-        r3 = G[7, c]
-        if rs > 0.0:
-            if want_res:
-                rr = _roll_residual(r0, r1, r2, r3, u4, u5, u6, u7, bn, br, mu_r, mu_s)
-                rc = RES[c]
-                if rr > rc or rr != rr:
-                    RES[c] = rr
-            s = omega_relax * br
-            G[4, c], G[5, c], G[6, c] = _clamp_norm_select(
-                r0 - s * u4, r1 - s * u5, r2 - s * u6, mu_r * bn_new
-            )
-            G[7, c] = clamp_abs(r3 - s * u7, mu_s * bn_new)
+    checked sweep). ``CR``: the contacts' (μ_r, μ_s, R*, B_r) in columns. Branch-free, one loop per
+    case: vectorized."""
+    bn_, bnew_, u4_, u5_, u6_, u7_ = U[0], G[0], U[4], U[5], U[6], U[7]
+    r0_, r1_, r2_, r3_ = G[4], G[5], G[6], G[7]
+    mr_, ms_, rs_, br_ = CR[0], CR[1], CR[2], CR[3]
+    o = omega_relax
+    if want_res:
+        for c in range(nc):
+            r0_[c], r1_[c], r2_[c], r3_[c], RES[c] = _roll_values(
+                r0_[c], r1_[c], r2_[c], r3_[c], u4_[c], u5_[c], u6_[c], u7_[c], bn_[c], bnew_[c], br_[c],
+                mr_[c], ms_[c], rs_[c], o, True, RES[c],
+            )  # fmt: skip
+    else:
+        for c in range(nc):
+            r0_[c], r1_[c], r2_[c], r3_[c], _rc = _roll_values(
+                r0_[c], r1_[c], r2_[c], r3_[c], u4_[c], u5_[c], u6_[c], u7_[c], bn_[c], bnew_[c], br_[c],
+                mr_[c], ms_[c], rs_[c], o, False, 0.0,
+            )  # fmt: skip
 
 
 @njit

@@ -684,6 +684,7 @@ class Stepper(Integrator):
         self._sync_velocities(nc, v_free, w_free, P, L)
         width = self.gam.shape[1]
         G = np.ascontiguousarray(self.gam[:nc].T)
+        CR = np.ascontiguousarray(self.croll[:nc].T)
         U = np.empty((width, nc))
         RES = np.empty(nc)
         it = 0
@@ -694,9 +695,7 @@ class Stepper(Integrator):
             ck.jacobi_gather(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, U
             )
-            ck.jacobi_project(
-                U, G, self.cmu, self.cscale, self.croll, nc, pr.relaxation, self.corrected, check, RES
-            )
+            ck.jacobi_project(U, G, self.cmu, self.cscale, CR, nc, pr.relaxation, self.corrected, check, RES)
             ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, G, nc, P, L)
             it += 1
             self._apply_impulses(nc, v_free, w_free, P, L, G.T)
