@@ -141,14 +141,15 @@ OUT_FX, OUT_FY, OUT_FZ, OUT_MX, OUT_MY, OUT_MZ, OUT_HIST = range(7)
 
 
 @njit
-def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk):
+def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk, angular=True):
     """Pass 1: returns (m, flags), m the touching pairs, whose list indices go to ``tk[:m]`` and
     whose geometry, relative velocities, effective radius, mass and inertia, lever lengths and
     history go to columns ``C[:, :m]`` (the arithmetic of :func:`pair_forces`).
 
     If m exceeds the columns (``C.shape[1]``), the pairs beyond are counted but not written: call
     again with at least m columns (the pass changes nothing else a second call would see
-    differently: it only zeroes the non-touching pairs' history and force)."""
+    differently: it only zeroes the non-touching pairs' history and force). Without ``angular``
+    the rows ``COL_WX``–``COL_WZ`` and ``COL_IEFF`` (a law's extra torques only) are not written."""
     flags = 0
     hsize = hist.shape[1]
     room = min(C.shape[1], tk.shape[0])
@@ -197,12 +198,13 @@ def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, 
         C[COL_VX, m] = vjx - vix
         C[COL_VY, m] = vjy - viy
         C[COL_VZ, m] = vjz - viz
-        C[COL_WX, m] = w[j, 0] - w[i, 0]
-        C[COL_WY, m] = w[j, 1] - w[i, 1]
-        C[COL_WZ, m] = w[j, 2] - w[i, 2]
+        if angular:
+            C[COL_WX, m] = w[j, 0] - w[i, 0]
+            C[COL_WY, m] = w[j, 1] - w[i, 1]
+            C[COL_WZ, m] = w[j, 2] - w[i, 2]
+            C[COL_IEFF, m] = 1.0 / (inv_i[i] + inv_i[j])
         C[COL_REFF, m] = r[i] * r[j] / rsum
         C[COL_MEFF, m] = 1.0 / (inv_m[i] + inv_m[j])
-        C[COL_IEFF, m] = 1.0 / (inv_i[i] + inv_i[j])
         C[COL_AI, m] = ai
         C[COL_AJ, m] = aj
         for h in range(hsize):

@@ -158,8 +158,9 @@ def hertz_mindlin_force(
 
 @njit
 def hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K):
-    """The coefficients the column pass needs (form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ,
-    clamp), one column per touching pair, and whether any pair has rolling or spinning friction."""
+    """The coefficients the column passes need (form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ,
+    clamp, μ_r, μ_s), one column per touching pair, and whether any pair has rolling or spinning
+    friction."""
     moments = False
     for q in range(m):
         k = tk[q]
@@ -172,6 +173,8 @@ def hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K):
         K[4, q] = coef[mi, mj, 4]
         K[5, q] = coef[mi, mj, 5]
         K[6, q] = coef[mi, mj, 7]
+        K[7, q] = coef[mi, mj, 6]
+        K[8, q] = coef[mi, mj, 8]
         if coef[mi, mj, 6] > 0.0 or coef[mi, mj, 8] > 0.0:
             moments = True
     return moments
@@ -194,14 +197,11 @@ def hertz_mindlin_columns(C, K, m, dt, O, FN):
 
 
 @njit
-def hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O):
+def hertz_mindlin_column_moments(K, m, C, FN, dt, O):
     """Rolling and spinning torques of the touching pairs (scalar: taken by few scenes)."""
     for q in range(m):
-        k = tk[q]
-        mi = mat[pi[k]]
-        mj = mat[pj[k]]
         O[pk.OUT_MX, q], O[pk.OUT_MY, q], O[pk.OUT_MZ, q] = hertz_mindlin_moments(
-            coef[mi, mj, 6], coef[mi, mj, 8], FN[q], C[pk.COL_NX, q], C[pk.COL_NY, q], C[pk.COL_NZ, q],
+            K[7, q], K[8, q], FN[q], C[pk.COL_NX, q], C[pk.COL_NY, q], C[pk.COL_NZ, q],
             C[pk.COL_WX, q], C[pk.COL_WY, q], C[pk.COL_WZ, q], C[pk.COL_REFF, q], C[pk.COL_IEFF, q], dt,
         )  # fmt: skip
 
@@ -209,13 +209,20 @@ def hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O):
 @njit
 def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap,
                          C, K, O, FN, tk):  # fmt: skip
-    m, flags = pk.pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk)
+    # the rolling and spinning torques need the relative spin and I*: written only if some
+    # material pair has them
+    angular = False
+    for a in range(coef.shape[0]):
+        for b in range(coef.shape[1]):
+            if coef[a, b, 6] > 0.0 or coef[a, b, 8] > 0.0:
+                angular = True
+    m, flags = pk.pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk, angular)
     if m > C.shape[1]:
         return -m  # too few columns: the caller grows them and calls again
-    moments = hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K)
+    moments = hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K) and angular
     hertz_mindlin_columns(C, K, m, dt, O, FN)
     if moments:
-        hertz_mindlin_column_moments(tk, m, pi, pj, mat, coef, C, FN, dt, O)
+        hertz_mindlin_column_moments(K, m, C, FN, dt, O)
     pk.scatter_pair_columns(tk, m, pi, pj, C, O, moments, f, t, fpair, hist)
     return flags
 
@@ -231,7 +238,7 @@ class _Columns(threading.local):
     def grow(self, n: int) -> None:
         self.cap = cap = int(n * 1.25) + 256
         self.C = np.empty((pk.COL_HIST + 3, cap))
-        self.K = np.empty((7, cap))
+        self.K = np.empty((9, cap))
         self.O = np.empty((pk.OUT_HIST + 3, cap))
         self.FN = np.empty(cap)
         self.tk = np.empty(cap, dtype=np.int64)
