@@ -34,6 +34,28 @@ FLAG_COINCIDENT = 4
 
 
 @njit_nocache(inline="always")
+def _contact_kinematics(i, j, dx, dy, dz, dist, rsum, v, w, r):
+    """Unit normal (i to j), overlap, lever lengths and the relative velocity v_j − v_i at the
+    contact point (v + ω × a, with a_i = ai n and a_j = −aj n) of a touching pair at centre distance
+    ``dist`` > 0: the geometry :func:`pair_forces` and :func:`pair_columns` share. Array elements
+    are read without branches (no reference counting in the callers' loops)."""
+    inv_dist = 1.0 / dist
+    nx = dx * inv_dist
+    ny = dy * inv_dist
+    nz = dz * inv_dist
+    delta = rsum - dist
+    ai = r[i] - 0.5 * delta
+    aj = r[j] - 0.5 * delta
+    vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
+    viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
+    viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
+    vjx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
+    vjy = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
+    vjz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
+    return nx, ny, nz, delta, ai, aj, vjx - vix, vjy - viy, vjz - viz
+
+
+@njit_nocache(inline="always")
 def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap):
     """Accumulate pair forces and torques into ``f`` and ``t``; return a flag word.
 
@@ -61,22 +83,9 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
         if dist == 0.0:
             flags |= FLAG_COINCIDENT
             continue
-        inv_dist = 1.0 / dist
-        nx = dx * inv_dist
-        ny = dy * inv_dist
-        nz = dz * inv_dist
-        delta = rsum - dist
+        nx, ny, nz, delta, ai, aj, vx, vy, vz = _contact_kinematics(i, j, dx, dy, dz, dist, rsum, v, w, r)
         if delta > max_overlap * min(r[i], r[j]):
             flags |= FLAG_OVERLAP
-        ai = r[i] - 0.5 * delta
-        aj = r[j] - 0.5 * delta
-        # contact-point velocities: v + ω × a, with a_i = ai n and a_j = −aj n
-        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
-        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
-        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
-        vjx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
-        vjy = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
-        vjz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
         r_eff = r[i] * r[j] / rsum
         m_eff = 1.0 / (inv_m[i] + inv_m[j])
         i_eff = 1.0 / (inv_i[i] + inv_i[j])
@@ -85,9 +94,9 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
             nx,
             ny,
             nz,
-            vjx - vix,
-            vjy - viy,
-            vjz - viz,
+            vx,
+            vy,
+            vz,
             w[j, 0] - w[i, 0],
             w[j, 1] - w[i, 1],
             w[j, 2] - w[i, 2],
@@ -176,28 +185,16 @@ def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, 
         if m >= room:
             m += 1
             continue
-        inv_dist = 1.0 / dist
-        nx = dx * inv_dist
-        ny = dy * inv_dist
-        nz = dz * inv_dist
-        delta = rsum - dist
+        nx, ny, nz, delta, ai, aj, vx, vy, vz = _contact_kinematics(i, j, dx, dy, dz, dist, rsum, v, w, r)
         if delta > max_overlap * min(r[i], r[j]):
             flags |= FLAG_OVERLAP
-        ai = r[i] - 0.5 * delta
-        aj = r[j] - 0.5 * delta
-        vix = v[i, 0] + ai * (w[i, 1] * nz - w[i, 2] * ny)
-        viy = v[i, 1] + ai * (w[i, 2] * nx - w[i, 0] * nz)
-        viz = v[i, 2] + ai * (w[i, 0] * ny - w[i, 1] * nx)
-        vjx = v[j, 0] - aj * (w[j, 1] * nz - w[j, 2] * ny)
-        vjy = v[j, 1] - aj * (w[j, 2] * nx - w[j, 0] * nz)
-        vjz = v[j, 2] - aj * (w[j, 0] * ny - w[j, 1] * nx)
         C[COL_DELTA, m] = delta
         C[COL_NX, m] = nx
         C[COL_NY, m] = ny
         C[COL_NZ, m] = nz
-        C[COL_VX, m] = vjx - vix
-        C[COL_VY, m] = vjy - viy
-        C[COL_VZ, m] = vjz - viz
+        C[COL_VX, m] = vx
+        C[COL_VY, m] = vy
+        C[COL_VZ, m] = vz
         if angular:
             C[COL_WX, m] = w[j, 0] - w[i, 0]
             C[COL_WY, m] = w[j, 1] - w[i, 1]
