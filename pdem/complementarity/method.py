@@ -684,7 +684,8 @@ class Stepper(Integrator):
         self._sync_velocities(nc, v_free, w_free, P, L)
         width = self.gam.shape[1]
         G = np.ascontiguousarray(self.gam[:nc].T)
-        CR = np.ascontiguousarray(self.croll[:nc].T)
+        # the rolling rows' coefficients in columns (read only by rows of 8)
+        CR = np.ascontiguousarray(self.croll[:nc].T) if width == 8 else np.empty((4, 0))
         U = np.empty((width, nc))
         RES = np.empty(nc)
         it = 0

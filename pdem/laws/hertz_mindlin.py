@@ -159,9 +159,7 @@ def hertz_mindlin_force(
 @njit
 def hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K):
     """The coefficients the column passes need (form, E*|K_n, G*|K_t, β|C_n, sqrt(4G*/E*)|C_t, μ,
-    clamp, μ_r, μ_s), one column per touching pair, and whether any pair has rolling or spinning
-    friction."""
-    moments = False
+    clamp, μ_r, μ_s), one column per touching pair."""
     for q in range(m):
         k = tk[q]
         mi = mat[pi[k]]
@@ -175,9 +173,6 @@ def hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K):
         K[6, q] = coef[mi, mj, 7]
         K[7, q] = coef[mi, mj, 6]
         K[8, q] = coef[mi, mj, 8]
-        if coef[mi, mj, 6] > 0.0 or coef[mi, mj, 8] > 0.0:
-            moments = True
-    return moments
 
 
 @njit
@@ -219,11 +214,11 @@ def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t
     m, flags = pk.pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk, angular)
     if m > C.shape[1]:
         return -m  # too few columns: the caller grows them and calls again
-    moments = hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K) and angular
+    hertz_mindlin_coefficient_columns(tk, m, pi, pj, mat, coef, K)
     hertz_mindlin_columns(C, K, m, dt, O, FN)
-    if moments:
+    if angular:  # pairs without rolling or spinning friction get zero torques, as without the pass
         hertz_mindlin_column_moments(K, m, C, FN, dt, O)
-    pk.scatter_pair_columns(tk, m, pi, pj, C, O, moments, f, t, fpair, hist)
+    pk.scatter_pair_columns(tk, m, pi, pj, C, O, angular, f, t, fpair, hist)
     return flags
 
 
