@@ -8,9 +8,11 @@ Contact laws (``pdem.contact_laws``)
     :func:`wall_forces`, :func:`tangential_spring` (history, Coulomb cap) and the flag bits
     ``FLAG_OVERLAP``, ``FLAG_NONFINITE``, ``FLAG_COINCIDENT``; contract checks in
     :mod:`pdem.testing.law_contract`. A law whose force can be computed on columns (vectorized)
-    runs the pair loop in passes: :func:`pair_columns` (touching test, geometry into the rows
-    ``COL_*``), its own loop over the columns (writing the rows ``OUT_*``; branch-free helpers such
-    as :func:`tangential_spring_values`), :func:`scatter_pair_columns` (as Hertz–Mindlin does).
+    runs the pair loop in passes: :func:`touching_pairs` (the touching test of every listed pair),
+    then, a block of touching pairs at a time, :func:`fill_pair_columns` (their geometry into the
+    rows ``COL_*``), its own loop over the columns (writing the rows ``OUT_*``; branch-free helpers
+    such as :func:`tangential_spring_values`) and :func:`scatter_pair_columns`, as Hertz–Mindlin
+    does; :func:`pair_columns` is the first two in one call.
 Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
     wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
@@ -90,9 +92,11 @@ from .contact._kernels import (
     OUT_MX,
     OUT_MY,
     OUT_MZ,
+    fill_pair_columns,
     pair_columns,
     pair_forces,
     scatter_pair_columns,
+    touching_pairs,
     wall_forces,
 )  # fmt: skip
 from .contact._tangential import tangential_spring, tangential_spring_values
@@ -122,7 +126,7 @@ from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
 __all__ = [
     "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "surface_velocity",
-    "pair_columns", "scatter_pair_columns", "tangential_spring_values",
+    "pair_columns", "touching_pairs", "fill_pair_columns", "scatter_pair_columns", "tangential_spring_values",
     "COL_DELTA", "COL_NX", "COL_NY", "COL_NZ", "COL_VX", "COL_VY", "COL_VZ", "COL_WX", "COL_WY", "COL_WZ",
     "COL_REFF", "COL_MEFF", "COL_IEFF", "COL_AI", "COL_AJ", "COL_HIST",
     "OUT_FX", "OUT_FY", "OUT_FZ", "OUT_MX", "OUT_MY", "OUT_MZ", "OUT_HIST",

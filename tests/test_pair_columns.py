@@ -37,9 +37,10 @@ def materials(rolling: bool) -> MaterialTable:
     return table
 
 
-def scene(rng, n=4000, npairs=4000):
+def scene(rng, n=4000, npairs=4000, one_material=False):
     """Random spheres; pairs (2q, 2q + 1) placed in contact (overlaps up to 3 %), the other listed
-    pairs random (mostly apart), in a random order."""
+    pairs random (mostly apart), in a random order. Histories and pair forces of some pairs are
+    −0.0 (a row is zeroed unless it is +0.0 bit for bit)."""
     x = rng.uniform(0.0, 12 * R, (n, 3))
     r = rng.uniform(0.7 * R, 1.3 * R, n)
     nt = min(n // 2, npairs // 2)
@@ -62,8 +63,11 @@ def scene(rng, n=4000, npairs=4000):
     inv_m[fixed] = 0.0
     inv_i[fixed] = 0.0
     mat = rng.integers(0, 3, n).astype(np.int32)
+    if one_material:
+        mat[:] = 1
     hist = rng.normal(scale=1e-6, size=(pi.size, 3))
     hist[rng.random(pi.size) < 0.2] = 0.0  # new contacts
+    hist[rng.random(pi.size) < 0.05, rng.integers(0, 3)] = -0.0
     along = rng.random(pi.size) < 0.05  # springs along the normal: nothing left after the turn
     d = x[pj] - x[pi]
     hist[along] = 1e-6 * d[along] / np.linalg.norm(d[along], axis=1)[:, None]
@@ -76,6 +80,8 @@ def run(kernel, coef, args, dt, max_overlap):
     f = np.full((n, 3), 0.5)
     t = np.full((n, 3), -0.5)
     fpair = np.full((pi.size, 3), 9.0)
+    fpair[::7] = 0.0
+    fpair[::11, 1] = -0.0
     flags = kernel(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap)
     return flags, f, t, fpair, hist
 
@@ -87,12 +93,15 @@ def same_bits(a, b):
 @pytest.mark.parametrize("rolling", [False, True])
 @pytest.mark.parametrize("parameterisation", ["material", "coefficients"])
 @pytest.mark.parametrize("clamp", [False, True])
-def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation, clamp):
-    rng = np.random.default_rng(7 + 2 * rolling + 4 * clamp + 8 * (parameterisation == "material"))
+@pytest.mark.parametrize("one_material", [False, True])
+def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation, clamp, one_material):
+    rng = np.random.default_rng(7 + 2 * rolling + 4 * clamp + 8 * (parameterisation == "material") + 16 * one_material)
     kw = {"kn": 1e8, "kt": 5e7, "cn": 2e9, "ct": 1e9} if parameterisation == "coefficients" else {}
     law = HertzMindlin(parameterisation=parameterisation, clamp_normal=clamp, **kw)
     coef = law.coefficients(materials(rolling))
-    args = scene(rng)
+    if one_material:  # the material of every particle (b) has rolling friction too
+        coef[1, 1, 6], coef[1, 1, 8] = coef[0, 0, 6], coef[0, 0, 8]
+    args = scene(rng, one_material=one_material)
     ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 0.02)
     got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 0.02)
     assert ref[0] == got[0]
@@ -105,7 +114,7 @@ def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation
     assert 0.2 * len(touching) < touching.sum() < 0.8 * len(touching)
     mu = coef[args[8][args[0]], args[8][args[1]], 5]
     fn = np.einsum("ij,ij->i", fpair, (args[2][args[1]] - args[2][args[0]]))
-    assert (mu == 0.0).any()
+    assert (mu == 0.0).any() != one_material
     assert (touching & (fn < 0)).any() != clamp  # damping pulls some pairs together unless clamped
     if rolling:  # the torques include rolling and spinning resistance
         no_rolling = coef * [1, 1, 1, 1, 1, 1, 0, 1, 0]
@@ -126,18 +135,37 @@ def test_coincident_pair_is_flagged_and_left_alone_like_the_generic_loop():
         assert same_bits(a, b)
 
 
-def test_work_columns_grow_with_the_touching_pairs():
-    """The columns start small (256) and grow when the touching pairs outnumber them: the kernel
-    then runs again, from the same state."""
+def test_touching_list_grows_and_blocks_follow_the_list_order():
+    """The list of touching pairs grows with the pair list; the columns hold one block of
+    touching pairs (``BLOCK``), so larger scenes run in several blocks, the last one partial."""
     from pdem.laws import hertz_mindlin
 
     hertz_mindlin._columns.grow(0)
     rng = np.random.default_rng(11)
     coef = HertzMindlin().coefficients(materials(False))
     for npairs in (10, 5000, 300, 20000):
-        args = scene(rng, n=2000, npairs=npairs)
+        args = scene(rng, n=8000, npairs=npairs)
         ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 1.0)
         got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 1.0)
         for a, b in zip(ref, got, strict=True):
             assert same_bits(a, b)
-    assert hertz_mindlin._columns.cap > 1000  # it grew from 256 (the largest scene: ~1,050 touching)
+    assert hertz_mindlin._columns.tk.shape[0] >= 19000
+    touching = np.any(ref[3] != 0.0, axis=1).sum()
+    assert touching > 2 * hertz_mindlin.BLOCK and touching % hertz_mindlin.BLOCK
+
+
+def test_nan_positions_reach_the_forces_as_in_the_generic_loop():
+    """A pair whose distance is not a number counts as touching (the generic loop's test), so the
+    non-finite value reaches the forces, where the step's check finds it."""
+    rng = np.random.default_rng(5)
+    coef = HertzMindlin().coefficients(materials(False))
+    pi, pj, x, v, w, r, inv_m, inv_i, mat, hist = scene(rng, n=60, npairs=200)
+    x[pi[3], 1] = np.nan
+    inv_m[pi[3]] = 1.0
+    args = (pi, pj, x, v, w, r, inv_m, inv_i, mat, hist)
+    ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 1.0)
+    got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 1.0)
+    assert np.isnan(ref[1][pi[3]]).any()
+    assert ref[0] == got[0]
+    for a, b in zip(ref[1:], got[1:], strict=True):
+        assert same_bits(a, b)

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from .._jit import njit, njit_nocache
 from ..boundaries._geometry import surface_velocity, wall_contact
 
@@ -150,18 +152,18 @@ OUT_FX, OUT_FY, OUT_FZ, OUT_MX, OUT_MY, OUT_MZ, OUT_HIST = range(7)
 
 
 @njit
-def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk, angular=True):
-    """Pass 1: returns (m, flags), m the touching pairs, whose list indices go to ``tk[:m]`` and
-    whose geometry, relative velocities, effective radius, mass and inertia, lever lengths and
-    history go to columns ``C[:, :m]`` (the arithmetic of :func:`pair_forces`).
-
-    If m exceeds the columns (``C.shape[1]``), the pairs beyond are counted but not written: call
-    again with at least m columns (the pass changes nothing else a second call would see
-    differently: it only zeroes the non-touching pairs' history and force). Without ``angular``
-    the rows ``COL_WX``–``COL_WZ`` and ``COL_IEFF`` (a law's extra torques only) are not written."""
+def touching_pairs(pi, pj, hist, x, r, inv_m, fpair, tk):
+    """Pass 1a over every listed pair, without branches on the outcome: returns (m, flags), m the
+    touching pairs whose list indices go to ``tk[:min(m, len(tk))]`` in list order. The other pairs
+    get zero history and force, as in :func:`pair_forces` (a row already +0.0 is not rewritten).
+    A pair counts as touching as in :func:`pair_forces`: its centres are nearer than r_i + r_j (or
+    the distance is not a number) and one of the two is free; coincident centres are flagged and
+    left out. ``hist`` and ``fpair`` must be C-contiguous (their rows are tested as bits)."""
     flags = 0
     hsize = hist.shape[1]
-    room = min(C.shape[1], tk.shape[0])
+    hbits = hist.view(np.int64)  # a row is rewritten unless all of it is +0.0, as bits
+    fbits = fpair.view(np.int64)
+    last = tk.shape[0] - 1
     m = 0
     for k in range(pi.shape[0]):
         i = pi[k]
@@ -171,43 +173,83 @@ def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, 
         dz = x[j, 2] - x[i, 2]
         d2 = dx * dx + dy * dy + dz * dz
         rsum = r[i] + r[j]
-        if d2 >= rsum * rsum or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
+        touch = (not (d2 >= rsum * rsum)) & ((inv_m[i] != 0.0) | (inv_m[j] != 0.0))
+        bits = fbits[k, 0] | fbits[k, 1] | fbits[k, 2]
+        for h in range(hsize):
+            bits |= hbits[k, h]
+        if bits != 0 and not touch:  # rare: the pair has just come apart
             for h in range(hsize):
                 hist[k, h] = 0.0
             fpair[k, 0] = 0.0
             fpair[k, 1] = 0.0
             fpair[k, 2] = 0.0
-            continue
-        dist = math.sqrt(d2)
-        if dist == 0.0:
-            flags |= FLAG_COINCIDENT
-            continue
-        if m >= room:
-            m += 1
-            continue
+        coincident = touch & (d2 == 0.0)
+        flags |= FLAG_COINCIDENT if coincident else 0
+        if last >= 0:
+            tk[min(m, last)] = k
+        m += touch & (not coincident)
+    return m, flags
+
+
+@njit
+def fill_pair_columns(tk, m, pi, pj, hist, x, v, w, r, inv_m, inv_i, max_overlap, C, angular=True):
+    """Pass 1b: the geometry, relative velocities, effective radius, mass and inertia, lever
+    lengths and history of the touching pairs ``tk[:m]`` (list indices, e.g. a block of those
+    :func:`touching_pairs` found) into columns ``C[:, :m]``, with the arithmetic of
+    :func:`pair_forces`; returns the flag word (``FLAG_OVERLAP``). Without ``angular`` the rows
+    ``COL_WX``–``COL_WZ`` and ``COL_IEFF`` (a law's extra torques only) are not written."""
+    flags = 0
+    hsize = hist.shape[1]
+    for q in range(m):
+        k = tk[q]
+        i = pi[k]
+        j = pj[k]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        rsum = r[i] + r[j]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
         nx, ny, nz, delta, ai, aj, vx, vy, vz = _contact_kinematics(i, j, dx, dy, dz, dist, rsum, v, w, r)
-        if delta > max_overlap * min(r[i], r[j]):
-            flags |= FLAG_OVERLAP
-        C[COL_DELTA, m] = delta
-        C[COL_NX, m] = nx
-        C[COL_NY, m] = ny
-        C[COL_NZ, m] = nz
-        C[COL_VX, m] = vx
-        C[COL_VY, m] = vy
-        C[COL_VZ, m] = vz
+        flags |= FLAG_OVERLAP if delta > max_overlap * min(r[i], r[j]) else 0
+        C[COL_DELTA, q] = delta
+        C[COL_NX, q] = nx
+        C[COL_NY, q] = ny
+        C[COL_NZ, q] = nz
+        C[COL_VX, q] = vx
+        C[COL_VY, q] = vy
+        C[COL_VZ, q] = vz
         if angular:
-            C[COL_WX, m] = w[j, 0] - w[i, 0]
-            C[COL_WY, m] = w[j, 1] - w[i, 1]
-            C[COL_WZ, m] = w[j, 2] - w[i, 2]
-            C[COL_IEFF, m] = 1.0 / (inv_i[i] + inv_i[j])
-        C[COL_REFF, m] = r[i] * r[j] / rsum
-        C[COL_MEFF, m] = 1.0 / (inv_m[i] + inv_m[j])
-        C[COL_AI, m] = ai
-        C[COL_AJ, m] = aj
-        for h in range(hsize):
-            C[COL_HIST + h, m] = hist[k, h]
-        tk[m] = k
-        m += 1
+            C[COL_WX, q] = w[j, 0] - w[i, 0]
+            C[COL_WY, q] = w[j, 1] - w[i, 1]
+            C[COL_WZ, q] = w[j, 2] - w[i, 2]
+            C[COL_IEFF, q] = 1.0 / (inv_i[i] + inv_i[j])
+        C[COL_REFF, q] = r[i] * r[j] / rsum
+        C[COL_MEFF, q] = 1.0 / (inv_m[i] + inv_m[j])
+        C[COL_AI, q] = ai
+        C[COL_AJ, q] = aj
+        if hsize == 3:  # the tangential spring (decided once per call: the loop is unswitched)
+            C[COL_HIST, q] = hist[k, 0]
+            C[COL_HIST + 1, q] = hist[k, 1]
+            C[COL_HIST + 2, q] = hist[k, 2]
+        else:
+            for h in range(hsize):
+                C[COL_HIST + h, q] = hist[k, h]
+    return flags
+
+
+@njit
+def pair_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, fpair, max_overlap, C, tk, angular=True):
+    """Pass 1 in one call: returns (m, flags), m the touching pairs, whose list indices go to
+    ``tk[:m]`` and whose columns to ``C[:, :m]`` (:func:`touching_pairs`, then
+    :func:`fill_pair_columns`).
+
+    If m exceeds the columns (``C.shape[1]`` or ``len(tk)``), nothing is written to them: call
+    again with at least m columns (the pass changes nothing else a second call would see
+    differently: it only zeroes the non-touching pairs' history and force)."""
+    m, flags = touching_pairs(pi, pj, hist, x, r, inv_m, fpair, tk)
+    if m > min(C.shape[1], tk.shape[0]):
+        return m, flags
+    flags |= fill_pair_columns(tk, m, pi, pj, hist, x, v, w, r, inv_m, inv_i, max_overlap, C, angular)
     return m, flags
 
 
