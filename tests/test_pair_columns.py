@@ -95,7 +95,8 @@ def same_bits(a, b):
 @pytest.mark.parametrize("clamp", [False, True])
 @pytest.mark.parametrize("one_material", [False, True])
 def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation, clamp, one_material):
-    rng = np.random.default_rng(7 + 2 * rolling + 4 * clamp + 8 * (parameterisation == "material") + 16 * one_material)
+    seed = 7 + 2 * rolling + 4 * clamp + 8 * (parameterisation == "material") + 16 * one_material
+    rng = np.random.default_rng(seed)
     kw = {"kn": 1e8, "kt": 5e7, "cn": 2e9, "ct": 1e9} if parameterisation == "coefficients" else {}
     law = HertzMindlin(parameterisation=parameterisation, clamp_normal=clamp, **kw)
     coef = law.coefficients(materials(rolling))
