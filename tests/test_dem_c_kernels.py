@@ -127,3 +127,51 @@ def test_max_nonneg_is_the_maximum_and_sees_nan():
         y = x.copy()
         y[500] = nan
         assert math.isnan(ck.max_nonneg(y, 1001))
+
+
+@pytest.mark.parametrize("t", [1e-7, 1e-5, 1e-3])
+def test_apgd_projected_step_without_rolling_is_the_row_by_row_projection(t):
+    """Rows of 4 take a branch-free loop; it must give ``project_cone`` row by row, bit for bit."""
+    rng = np.random.default_rng(17)
+    nc = 3000
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, 4)
+    gy = rng.normal(scale=1e-3, size=(nc, 4))
+    gy[::9] = 0.0
+    gy[::13, 1:] = -0.0  # signed zeros on the tangential rows
+    out = np.full((nc, 4), 9.0)
+    ck.project_step(gam, gy, t, cmu, croll, nc, out)
+    ref = np.array([ck.project_cone(*(gam[c] - t * gy[c]), cmu[c]) for c in range(nc)])
+    assert np.array_equal(out.view(np.int64), ref.view(np.int64))
+    inside = (ref[:, 0] > 0) & (np.linalg.norm(ref[:, 1:], axis=1) < cmu * ref[:, 0] * (1 - 1e-9))
+    moved = out[:, 0] != gam[:, 0] - t * gy[:, 0]  # projected onto the cone's surface or its apex
+    assert inside.sum() > 50 and (ref[:, 0] == 0.0).sum() > 50 and moved.sum() > 50
+
+
+@pytest.mark.parametrize("width", [4, 8])
+def test_apgd_trial_sums_are_exact_sums_of_the_row_dot_products(width):
+    """The trial's three sums, formed a block of rows at a time, against ``math.fsum`` of the rows'
+    dot products (each formed in double, in column order), on more rows than one block."""
+    rng = np.random.default_rng(23 + width)
+    nc = 1234
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, width)
+    scales = (1e-6, 1e-6, 1e-2, 1e-2, 1e-6)
+    g_new, y, u_new, gy, gam_k = (rng.normal(scale=s, size=(nc, width)) for s in scales)
+    y[::7] = g_new[::7]  # rows whose step is zero
+    rows = np.sort(rng.choice(nc, 1100, replace=False)).astype(np.int64)
+    args = (g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc)
+    p1, e1, p2, e2, p3, e3, res = ck.apgd_trial_sums(*args, False)
+    d1, d2, d3 = [], [], []
+    for c in rows:
+        kmax = 8 if croll[c, 2] > 0.0 else 4
+        a1 = a2 = a3 = 0.0
+        for k in range(kmax):
+            s = g_new[c, k] - y[c, k]
+            a1 += s * (u_new[c, k] - gy[c, k])
+            a2 += s * s
+            a3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
+        d1.append(a1), d2.append(a2), d3.append(a3)
+    for parts, special, terms in ((p1, e1, d1), (p2, e2, d2), (p3, e3, d3)):
+        assert special == 0.0
+        assert math.fsum(parts) == math.fsum(terms)
+    assert res == math.inf
+    assert ck.apgd_trial_sums(*args, True)[6] == ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)

@@ -934,7 +934,15 @@ def residual_max(gam, u, cmu, cscale, croll, nc):
 @njit
 def project_step(y, gy, t, mu, croll, nc, out):
     """out = Π(y − t gy) row by row (APGD's projected gradient step; the arithmetic of
-    ``project_cone_array(y - t * gy, …)``, without the temporary)."""
+    ``project_cone_array(y - t * gy, …)``, without the temporary). Rows of 4 (no contact has
+    rolling or spinning friction) take a loop without branches (:func:`_cone_select`)."""
+    if out.shape[1] == 4:
+        for c in range(nc):
+            out[c, 0], out[c, 1], out[c, 2], out[c, 3] = _cone_select(
+                y[c, 0] - t * gy[c, 0], y[c, 1] - t * gy[c, 1], y[c, 2] - t * gy[c, 2],
+                y[c, 3] - t * gy[c, 3], mu[c],
+            )  # fmt: skip
+        return
     for c in range(nc):
         g0 = y[c, 0] - t * gy[c, 0]
         g1 = y[c, 1] - t * gy[c, 1]
@@ -959,35 +967,54 @@ def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, correcte
     contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, u, corrected)
 
 
+@njit(inline="always")
+def _trial_dots(g_new, y, u_new, gy, gam_k, croll, c):
+    """Row c's three dot products of :func:`apgd_trial_sums`, in double, in column order (a
+    function of the row's data only: the same on every rank); rows without rolling or spinning
+    friction have zeros in columns 4–7."""
+    kmax = 8 if croll[c, 2] > 0.0 else 4
+    d1 = 0.0
+    d2 = 0.0
+    d3 = 0.0
+    for k in range(kmax):
+        s = g_new[c, k] - y[c, k]
+        d1 += s * (u_new[c, k] - gy[c, k])
+        d2 += s * s
+        d3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
+    return d1, d2, d3
+
+
+_TRIAL_BLOCK = 500  # rows whose dot products are formed before they are summed (12 kB)
+
+
 @njit
 def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, want_res=True):
     """The local reductions of one corrected-cone APGD trial, in one pass: exact partials (as
     :func:`pdem.parallel.exact.dot_partials`) of Σ (γ − y)·(ũ(γ) − ũ(y)), Σ |γ − y|² and
     Σ ũ(y)·(γ − γ_k) over ``rows`` (each row's dot product formed in double, the rows' sum exact),
-    and the residual max of (γ, ũ(γ)) over all rows (+inf without ``want_res``: not formed)."""
+    and the residual max of (γ, ũ(γ)) over all rows (+inf without ``want_res``: not formed).
+
+    A block of rows' dot products is formed first, then each sum's terms are added in a loop of
+    its own: the three accumulators' read-modify-write chains no longer share a loop (−28 % on the
+    hopper's fill). Each sum still receives its terms in row order."""
     a1, b1, i1 = exact_accumulator()
     a2, b2, i2 = exact_accumulator()
     a3, b3, i3 = exact_accumulator()
     sp1 = 0.0
     sp2 = 0.0
     sp3 = 0.0
-    for q in range(rows.shape[0]):
-        c = rows[q]
-        # each row's three dot products in double, in column order (a function of the row's data
-        # only: the same on every rank), then summed exactly over the rows; rows without rolling
-        # or spinning friction have zeros in columns 4–7
-        kmax = 8 if croll[c, 2] > 0.0 else 4
-        d1 = 0.0
-        d2 = 0.0
-        d3 = 0.0
-        for k in range(kmax):
-            s = g_new[c, k] - y[c, k]
-            d1 += s * (u_new[c, k] - gy[c, k])
-            d2 += s * s
-            d3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
-        sp1 += exact_add(a1, b1, i1, d1)
-        sp2 += exact_add(a2, b2, i2, d2)
-        sp3 += exact_add(a3, b3, i3, d3)
+    D = np.empty((3, _TRIAL_BLOCK))
+    nr = rows.shape[0]
+    for q0 in range(0, nr, _TRIAL_BLOCK):
+        m = min(_TRIAL_BLOCK, nr - q0)
+        for q in range(m):
+            D[0, q], D[1, q], D[2, q] = _trial_dots(g_new, y, u_new, gy, gam_k, croll, rows[q0 + q])
+        for q in range(m):
+            sp1 += exact_add(a1, b1, i1, D[0, q])
+        for q in range(m):
+            sp2 += exact_add(a2, b2, i2, D[1, q])
+        for q in range(m):
+            sp3 += exact_add(a3, b3, i3, D[2, q])
     res = residual_max(g_new, u_new, cmu, cscale, croll, nc) if want_res else math.inf
     return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
 
