@@ -175,3 +175,46 @@ def test_apgd_trial_sums_are_exact_sums_of_the_row_dot_products(width):
         assert math.fsum(parts) == math.fsum(terms)
     assert res == math.inf
     assert ck.apgd_trial_sums(*args, True)[6] == ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
+
+
+@pytest.mark.parametrize("env_factor", [0.0, 2.5e-3])
+def test_pairs_entering_the_problem_and_missed_pairs_against_numpy(env_factor):
+    """The branch-free pair test of the assembly: which listed pairs enter the problem (gap below
+    their envelope, one of the two free), the history of the others zeroed (−0.0 rows too, a row of
+    +0.0 left alone), a coincident pair flagged and left out; and the count of missed pairs."""
+    rng = np.random.default_rng(31 + int(env_factor > 0))
+    n, npairs = 500, 6000
+    x = rng.uniform(0.0, 0.011, (n, 3))
+    r = rng.uniform(0.8e-3, 1.2e-3, n)
+    inv_m = np.where(rng.random(n) < 0.1, 0.0, 1.0)
+    pi = rng.integers(0, n, npairs)
+    pj = (pi + rng.integers(1, n, npairs)) % n
+    x[pj[0]] = x[pi[0]]  # coincident centres
+    inv_m[pi[0]] = 1.0
+    hist = rng.normal(size=(npairs, 8))
+    hist[rng.random(npairs) < 0.5] = 0.0
+    hist[::17, 3] = -0.0
+    spd = rng.uniform(0.0, 1.0, n) if env_factor else np.zeros(n)
+    envelope, env_base = 2e-3, 1e-4
+    h0 = hist.copy()
+    tk = np.full(npairs, -7, dtype=np.int64)
+    m, flags = ck.entering_pairs(pi, pj, hist, x, r, inv_m, envelope, spd, env_base, env_factor, tk)
+    d2 = np.sum((x[pj] - x[pi]) ** 2, axis=1)
+    env = np.minimum(envelope, np.maximum(env_base, env_factor * np.maximum(spd[pi], spd[pj])))
+    if not env_factor:
+        env = np.full(npairs, envelope)
+    lim = r[pi] + r[pj] + env
+    enters = (d2 <= lim * lim) & ((inv_m[pi] != 0) | (inv_m[pj] != 0))
+    assert flags == ck.FLAG_COINCIDENT and enters[0]
+    expected = np.flatnonzero(enters & (d2 != 0.0))
+    assert m == expected.size and np.array_equal(tk[:m], expected)
+    assert 0.05 * npairs < m < 0.9 * npairs
+    assert np.array_equal(hist[enters].view(np.int64), h0[enters].view(np.int64))
+    assert np.array_equal(hist[~enters].view(np.int64), np.zeros_like(h0[~enters]).view(np.int64))
+    v = rng.normal(scale=2.0, size=(n, 3))
+    h = 1e-3
+    missed = ck.missed_pairs(pi, pj, x, v, r, inv_m, h, envelope, spd, env_base, env_factor)
+    e = (x[pj] + h * v[pj]) - (x[pi] + h * v[pi])
+    ends = np.sum(e * e, axis=1) < (r[pi] + r[pj]) ** 2
+    free = (inv_m[pi] != 0) | (inv_m[pj] != 0)
+    assert missed == np.count_nonzero(free & ~(d2 <= lim * lim) & ends) > 0

@@ -170,3 +170,23 @@ def test_nan_positions_reach_the_forces_as_in_the_generic_loop():
     assert ref[0] == got[0]
     for a, b in zip(ref[1:], got[1:], strict=True):
         assert same_bits(a, b)
+
+
+def test_non_contiguous_history_takes_the_generic_loop():
+    """The passes read history and pair-force rows as bits, which needs C-contiguous arrays; a view
+    of a wider array gets the generic loop, with the same results."""
+    rng = np.random.default_rng(13)
+    coef = HertzMindlin().coefficients(materials(False))
+    pi, pj, x, v, w, r, inv_m, inv_i, mat, hist = scene(rng, n=300, npairs=900)
+    wide = np.zeros((hist.shape[0], 5))
+    wide[:, :3] = hist
+    out = []
+    cases = ((hertz_mindlin_pair_kernel_generic, hist.copy()), (hertz_mindlin_pair_kernel, wide[:, :3]))
+    for kernel, h in cases:
+        f, t = np.zeros((x.shape[0], 3)), np.zeros((x.shape[0], 3))
+        fpair = np.full((pi.size, 3), 9.0)
+        flags = kernel(pi, pj, h, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, 1e-6, 1.0)
+        out.append((flags, f, t, fpair, np.array(h)))
+    assert not wide[:, :3].flags.c_contiguous
+    for a, b in zip(*out, strict=True):
+        assert same_bits(a, b)

@@ -145,21 +145,16 @@ def count_pair_contacts(pi, pj, x, r, inv_m, envelope):
 
 
 @njit
-def assemble_pairs(
-    pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, v_bounce, max_overlap,
-    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc, spd, env_base, env_factor,
-):  # fmt: skip
-    """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
-    ``v`` holds the velocities at the start of the step (restitution's v_n⁻), ``coef[a, b]`` the
-    pair's (μ, e, μ_r, μ_s), ``v_bounce`` the restitution threshold [m/s].
-
-    A pair enters when its gap is below its own envelope, min(``envelope``, max(``env_base``,
-    ``env_factor`` × max(spd_i, spd_j))), ``spd`` a bound on each body's speed during the step
-    (``env_factor`` = 0: every pair at ``envelope``).
-
-    Returns (number of contacts, flags)."""
+def entering_pairs(pi, pj, hist, x, r, inv_m, envelope, spd, env_base, env_factor, tk):
+    """The listed pairs that enter this step's problem (gap below their envelope, one of the two
+    free), as in :func:`assemble_pairs`: returns (m, flags), their list indices in ``tk[:m]`` (in
+    list order; ``len(tk)`` ≥ the pairs listed). The history of the others is zeroed (a row
+    already +0.0 bit for bit is not rewritten); coincident centres are flagged and left out. No
+    branch on whether a pair enters: it is unpredictable where a tenth of the listed pairs do."""
     flags = 0
-    c = 0
+    hsize = hist.shape[1]
+    hbits = hist.view(np.int64)
+    m = 0
     for k in range(pi.shape[0]):
         i = pi[k]
         j = pj[k]
@@ -168,14 +163,45 @@ def assemble_pairs(
         dz = x[j, 2] - x[i, 2]
         d2 = dx * dx + dy * dy + dz * dz
         lim = r[i] + r[j] + _contact_envelope(envelope, env_base, env_factor, spd[i], spd[j])
-        if d2 > lim * lim or (inv_m[i] == 0.0 and inv_m[j] == 0.0):
-            for q in range(hist.shape[1]):
+        enters = (not (d2 > lim * lim)) & ((inv_m[i] != 0.0) | (inv_m[j] != 0.0))
+        bits = 0
+        for q in range(hsize):
+            bits |= hbits[k, q]
+        if bits != 0 and not enters:  # rare: a contact of the last step has left the problem
+            for q in range(hsize):
                 hist[k, q] = 0.0
-            continue
-        dist = math.sqrt(d2)
-        if dist == 0.0:
-            flags |= FLAG_COINCIDENT
-            continue
+        coincident = enters & (d2 == 0.0)
+        flags |= FLAG_COINCIDENT if coincident else 0
+        tk[m] = k
+        m += enters & (not coincident)
+    return m, flags
+
+
+@njit
+def assemble_pairs(
+    pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, v_bounce, max_overlap,
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc, spd, env_base, env_factor, tk,
+):  # fmt: skip
+    """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
+    ``v`` holds the velocities at the start of the step (restitution's v_n⁻), ``coef[a, b]`` the
+    pair's (μ, e, μ_r, μ_s), ``v_bounce`` the restitution threshold [m/s]; ``tk`` is work space
+    (at least as long as the pair list).
+
+    A pair enters when its gap is below its own envelope, min(``envelope``, max(``env_base``,
+    ``env_factor`` × max(spd_i, spd_j))), ``spd`` a bound on each body's speed during the step
+    (``env_factor`` = 0: every pair at ``envelope``). The pairs are tested first
+    (:func:`entering_pairs`), then the rows of those that enter are filled, in list order.
+
+    Returns (number of contacts, flags)."""
+    m, flags = entering_pairs(pi, pj, hist, x, r, inv_m, envelope, spd, env_base, env_factor, tk)
+    for c in range(m):
+        k = tk[c]
+        i = pi[k]
+        j = pj[k]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
         nx = dx / dist
         ny = dy / dist
         nz = dz / dist
@@ -191,8 +217,7 @@ def assemble_pairs(
             cvw[c, q] = 0.0
         csrc[c, 0] = -1
         csrc[c, 1] = k
-        c += 1
-    return c, flags
+    return m, flags
 
 
 @njit(inline="always")
@@ -331,25 +356,22 @@ def assemble_walls(
 def missed_pairs(pi, pj, x, v, r, inv_m, h, envelope, spd, env_base, env_factor):
     """Pairs that were not in the problem (gap above their envelope at the start of the step, as in
     :func:`assemble_pairs`) but overlap at the end of it (x + h v, v the solved velocities): the
-    contacts a per-contact envelope missed. Returns their number."""
+    contacts a per-contact envelope missed. Returns their number (counted without branches)."""
     missed = 0
     for k in range(pi.shape[0]):
         i = pi[k]
         j = pj[k]
-        if inv_m[i] == 0.0 and inv_m[j] == 0.0:
-            continue
         dx = x[j, 0] - x[i, 0]
         dy = x[j, 1] - x[i, 1]
         dz = x[j, 2] - x[i, 2]
         lim = r[i] + r[j] + _contact_envelope(envelope, env_base, env_factor, spd[i], spd[j])
-        if dx * dx + dy * dy + dz * dz <= lim * lim:
-            continue  # in the problem
+        out = not (dx * dx + dy * dy + dz * dz <= lim * lim)  # not in the problem
         ex = dx + h * (v[j, 0] - v[i, 0])
         ey = dy + h * (v[j, 1] - v[i, 1])
         ez = dz + h * (v[j, 2] - v[i, 2])
         rs = r[i] + r[j]
-        if ex * ex + ey * ey + ez * ez < rs * rs:
-            missed += 1
+        free = (inv_m[i] != 0.0) | (inv_m[j] != 0.0)
+        missed += free & out & (ex * ex + ey * ey + ez * ez < rs * rs)
     return missed
 
 

@@ -363,7 +363,7 @@ class Stepper(Integrator):
             n_pair, flags = ck.assemble_pairs(
                 cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env,
                 v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor,
+                self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor, self._pair_work(),
             )  # fmt: skip
             nc = n_pair
             if walls:
@@ -709,6 +709,15 @@ class Stepper(Integrator):
             # the residual above is that of the impulses before the last sweep: measure the final one
             res = all_max(sim.comm, self._residual(nc))
         return it, res
+
+    def _pair_work(self) -> np.ndarray:
+        """Work space of the pair assembly: one index per listed pair (kept between steps, grown
+        with the list)."""
+        n = self.sim.contact_store.pi.shape[0]
+        work = getattr(self, "_tk", None)
+        if work is None or work.shape[0] < n:
+            work = self._tk = np.empty(int(n * 1.25) + 64, dtype=np.int64)
+        return work
 
     def _residual(self, nc) -> float:
         """The residual of the current impulses and velocities: of Coulomb's law (ũ) for the corrected

@@ -285,6 +285,10 @@ def hertz_mindlin_pair_kernel(
     :mod:`pdem.contact._kernels`): the touching pairs' forces are computed four at a time, a block
     of pairs at a time. The same bits as the generic loop (``hertz_mindlin_pair_kernel_generic``;
     tests/test_pair_columns.py)."""
+    if not (hist.flags.c_contiguous and fpair.flags.c_contiguous):  # the passes test rows as bits
+        return hertz_mindlin_pair_kernel_generic(
+            pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
+        )
     cols = _columns
     if cols.tk.shape[0] < pi.shape[0]:
         cols.grow(pi.shape[0])
