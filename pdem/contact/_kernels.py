@@ -136,13 +136,17 @@ def pair_forces(law, pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fp
 
 # ---------------------------------------------------------------------------------------------
 # The pair loop in passes, for laws whose force can be computed on columns (DEM-P's Hertz–Mindlin):
-# 1. pair_columns: the touching test of every listed pair (non-touching ones get zero history and
-#    force, as in pair_forces) and the geometry of the touching ones, into columns (one array row
-#    per quantity, one column per contact, in list order);
-# 2. the law, on the columns (vectorized: no branches, scalars only);
-# 3. scatter_pair_columns: forces and torques onto the particles in list order, the pair forces
+# 1. touching_pairs: the touching test of every listed pair, without branching on the outcome (the
+#    touching pairs' list indices compacted in list order; non-touching ones get zero history and
+#    force, as in pair_forces, rewritten only if not already +0.0);
+# then, a block of touching pairs at a time (the block's columns stay in cache):
+# 2. fill_pair_columns: their geometry into columns (one array row per quantity, one column per
+#    contact, in list order);
+# 3. the law, on the columns (vectorized: no branches, scalars only);
+# 4. scatter_pair_columns: forces and torques onto the particles in list order, the pair forces
 #    and the new histories into their rows.
-# Each particle receives the same terms in the same order as in pair_forces: the same bits.
+# pair_columns is 1 and 2 in one call, for all touching pairs. Each particle receives the same
+# terms in the same order as in pair_forces: the same bits.
 
 #: rows of the geometry columns (C); the history follows at COL_HIST
 COL_DELTA, COL_NX, COL_NY, COL_NZ, COL_VX, COL_VY, COL_VZ, COL_WX, COL_WY, COL_WZ = range(10)
