@@ -239,9 +239,7 @@ def _pair_kernel_columns(pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t
     uniform = True
     for a in range(mat.shape[0]):
         uniform &= mat[a] == m0
-    m, flags = pk.touching_pairs(pi, pj, hist, x, r, inv_m, fpair, tk)
-    if m > tk.shape[0]:
-        return -m  # too short a list of touching pairs: the caller grows it and calls again
+    m, flags = pk.touching_pairs(pi, pj, hist, x, r, inv_m, fpair, tk)  # len(tk) ≥ len(pi) ≥ m
     block = C.shape[1]
     for q0 in range(0, m, block):
         n = min(block, m - q0)
@@ -290,16 +288,12 @@ def hertz_mindlin_pair_kernel(
             pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap
         )
     cols = _columns
-    if cols.tk.shape[0] < pi.shape[0]:
+    if cols.tk.shape[0] < pi.shape[0]:  # room for every listed pair: no second call
         cols.grow(pi.shape[0])
-    while True:
-        flags = _pair_kernel_columns(
-            pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap, cols.C, cols.K,
-            cols.O, cols.FN, cols.tk,
-        )  # fmt: skip
-        if flags >= 0:
-            return flags
-        cols.grow(-flags)
+    return _pair_kernel_columns(
+        pi, pj, hist, x, v, w, r, inv_m, inv_i, mat, coef, f, t, fpair, dt, max_overlap, cols.C, cols.K,
+        cols.O, cols.FN, cols.tk,
+    )  # fmt: skip
 
 
 # fmt: off
