@@ -41,7 +41,8 @@ def _face_normal(p):
 def filter_mesh_candidates(params, cstart, cand, step, a, b, x, r, inv_m, reach, hist):
     """Mark in ``step`` (a copy of ``cand``) the candidates of rows [a, b) set aside this step as
     ``-1 - i``, and hand history over between coplanar facets (``hist``: rows by candidate). A
-    contact counts when its gap is below ``reach`` (0 for DEM-P, the envelope for DEM-C)."""
+    contact counts when its gap is below ``reach`` (0 for DEM-P, the envelope for DEM-C).
+    Candidates already negative in ``cand`` (removed particles) stay set aside."""
     n = x.shape[0]
     has_face = np.zeros(n, dtype=np.bool_)
     best_gap = np.full(n, np.inf)
@@ -53,6 +54,8 @@ def filter_mesh_candidates(params, cstart, cand, step, a, b, x, r, inv_m, reach,
         p = params[k]
         for q in range(cstart[k], cstart[k + 1]):
             i = cand[q]
+            if i < 0:  # set aside until the next rebuild (a removed particle)
+                continue
             gap, _nx, _ny, _nz, _cx, _cy, _cz, inside = triangle_contact(p, x[i, 0], x[i, 1], x[i, 2], r[i])
             if gap >= reach:
                 continue
@@ -65,6 +68,8 @@ def filter_mesh_candidates(params, cstart, cand, step, a, b, x, r, inv_m, reach,
         p = params[k]
         for q in range(cstart[k], cstart[k + 1]):
             i = cand[q]
+            if i < 0:
+                continue
             gap, _nx, _ny, _nz, _cx, _cy, _cz, inside = triangle_contact(p, x[i, 0], x[i, 1], x[i, 2], r[i])
             kept = gap < reach and (inside or (not has_face[i] and best_row[i] == k))
             if gap < reach and not kept:
@@ -82,6 +87,8 @@ def filter_mesh_candidates(params, cstart, cand, step, a, b, x, r, inv_m, reach,
         p = params[k]
         for q in range(cstart[k], cstart[k + 1]):
             i = cand[q]
+            if i < 0:
+                continue
             o = orphan[i]
             if o < 0 or step[q] < 0:
                 continue

@@ -15,7 +15,8 @@ a wall that is a free rigid body, 0 for an immovable one), ``omega``,
 of row k, sorted by particle id; their history ``wall_hist``, keyed by ``wall_keys`` = k·2³² + id.
 History is therefore sparse: one row per particle near a wall, not rows × particles. ``cand_step``
 is ``cand`` with the candidates a mesh sets aside this step (a grain touching several facets
-counts once) marked as negative. Each contact's load goes to ``out_idx``/``out_val`` rows
+counts once) marked as negative; removed particles are marked so in ``cand`` itself until the next
+rebuild (:meth:`ContactStore.drop_wall_candidates`). Each contact's load goes to ``out_idx``/``out_val`` rows
 (``counts[k]`` per row), summed exactly by :class:`Wall` (per wall and per facet).
 
 At a rebuild the new lists take the history of the keys they share with the old ones (a linear
@@ -170,6 +171,21 @@ class ContactStore:
             a, b = self.wall_rows[k], self.wall_rows[k + 1]
             bufs = [self.out_val[self.cstart[r] : self.cstart[r + 1]] for r in range(a, b)]
             wall.record_rows([0] * (b - a), bufs)
+
+    def drop_wall_candidates(self, gone: np.ndarray) -> None:
+        """Set aside, until the next rebuild, the wall candidates marked in ``gone`` (a mask over
+        storage rows; removed particles, which stay in the storage until then): marked ``-1 - i``
+        as a mesh marks its set-aside duplicates, history zeroed. The rows keep their places, so the
+        walls' load buffers of this step stay as they are."""
+        c = self.cand
+        if not c.size:
+            return
+        live = c >= 0
+        hit = np.zeros(c.shape[0], dtype=bool)
+        hit[live] = gone[c[live]]
+        if hit.any():
+            c[hit] = -1 - c[hit]  # in place: cand_step is cand itself unless a mesh filters it
+            self.wall_hist[hit] = 0.0
 
     def filter_meshes(self, x: np.ndarray, r: np.ndarray, inv_m: np.ndarray, reach: float) -> None:
         """This step's candidates: a grain touching (gap < ``reach``) several facets of one mesh

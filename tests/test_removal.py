@@ -1,0 +1,109 @@
+"""Removed particles (outflows) leave without a neighbour-list rebuild, bit for bit as with one.
+
+``Simulation.remove_particles`` parks the removed rows far away and sets their wall candidates
+aside until the next rebuild compacts them (it used to force a rebuild at the next step, which made
+rebuilds most of a hopper's DEM-P run). The reference here is that old behaviour: the same scene
+with a rebuild forced after every removal must give the same bits, with many more rebuilds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from physics_helpers import E_MOD, NU, RHO
+
+import pdem
+from pdem.api import REMOVED
+from pdem.boundaries import shapes
+from pdem.boundaries.builtin import OutflowBoundary, OutflowParams
+from pdem.boundaries.walls import RigidBody
+
+R = 0.5e-3
+SIDE = 5.5e-3
+
+
+def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
+    """A jittered column of 150 beads in a box with a plane or mesh floor; an outflow plane 2 mm
+    above the floor takes the beads as they fall and settle onto it, a few at a time."""
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(6), indexing="ij"), -1).reshape(-1, 3)
+    x = (g + 0.5) * 1.08 * R * 2 + rng.normal(0.0, 0.03 * R, g.shape)
+    x[:, 2] += 1.5e-3
+    r = R * rng.uniform(0.9, 1.0, len(x))
+    sim = pdem.Simulation(law=law)
+    sim.add_material(
+        "glass", density=RHO, youngs_modulus=E_MOD, poisson_ratio=NU, restitution=0.5, friction=0.4
+    )
+    sim.add_particles(x, r, velocities=rng.normal(0.0, 0.05, x.shape))
+    sim.add_wall(shapes.Plane((0, 0, 0), (1, 0, 0)))
+    sim.add_wall(shapes.Plane((0, 0, 0), (0, 1, 0)))
+    sim.add_wall(shapes.Plane((0, SIDE, 0), (0, -1, 0)))
+    # a side that is a rigid body moved by its load (heavy: it barely moves): the walls' kernels
+    # take its contacts with fixed grains too, so a removed grain must leave its candidates
+    heavy = RigidBody(mass=50.0, fixed_translation="yz")
+    sim.add_wall(shapes.Plane((SIDE, 0, 0), (-1, 0, 0)), name="side", motion=heavy)
+    if floor == "plane":
+        sim.add_wall(shapes.Plane((0.0, 0.0, 0.0), (0.1, 0.0, 1.0)), name="floor")
+    else:  # two facets, sloping: beads slide along it and touch both near the diagonal
+        v = np.array([[0, 0, 0], [SIDE, 0, 0.4e-3], [SIDE, SIDE, 0.4e-3], [0, SIDE, 0]])
+        sim.add_wall(shapes.TriangleMesh(v, [[0, 1, 2], [0, 2, 3]]), name="floor")
+    sink = OutflowParams(type="outflow", point=(0.0, 0.0, 1.2e-3), normal=(0.0, 0.0, 1.0))
+    sim.add_boundary(OutflowBoundary("sink", sink))
+    sim.gravity = (0.0, 0.0, -9.81)
+    if law == "complementarity":
+        sim.dt = 2e-5
+    return sim
+
+
+def _run(law, floor, steps, old_way, monkeypatch):
+    if old_way:  # the behaviour before parking: a rebuild at the start of the next step
+        monkeypatch.setattr(pdem.Simulation, "_park", lambda self, idx: setattr(self, "_force_rebuild", True))
+    sim = _scene(law, floor)
+    states = []
+    for _ in range(4):
+        sim.run(steps=steps // 4)
+        d = sim.get_particles()
+        states.append((d["id"], d["x"], d["v"], d["w"], sim.walls["floor"].force, sim.walls["side"].force))
+    monkeypatch.undo()
+    return sim, states
+
+
+@pytest.mark.parametrize("law,steps", [("hertz_mindlin", 4000), ("complementarity", 800)])
+@pytest.mark.parametrize("floor", ["plane", "mesh"])
+def test_removal_without_rebuild_gives_the_same_bits(law, steps, floor, monkeypatch):
+    sim, got = _run(law, floor, steps, False, monkeypatch)
+    ref, want = _run(law, floor, steps, True, monkeypatch)
+    removed = 150 - sim.n_particles
+    assert removed > 20, "the scene must remove beads along the way"
+    assert sim.n_particles > 10
+    for (i1, x1, v1, w1, f1, s1), (i2, x2, v2, w2, f2, s2) in zip(got, want, strict=True):
+        assert np.array_equal(i1, i2)
+        assert np.array_equal(x1, x2) and np.array_equal(v1, v2) and np.array_equal(w1, w2)
+        assert np.array_equal(f1, f2) and np.array_equal(s1, s2)
+    assert sim.n_rebuilds < ref.n_rebuilds, (sim.n_rebuilds, ref.n_rebuilds)
+
+
+def test_parked_particles_are_out_of_every_query(monkeypatch):
+    """Between a removal and the next rebuild the removed rows stay in the storage: they must not
+    show in outputs, counts or contacts, and nothing may touch them."""
+    sim = _scene("hertz_mindlin", "plane")
+    for _ in range(100):
+        sim.run(steps=20)
+        p = sim.particles
+        gone = np.flatnonzero(p.motion[: p.n_owned] == REMOVED)
+        if gone.size:
+            break
+    assert gone.size, "no removal in 2,000 steps"
+    n_live = sim.n_particles
+    assert sim.get_particles()["id"].size == n_live == p.n_owned - gone.size
+    assert not np.isin(sim.contacts()["id_i"], p.id[gone]).any()
+    assert not np.isin(sim.contacts()["id_j"], p.id[gone]).any()
+    # parked far away, out of the floor's candidates until the rebuild
+    assert np.all(p.x[gone, 0] > 100 * SIDE)
+    cand = sim.contact_store.cand
+    assert not np.isin(cand[cand >= 0], gone).any()
+    before = sim.n_rebuilds
+    sim.run(steps=1)
+    assert sim.n_rebuilds == before, "a removal no longer forces a rebuild"
+    assert np.all(p.motion[gone] == REMOVED)
+    assert np.all(p.f[gone] == 0.0) and np.all(p.v[gone] == 0.0)  # no contact reached them
