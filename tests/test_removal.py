@@ -83,27 +83,38 @@ def test_removal_without_rebuild_gives_the_same_bits(law, steps, floor, monkeypa
     assert sim.n_rebuilds < ref.n_rebuilds, (sim.n_rebuilds, ref.n_rebuilds)
 
 
-def test_parked_particles_are_out_of_every_query(monkeypatch):
+def test_parked_particles_are_out_of_every_query():
     """Between a removal and the next rebuild the removed rows stay in the storage: they must not
-    show in outputs, counts or contacts, and nothing may touch them."""
+    show in outputs, counts or contacts, no wall may keep them as candidates, and nothing may touch
+    them."""
     sim = _scene("hertz_mindlin", "plane")
-    for _ in range(100):
-        sim.run(steps=20)
-        p = sim.particles
-        gone = np.flatnonzero(p.motion[: p.n_owned] == REMOVED)
-        if gone.size:
-            break
-    assert gone.size, "no removal in 2,000 steps"
-    n_live = sim.n_particles
-    assert sim.get_particles()["id"].size == n_live == p.n_owned - gone.size
-    assert not np.isin(sim.contacts()["id_i"], p.id[gone]).any()
-    assert not np.isin(sim.contacts()["id_j"], p.id[gone]).any()
-    # parked far away, out of the floor's candidates until the rebuild
-    assert np.all(p.x[gone, 0] > 100 * SIDE)
-    cand = sim.contact_store.cand
-    assert not np.isin(cand[cand >= 0], gone).any()
-    before = sim.n_rebuilds
+    sim.run(steps=800)
+    p = sim.particles
+    cs = sim.contact_store
+    live = p.motion[: p.n_owned] != REMOVED
+    # grains that are wall candidates now, and touch other grains: removing them must take them
+    # out of both
+    cand = np.unique(cs.cand[cs.cand >= 0])
+    pairs = sim.contacts()
+    touching_ids = np.union1d(pairs["id_i"], pairs["id_j"])
+    pick = [i for i in cand if live[i] and p.id[i] in touching_ids][:3]
+    assert len(pick) >= 2, "the scene must have grains near walls that touch other grains"
+    k = len(pick)
+    mask = np.zeros(p.n_owned, dtype=bool)
+    mask[pick] = True
+    n_before, rebuilds = sim.n_particles, sim.n_rebuilds
+    count, _ = sim.remove_particles(mask)
+    assert count == k
+    gone = np.array(pick)
+    assert sim.n_particles == n_before - k
+    assert sim.get_particles()["id"].size == n_before - k
+    cand = cs.cand
+    assert not np.isin(cand[cand >= 0], gone).any(), "a removed grain is still a wall candidate"
+    assert np.all(p.x[gone, 0] > 100 * SIDE)  # parked far away
     sim.run(steps=1)
-    assert sim.n_rebuilds == before, "a removal no longer forces a rebuild"
+    assert sim.n_rebuilds == rebuilds, "a removal no longer forces a rebuild"
     assert np.all(p.motion[gone] == REMOVED)
     assert np.all(p.f[gone] == 0.0) and np.all(p.v[gone] == 0.0)  # no contact reached them
+    ids = sim.contacts()
+    assert not np.isin(ids["id_i"], p.id[gone]).any() and not np.isin(ids["id_j"], p.id[gone]).any()
+    assert not np.isin(sim.wall_contacts()["id"], p.id[gone]).any()
