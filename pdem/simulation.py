@@ -587,10 +587,12 @@ class Simulation:
         self._check_dt(self._dt)
         # no skin given: a penalty run without periodic images chooses it at every rebuild from the
         # fastest grain (_choose_skin); a given skin, DEM-C and periodic boxes keep one
-        self._auto_skin = self.skin is None and self.law.kind == "penalty" and self.box is None
-        if self.skin is None:
+        # a later preparation (particles or walls added) chooses again, unless the skin was set since
+        auto = self.skin is None or self.skin == getattr(self, "_skin_chosen", None)
+        self._auto_skin = auto and self.law.kind == "penalty" and self.box is None
+        if auto:
             d_mean = 2.0 * exact_sum(self.comm, p.r[:n]) / max(global_count(self.comm, n), 1)
-            self.skin = SKIN_MIN * d_mean
+            self.skin = self._skin_chosen = SKIN_MIN * d_mean
             self._skin_range = (SKIN_MIN * d_mean, SKIN_MAX * d_mean)
         if not (self.skin >= 0 and math.isfinite(self.skin)):
             raise InputError(f"skin = {self.skin!r} is invalid; give a non-negative distance in metres")
@@ -618,6 +620,8 @@ class Simulation:
         if (self.comm.size > 1 or self.box is not None) and self._decomp is None:
             self._decompose()
             n = p.n_owned
+        elif self._decomp is not None:  # a later preparation: the skins the subdomains leave room for
+            self._fit_skin_range()
         self._g = np.asarray(self.gravity, dtype=float)
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
             raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
@@ -644,16 +648,21 @@ class Simulation:
             self.comm, p.x[:n], self.decomposition_dims, min_width=self._ghost_width, box=self.box
         )
         self._decomp.check_ghost_width(self._ghost_width)
-        if self._auto_skin:  # the widest skin the subdomains leave room for, kept through rebalances
-            lo, hi = self._skin_range
-            room = self._decomp.narrowest() - self._ghost_width_base - self._list_envelope
-            hi = max(lo, min(hi, room))
-            self._skin_range = (lo, hi)
-            self._decomp.widen(self._ghost_width_base + hi + self._list_envelope)
+        self._fit_skin_range()
         keep = self._decomp.owned_mask(p.x[:n])
         self.particles.permute(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
         p.n_owned = int(keep.sum())
         self._n_expected = global_count(self.comm, p.n_owned)
+
+    def _fit_skin_range(self) -> None:
+        """The automatic skin: the widest the subdomains leave room for, kept through rebalances."""
+        if not self._auto_skin:
+            return
+        lo, hi = self._skin_range
+        room = self._decomp.narrowest() - self._ghost_width_base - self._list_envelope
+        hi = max(lo, min(hi, room))
+        self._skin_range = (lo, hi)
+        self._decomp.widen(self._ghost_width_base + hi + self._list_envelope)
 
     def _check_walls_periodic(self) -> None:
         """Walls are not periodic: along a periodic axis a wall must look the same from every image
@@ -931,7 +940,7 @@ class Simulation:
         v_max = math.sqrt(all_max(self.comm, v2))
         lo, hi = self._skin_range
         skin = min(max(2.0 * SKIN_STEPS * v_max * self._dt, lo), hi)
-        self.skin = skin
+        self.skin = self._skin_chosen = skin
         self._list_skin = skin + self._list_envelope
         self._ghost_width = self._ghost_width_base + self._list_skin
 

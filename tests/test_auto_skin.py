@@ -50,3 +50,20 @@ def test_auto_skin_follows_the_fastest_grain_and_changes_no_result():
     auto.request_rebuild()
     auto.run(steps=1)
     assert auto.skin == lo
+
+
+def test_auto_skin_stays_automatic_after_particles_are_added():
+    """A second preparation (grains added after a run) chooses the skin again, and keeps choosing it
+    from the fastest grain; a skin set by hand in between stays as set."""
+    sim = _drop(None)
+    sim.run(steps=10)  # at rest: the smallest skin
+    d = 2.0 * float(np.mean(sim.get_particles()["r"]))
+    assert sim.skin == SKIN_MIN * d
+    sim.add_particles([[0.02, 0.02, 0.03]], [1e-3], velocities=[[0.0, 0.0, -2.0]])  # a fast newcomer
+    sim.run(steps=10)
+    assert sim.skin > 2 * SKIN_MIN * d  # followed the new grain (2 × 25 × 2 m/s × dt, capped)
+    given = 1.5e-4
+    sim.skin = given
+    sim.add_particles([[0.03, 0.03, 0.03]], [1e-3])
+    sim.run(steps=10)
+    assert sim.skin == given

@@ -302,3 +302,45 @@ def test_dem_c_envelope_second_solve_identical_on_1_2_3_ranks(tmp_path, solver):
         out[n] = proc.stdout.split()
     assert int(out[1][1]) >= 1
     assert out[1] == out[2] == out[3]
+
+
+_ADD_SCRIPT = textwrap.dedent(
+    """
+    import hashlib
+    import numpy as np, pdem
+    from pdem.boundaries.shapes import Plane
+    from pdem.parallel.comm import default_comm
+    comm = default_comm()
+    rng = np.random.default_rng(2)
+    sim = pdem.Simulation(comm=comm)
+    sim.add_material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.3,
+                     friction=0.4)
+    g = np.stack(np.meshgrid(np.arange(8), np.arange(3), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    sim.add_particles(g * 2.1e-3 + [1e-3, 1e-3, 1e-3], 1e-3)
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)))
+    sim.gravity = (0.0, 0.0, -9.81)
+    sim.dt = 2e-5
+    sim.run(steps=300)
+    # a second preparation: a falling layer added over the bed; the automatic skin goes on
+    sim.add_particles(g[:24] * 2.1e-3 + [1e-3, 1e-3, 0.012], 1e-3, velocities=rng.normal(0, 0.3, (24, 3)))
+    sim.run(steps=600)
+    p = sim.get_particles()
+    h = hashlib.sha256(p["x"].tobytes() + p["v"].tobytes()).hexdigest()
+    if comm.rank == 0:
+        print(h)
+    """
+)
+
+
+def test_particles_added_after_a_run_identical_on_1_2_3_ranks(tmp_path):
+    """Grains added after a run (a second preparation, which chooses the automatic skin again and
+    fits it to the subdomains): the same bits on 1, 2 and 3 ranks."""
+    script = tmp_path / "add.py"
+    script.write_text(_ADD_SCRIPT)
+    out = {}
+    for n in (1, 2, 3):
+        proc = subprocess.run([MPIEXEC, "-n", str(n), sys.executable, str(script)],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[n] = proc.stdout.split()
+    assert out[1][0] == out[2][0] == out[3][0]
