@@ -353,7 +353,7 @@ class Runner:
         sim = self.sim
         if sim.comm.size == 1:
             return {}
-        n = sim.particles.n_owned
+        n = sim.n_particles  # parked (removed) rows are not counted
         work = int(sim.model_work().sum())
         counts = np.array(sim.comm.allgather((n, work)), dtype=float)
         mean = counts.mean(axis=0)
