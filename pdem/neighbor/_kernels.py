@@ -147,6 +147,22 @@ def carry_history(old_keys, old_hist, new_keys, new_hist):
 
 
 @njit
+def carry_matching(old_keys, old_hist, new_keys, new_hist):
+    """Copy the history rows of keys present in both sorted key lists (a linear merge); leave the
+    other rows of ``new_hist`` as they are (:func:`carry_history` zeroes them)."""
+    a = 0
+    na = old_keys.shape[0]
+    h = new_hist.shape[1]
+    for b in range(new_keys.shape[0]):
+        key = new_keys[b]
+        while a < na and old_keys[a] < key:
+            a += 1
+        if a < na and old_keys[a] == key:
+            for c in range(h):
+                new_hist[b, c] = old_hist[a, c]
+
+
+@njit
 def max_displacement2(x, x_ref, n):
     """Largest squared displacement of particles 0..n-1 since ``x_ref``."""
     best = 0.0
