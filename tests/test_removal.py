@@ -22,9 +22,8 @@ R = 0.5e-3
 SIDE = 5.5e-3
 
 
-def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
-    """A jittered column of 150 beads in a box with a plane or mesh floor; an outflow plane 2 mm
-    above the floor takes the beads as they fall and settle onto it, a few at a time."""
+def _beads(law: str, seed: int) -> pdem.Simulation:
+    """A jittered column of 150 beads, moving a little."""
     rng = np.random.default_rng(seed)
     g = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(6), indexing="ij"), -1).reshape(-1, 3)
     x = (g + 0.5) * 1.08 * R * 2 + rng.normal(0.0, 0.03 * R, g.shape)
@@ -35,6 +34,23 @@ def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
         "glass", density=RHO, youngs_modulus=E_MOD, poisson_ratio=NU, restitution=0.5, friction=0.4
     )
     sim.add_particles(x, r, velocities=rng.normal(0.0, 0.05, x.shape))
+    return sim
+
+
+def _sink_and_gravity(sim: pdem.Simulation, law: str) -> pdem.Simulation:
+    """An outflow plane 1.2 mm above the floor takes the beads as they fall and settle onto it."""
+    sink = OutflowParams(type="outflow", point=(0.0, 0.0, 1.2e-3), normal=(0.0, 0.0, 1.0))
+    sim.add_boundary(OutflowBoundary("sink", sink))
+    sim.gravity = (0.0, 0.0, -9.81)
+    if law == "complementarity":
+        sim.dt = 2e-5
+    return sim
+
+
+def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
+    """The beads in a box with a plane or mesh floor, above an outflow plane: they leave a few at a
+    time."""
+    sim = _beads(law, seed)
     sim.add_wall(shapes.Plane((0, 0, 0), (1, 0, 0)))
     sim.add_wall(shapes.Plane((0, 0, 0), (0, 1, 0)))
     sim.add_wall(shapes.Plane((0, SIDE, 0), (0, -1, 0)))
@@ -47,12 +63,7 @@ def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
     else:  # two facets, sloping: beads slide along it and touch both near the diagonal
         v = np.array([[0, 0, 0], [SIDE, 0, 0.4e-3], [SIDE, SIDE, 0.4e-3], [0, SIDE, 0]])
         sim.add_wall(shapes.TriangleMesh(v, [[0, 1, 2], [0, 2, 3]]), name="floor")
-    sink = OutflowParams(type="outflow", point=(0.0, 0.0, 1.2e-3), normal=(0.0, 0.0, 1.0))
-    sim.add_boundary(OutflowBoundary("sink", sink))
-    sim.gravity = (0.0, 0.0, -9.81)
-    if law == "complementarity":
-        sim.dt = 2e-5
-    return sim
+    return _sink_and_gravity(sim, law)
 
 
 def _old_removal(sim, idx):
@@ -131,23 +142,10 @@ def test_removal_in_a_periodic_box_gives_the_same_bits(law, steps, monkeypatch):
     grain out of the box until the rebuild compacts it, which must change nothing."""
 
     def scene():
-        rng = np.random.default_rng(5)
-        g = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(6), indexing="ij"), -1).reshape(-1, 3)
-        x = (g + 0.5) * 1.08 * R * 2 + rng.normal(0.0, 0.03 * R, g.shape)
-        x[:, 2] += 1.5e-3
-        sim = pdem.Simulation(law=law)
-        sim.add_material(
-            "glass", density=RHO, youngs_modulus=E_MOD, poisson_ratio=NU, restitution=0.5, friction=0.4
-        )
-        sim.add_particles(x, R * rng.uniform(0.9, 1.0, len(x)), velocities=rng.normal(0.0, 0.05, x.shape))
+        sim = _beads(law, 5)
         sim.set_periodic((0.0, 0.0, 0.0), (SIDE, SIDE, 0.0), axes="xy")
         sim.add_wall(shapes.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), name="floor")
-        sink = OutflowParams(type="outflow", point=(0.0, 0.0, 1.2e-3), normal=(0.0, 0.0, 1.0))
-        sim.add_boundary(OutflowBoundary("sink", sink))
-        sim.gravity = (0.0, 0.0, -9.81)
-        if law == "complementarity":
-            sim.dt = 2e-5
-        return sim
+        return _sink_and_gravity(sim, law)
 
     runs = []
     for old_way in (False, True):

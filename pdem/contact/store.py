@@ -268,7 +268,7 @@ class ContactStore:
         self._pending[kind] = []
         if pk.size:
             nk.carry_history(pk, ph, new_keys, new_hist)
-            nk.carry_matching(old_keys, old_hist, new_keys, new_hist)
+            nk.carry_history(old_keys, old_hist, new_keys, new_hist, False)
         else:
             nk.carry_history(old_keys, old_hist, new_keys, new_hist)
 

@@ -129,8 +129,9 @@ def pair_keys(pi, pj, ids):
 
 
 @njit
-def carry_history(old_keys, old_hist, new_keys, new_hist):
-    """Copy history rows of pairs present in both sorted key lists (a linear merge); zero the rest."""
+def carry_history(old_keys, old_hist, new_keys, new_hist, zero_others=True):
+    """Copy history rows of keys present in both sorted key lists (a linear merge); zero the other
+    rows of ``new_hist`` (with ``zero_others`` False, leave them as they are)."""
     a = 0
     na = old_keys.shape[0]
     h = new_hist.shape[1]
@@ -141,25 +142,9 @@ def carry_history(old_keys, old_hist, new_keys, new_hist):
         if a < na and old_keys[a] == key:
             for c in range(h):
                 new_hist[b, c] = old_hist[a, c]
-        else:
+        elif zero_others:
             for c in range(h):
                 new_hist[b, c] = 0.0
-
-
-@njit
-def carry_matching(old_keys, old_hist, new_keys, new_hist):
-    """Copy the history rows of keys present in both sorted key lists (a linear merge); leave the
-    other rows of ``new_hist`` as they are (:func:`carry_history` zeroes them)."""
-    a = 0
-    na = old_keys.shape[0]
-    h = new_hist.shape[1]
-    for b in range(new_keys.shape[0]):
-        key = new_keys[b]
-        while a < na and old_keys[a] < key:
-            a += 1
-        if a < na and old_keys[a] == key:
-            for c in range(h):
-                new_hist[b, c] = old_hist[a, c]
 
 
 @njit
