@@ -112,7 +112,7 @@ def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]
     L = np.zeros((p.n, 3))
     v0, w0 = p.v[: p.n].copy(), p.w[: p.n].copy()
     G = np.ascontiguousarray(st.gam[:nc].T)
-    CR = np.ascontiguousarray(st.croll[:nc].T)
+    IB, CR = ck.jacobi_columns(st.cscale, st.croll, nc, width == 8)
     U = np.empty((width, nc))
     RES = np.empty(nc)
 
@@ -120,7 +120,7 @@ def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]
         ck.jacobi_gather(st.cb, st.cn, st.ca, st.cvw, st.cbias, st.croll, p.v, p.w, nc, U)
 
     def project(check):
-        ck.jacobi_project(U, G, st.cmu, st.cscale, CR, nc, 0.3, True, check, RES)
+        ck.jacobi_project(U, G, st.cmu, st.cscale, IB, CR, nc, 0.3, True, check, RES)
 
     def scatter():
         ck.accumulate_columns(st.cb, st.cn, st.ca, st.croll, G, nc, P, L)

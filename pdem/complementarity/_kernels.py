@@ -689,7 +689,10 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
 # on columns (``U``, ``G``: one row per impulse component, one column per contact) and without
 # branches, so LLVM vectorizes it (4 contacts per instruction on AVX2): it was a third of the fused
 # sweep's time, almost all of it in square roots and divisions. The arithmetic is the fused sweep's,
-# operation for operation (the same bits; tests/test_dem_c_kernels.py).
+# operation for operation (the same bits; tests/test_dem_c_kernels.py). The residual a checked sweep
+# forms decides only when the sweep stops: it is formed with fewer divisions and square roots (its
+# square, from 1/B, and the cone projection with one division), equal to the fused sweep's within
+# rounding, not bit for bit.
 
 
 @njit(inline="always")
@@ -699,6 +702,30 @@ def _cone_select(gn, tx, ty, tz, mu):
     t = math.sqrt(tx * tx + ty * ty + tz * tz)
     gn2 = (mu * t + gn) / (mu * mu + 1.0)
     s = mu * gn2 / t
+    inside = t <= mu * gn
+    zero = mu * t <= -gn
+    o0 = gn if inside else (0.0 if zero else gn2)
+    o1 = tx if inside else (0.0 if zero else tx * s)
+    o2 = ty if inside else (0.0 if zero else ty * s)
+    o3 = tz if inside else (0.0 if zero else tz * s)
+    if mu <= 0.0:
+        o0 = max(gn, 0.0)
+        o1 = 0.0
+        o2 = 0.0
+        o3 = 0.0
+    return o0, o1, o2, o3
+
+
+@njit(inline="always")
+def _cone_select_residual(gn, tx, ty, tz, mu):
+    """:func:`_cone_select` with one division instead of two (q = 1 / ((μ² + 1) t) gives both the
+    projected γ_n and the scale of γ_t): the same projection within rounding, for residuals only
+    (a Jacobi sweep's impulses use :func:`_cone_select`, bit for bit the fused sweep's)."""
+    t = math.sqrt(tx * tx + ty * ty + tz * tz)
+    a = mu * t + gn
+    q = 1.0 / ((mu * mu + 1.0) * t)
+    gn2 = a * t * q
+    s = mu * a * q
     inside = t <= mu * gn
     zero = mu * t <= -gn
     o0 = gn if inside else (0.0 if zero else gn2)
@@ -742,35 +769,54 @@ def jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U):
 
 
 @njit(inline="always")
-def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, mu, omega_relax, corrected, want_res):
-    """One column of :func:`jacobi_project` on scalars: the new (γ_n, γ_t), the residual of the old
-    (0 without ``want_res``) and its fully projected γ_n (the old γ_n without). Scalars only: an
-    inlined helper that takes arrays kept numba's reference counting in the loop, which stopped
-    LLVM from vectorizing it."""
+def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, ib, mu, omega_relax, corrected, want_res):
+    """One column of :func:`jacobi_project` on scalars: the new (γ_n, γ_t), the **square** of the
+    residual of the old (|γ − Π(γ − B u)|² (1/B)², 0 without ``want_res``; ``ib`` = 1/B) and its
+    fully projected γ_n (the old γ_n without). Scalars only: an inlined helper that takes arrays
+    kept numba's reference counting in the loop, which stopped LLVM from vectorizing it."""
     if corrected:
         u0 += mu * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
     rc = 0.0
     p0 = g0
     if want_res:
-        p0, p1, p2, p3 = _cone_select(g0 - b * u0, g1 - b * u1, g2 - b * u2, g3 - b * u3, mu)
+        p0, p1, p2, p3 = _cone_select_residual(g0 - b * u0, g1 - b * u1, g2 - b * u2, g3 - b * u3, mu)
         d0 = g0 - p0
         d1 = g1 - p1
         d2 = g2 - p2
         d3 = g3 - p3
-        rc = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b
+        rc = (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) * (ib * ib)
     s = omega_relax * b
     n0, n1, n2, n3 = _cone_select(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
     return n0, n1, n2, n3, rc, p0
 
 
 @njit
-def jacobi_project(U, G, cmu, cscale, CR, nc, omega_relax, corrected, want_res, RES):
+def jacobi_columns(cscale, croll, nc, roll):
+    """What :func:`jacobi_project` reads besides the impulses, formed once per solve: 1/B of every
+    contact (``IB``) and, with ``roll``, the rolling rows' (μ_r, μ_s, R*, B_r, 1/B_r) in columns
+    (``CR``; empty without). 1/B_r is not used where R* = 0."""
+    IB = np.empty(nc)
+    for c in range(nc):
+        IB[c] = 1.0 / cscale[c]
+    CR = np.empty((5, nc if roll else 0))
+    if roll:
+        for c in range(nc):
+            for k in range(4):
+                CR[k, c] = croll[c, k]
+            br = croll[c, 3]
+            CR[4, c] = 1.0 / br if br != 0.0 else 0.0
+    return IB, CR
+
+
+@njit
+def jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega_relax, corrected, want_res, RES):
     """Jacobi pass 2: γ_c ← Π_K(γ_c − ω B_c u_c) for every column (ũ when ``corrected``), then the
     rolling rows clamped to the bounds of the new γ_n (Chrono's order), as :func:`_update` and
-    :func:`_update_roll`. With ``want_res``, ``RES[c]`` = the residual of the old impulses (its
-    maximum: :func:`max_nonneg`). ``U`` is overwritten. ``CR``: the rows' ``croll`` in columns
-    (read only with rolling rows, G of 8 rows). (One loop per case, its flags constant, so that
-    each vectorizes.)"""
+    :func:`_update_roll`. With ``want_res``, ``RES[c]`` = the **square** of the residual of the old
+    impulses (the residual is the square root of their maximum, :func:`max_nonneg`; equal to
+    :func:`_update`'s within rounding). ``IB``: 1/B of every contact. ``U`` is overwritten. ``CR``:
+    the rows' ``croll`` in columns, and 1/B_r in a fifth row (read only with rolling rows, G of 8
+    rows). (One loop per case, its flags constant, so that each vectorizes.)"""
     u0a, u1a, u2a, u3a = U[0], U[1], U[2], U[3]
     g0a, g1a, g2a, g3a = G[0], G[1], G[2], G[3]
     o = omega_relax
@@ -778,25 +824,25 @@ def jacobi_project(U, G, cmu, cscale, CR, nc, omega_relax, corrected, want_res, 
         if corrected:
             for c in range(nc):
                 g0a[c], g1a[c], g2a[c], g3a[c], _r, _p = _project_values(
-                    u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], cmu[c], o,
-                    True, False,
+                    u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
+                    o, True, False,
                 )  # fmt: skip
         else:
             for c in range(nc):
                 g0a[c], g1a[c], g2a[c], g3a[c], _r, _p = _project_values(
-                    u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], cmu[c], o,
-                    False, False,
+                    u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
+                    o, False, False,
                 )  # fmt: skip
     elif corrected:
         for c in range(nc):
             g0a[c], g1a[c], g2a[c], g3a[c], RES[c], u0a[c] = _project_values(
-                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], cmu[c], o,
+                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c], o,
                 True, True,
             )  # fmt: skip
     else:
         for c in range(nc):
             g0a[c], g1a[c], g2a[c], g3a[c], RES[c], u0a[c] = _project_values(
-                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], cmu[c], o,
+                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c], o,
                 False, True,
             )  # fmt: skip
     if G.shape[0] == 8:
@@ -810,10 +856,12 @@ def _clamp_abs_select(x, bound):
 
 
 @njit(inline="always")
-def _roll_values(r0, r1, r2, r3, u4, u5, u6, u7, bn, bn_new, br, mu_r, mu_s, rs, omega_relax, want_res, rc):
+def _roll_values(r0, r1, r2, r3, u4, u5, u6, u7, bn, bn_new, br, ibr, mu_r, mu_s, rs, omega_relax, want_res,
+                 rc):
     """One contact's rolling rows in :func:`jacobi_project`, on scalars and without branches: the
-    new (ρ, σ) (unchanged where R* = 0) and the residual ``rc`` raised to the rolling rows' (the
-    arithmetic of :func:`_update_roll` and :func:`_roll_residual`)."""
+    new (ρ, σ) (unchanged where R* = 0; the arithmetic of :func:`_update_roll`) and the squared
+    residual ``rc`` raised to the square of the rolling rows' (:func:`_roll_residual`'s within
+    rounding; ``ibr`` = 1/B_r)."""
     s = omega_relax * br
     n4, n5, n6 = _clamp_norm_select(r0 - s * u4, r1 - s * u5, r2 - s * u6, mu_r * bn_new)
     n7 = _clamp_abs_select(r3 - s * u7, mu_s * bn_new)
@@ -824,7 +872,8 @@ def _roll_values(r0, r1, r2, r3, u4, u5, u6, u7, bn, bn_new, br, mu_r, mu_s, rs,
         d4 = r0 - p4
         d5 = r1 - p5
         d6 = r2 - p6
-        rr = max(math.sqrt(d4 * d4 + d5 * d5 + d6 * d6), abs(r3 - p7)) / br
+        d7 = r3 - p7
+        rr = max(d4 * d4 + d5 * d5 + d6 * d6, d7 * d7) * (ibr * ibr)
         rc = rr if (on & ((rr > rc) | (rr != rr))) else rc
     return (n4 if on else r0), (n5 if on else r1), (n6 if on else r2), (n7 if on else r3), rc
 
@@ -833,23 +882,23 @@ def _roll_values(r0, r1, r2, r3, u4, u5, u6, u7, bn, bn_new, br, mu_r, mu_s, rs,
 def _jacobi_project_roll(U, G, CR, nc, omega_relax, want_res, RES):
     """The rolling rows of :func:`jacobi_project` (after the sliding cone: the bounds are the new
     γ_n, in ``G[0]``, and for the residual the fully projected old one, left in ``U[0]`` by a
-    checked sweep). ``CR``: the contacts' (μ_r, μ_s, R*, B_r) in columns. Branch-free, one loop per
-    case: vectorized."""
+    checked sweep). ``CR``: the contacts' (μ_r, μ_s, R*, B_r, 1/B_r) in columns. Branch-free, one
+    loop per case: vectorized."""
     bn_, bnew_, u4_, u5_, u6_, u7_ = U[0], G[0], U[4], U[5], U[6], U[7]
     r0_, r1_, r2_, r3_ = G[4], G[5], G[6], G[7]
-    mr_, ms_, rs_, br_ = CR[0], CR[1], CR[2], CR[3]
+    mr_, ms_, rs_, br_, ibr_ = CR[0], CR[1], CR[2], CR[3], CR[4]
     o = omega_relax
     if want_res:
         for c in range(nc):
             r0_[c], r1_[c], r2_[c], r3_[c], RES[c] = _roll_values(
                 r0_[c], r1_[c], r2_[c], r3_[c], u4_[c], u5_[c], u6_[c], u7_[c], bn_[c], bnew_[c], br_[c],
-                mr_[c], ms_[c], rs_[c], o, True, RES[c],
+                ibr_[c], mr_[c], ms_[c], rs_[c], o, True, RES[c],
             )  # fmt: skip
     else:
         for c in range(nc):
             r0_[c], r1_[c], r2_[c], r3_[c], _rc = _roll_values(
                 r0_[c], r1_[c], r2_[c], r3_[c], u4_[c], u5_[c], u6_[c], u7_[c], bn_[c], bnew_[c], br_[c],
-                mr_[c], ms_[c], rs_[c], o, False, 0.0,
+                ibr_[c], mr_[c], ms_[c], rs_[c], o, False, 0.0,
             )  # fmt: skip
 
 

@@ -684,8 +684,8 @@ class Stepper(Integrator):
         self._sync_velocities(nc, v_free, w_free, P, L)
         width = self.gam.shape[1]
         G = np.ascontiguousarray(self.gam[:nc].T)
-        # the rolling rows' coefficients in columns (read only by rows of 8)
-        CR = np.ascontiguousarray(self.croll[:nc].T) if width == 8 else np.empty((4, 0))
+        # 1/B of every row, and the rolling rows' coefficients in columns (read only by rows of 8)
+        IB, CR = ck.jacobi_columns(self.cscale, self.croll, nc, width == 8)
         U = np.empty((width, nc))
         RES = np.empty(nc)
         it = 0
@@ -696,12 +696,14 @@ class Stepper(Integrator):
             ck.jacobi_gather(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, U
             )
-            ck.jacobi_project(U, G, self.cmu, self.cscale, CR, nc, pr.relaxation, self.corrected, check, RES)
+            ck.jacobi_project(
+                U, G, self.cmu, self.cscale, IB, CR, nc, pr.relaxation, self.corrected, check, RES
+            )  # fmt: skip
             ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, G, nc, P, L)
             it += 1
             self._apply_impulses(nc, v_free, w_free, P, L, G.T)
             if check:
-                res = all_max(sim.comm, ck.max_nonneg(RES, nc))
+                res = math.sqrt(all_max(sim.comm, ck.max_nonneg(RES, nc)))  # RES: squared residuals
                 if res <= pr.tolerance:
                     break
         self.gam[:nc] = G.T
