@@ -1335,12 +1335,15 @@ class Simulation:
 
             forward(self)
 
-    def forward_ghosts(self) -> None:
-        """Send the ghosts' current x, v, ω to the ranks (and periodic images) that hold them."""
+    def forward_ghosts(self, positions: bool = True) -> None:
+        """Send the ghosts' current x, v, ω to the ranks (and periodic images) that hold them;
+        without ``positions`` only v, ω (a third less to send), for a caller that has moved no
+        particle since the last forward (``update_neighbours`` forwards positions, or rebuilds), e.g.
+        a solver's sweeps within a step."""
         if self._decomp is not None:
             from .parallel.exchange import forward
 
-            forward(self)
+            forward(self, positions=positions)
 
     def set_list_reach(self, envelope: float, force: bool = True) -> None:
         """Make the neighbour list reach ``skin + envelope`` (DEM-C's collision envelope); a wider

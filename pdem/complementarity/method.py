@@ -674,7 +674,7 @@ class Stepper(Integrator):
         ck.velocities(p.v, p.w, v_free, w_free, P, L, self.IM, p.inv_i, p.dof, p.n_owned)
         if self._bodies:
             self._body_velocities(nc, v_free, self.gam if gam is None else gam)
-        sim.forward_ghosts()
+        sim.forward_ghosts(positions=False)  # no particle moves within the step's solve
 
     def _jacobi(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         """Projected Jacobi: each sweep gathers every contact's velocity, projects all impulses at

@@ -8,7 +8,7 @@ uses only public members of :class:`~pdem.Simulation`:
 * ``sim.particles`` (fields, owned rows ``[0, n_owned)`` then ghosts), ``sim.contact_store``
   (pairs, wall candidates, keyed history, wall loads: :mod:`pdem.contact.store`),
   ``sim.coefficients`` (the law's mixed rows), ``sim.dt``, ``sim.g``, ``sim.position_snap``;
-* ``sim.advance_walls(dt)``, ``sim.update_neighbours(before_rebuild)``, ``sim.forward_ghosts()``,
+* ``sim.advance_walls(dt)``, ``sim.update_neighbours(before_rebuild)``, ``sim.forward_ghosts(positions)``,
   ``sim.compute_forces()`` (contacts + boundary forces), ``sim.external_forces()`` (boundary forces
   only), ``sim.record_wall_loads()``, ``sim.add_work_time(s)``, ``sim.finish_step(flags)``
   (time, step counter, collective error check).

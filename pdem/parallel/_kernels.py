@@ -32,3 +32,23 @@ def unpack_xvw(buf, start, x, v, w):
             x[i, c] = buf[k, c]
             v[i, c] = buf[k, 3 + c]
             w[i, c] = buf[k, 6 + c]
+
+
+@njit
+def pack_vw(v, w, idx, buf):
+    """buf[k] = (v[idx[k]], ω[idx[k]]): a forward of velocities only."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        for c in range(3):
+            buf[k, c] = v[i, c]
+            buf[k, 3 + c] = w[i, c]
+
+
+@njit
+def unpack_vw(buf, start, v, w):
+    """v, ω of rows start … start + len(buf) from ``buf``."""
+    for k in range(buf.shape[0]):
+        i = start + k
+        for c in range(3):
+            v[i, c] = buf[k, c]
+            w[i, c] = buf[k, 3 + c]

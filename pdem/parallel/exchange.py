@@ -7,7 +7,9 @@
 * :func:`borders` (after migration): copies of particles within the ghost width of a face are sent
   to the neighbour behind it; ghosts received along x are forwarded along y and z, which covers edges
   and corners. The send lists are kept.
-* :func:`forward` (every other step): the same lists carry the ghosts' current x, v, ω.
+* :func:`forward` (every other step): the same lists carry the ghosts' current x, v, ω (or v, ω
+  only, between DEM-C's solver sweeps), with buffers and persistent requests set up once per
+  list (:class:`_ForwardPlan`).
 
 Contacts between an owned particle and a ghost are computed on both ranks, identically, and each
 rank applies the result to its own particle only ("newton off" across ranks).
@@ -25,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._kernels import pack_xvw, unpack_xvw
+from ._kernels import pack_vw, pack_xvw, unpack_vw, unpack_xvw
 
 __all__ = ["migrate", "borders", "forward", "forward_values"]
 
@@ -154,50 +156,81 @@ def borders(sim, width: float) -> None:
     dec.swaps = swaps
 
 
-def forward(sim) -> None:
-    """Send the ghosts' current positions, velocities and spins along the recorded swaps.
+class _ForwardPlan:
+    """The messages of :func:`forward` for one set of swaps (they change only at rebuilds): per axis,
+    the local copies, and the receives and sends with their partners, tags and buffers. Building
+    them anew at every call cost several µs of Python per forward; DEM-C forwards at every solver
+    sweep."""
+
+    def __init__(self, dec, width: int) -> None:
+        self.swaps = dec.swaps  # identity: a new list at every borders()
+        self.axes = []
+        for a in range(0, len(dec.swaps), 2):
+            local, sends, recvs = [], [], []
+            for tag, (send_idx, dest, source, start, end, d, shift) in enumerate(dec.swaps[a : a + 2]):
+                if dest is not None and dest == source == dec.rank:  # our own images
+                    if end > start:
+                        local.append((send_idx, d, shift, np.empty((end - start, width)), start))
+                    continue
+                if source is not None and end > start:
+                    recvs.append((np.empty((end - start, width)), start, source, tag))
+                # the receiver posts a receive only for a non-empty swap (its count was set by borders)
+                if dest is not None and send_idx.shape[0] > 0:
+                    sends.append((send_idx, d, shift, np.empty((send_idx.shape[0], width)), dest, tag))
+            self.axes.append((local, sends, recvs))
+
+
+def _forward_plan(dec, width: int) -> _ForwardPlan:
+    plans = getattr(dec, "_forward_plans", None)
+    if plans is None:
+        plans = dec._forward_plans = {}
+    plan = plans.get(width)
+    if plan is None or plan.swaps is not dec.swaps:
+        plan = plans[width] = _ForwardPlan(dec, width)
+    return plan
+
+
+def forward(sim, positions: bool = True) -> None:
+    """Send the ghosts' current positions, velocities and spins along the recorded swaps (without
+    ``positions``: velocities and spins only, for callers that have not moved any particle since
+    the last forward, e.g. DEM-C's solver sweeps).
 
     The two swaps of an axis read only data from before that axis, so they run concurrently
     (non-blocking receives and sends, then one wait): a sequential exchange in alternating
     directions cost a rendezvous round trip per swap (~200 µs per step on 2 ranks, against ~20 µs
-    now). Buffers hold (k, 9) floats; swaps with no partner cost nothing; a swap with oneself (an
-    unsplit periodic axis) is a local copy. Messages are tagged by swap direction, because along a
-    periodic axis split in two both swaps have the same partner."""
+    now). Buffers hold (k, 9) floats ((k, 6) without positions) and are kept with the swaps
+    (:class:`_ForwardPlan`); swaps with no partner cost nothing; a swap with oneself (an unsplit
+    periodic axis) is a local copy. Messages are tagged by swap direction, because along a periodic
+    axis split in two both swaps have the same partner."""
     dec = sim.decomposition
     comm = dec.comm
     p = sim.particles
     x, v, w = p.x, p.v, p.w
-    swaps = dec.swaps
-    for a in range(0, len(swaps), 2):
-        requests = []
-        received = []
-        for tag, (send_idx, dest, source, start, end, d, shift) in enumerate(swaps[a : a + 2]):
-            if dest is not None and dest == source == dec.rank:  # our own images
-                if end > start:
-                    buf = np.empty((end - start, 9))
-                    pack_xvw(x, v, w, send_idx, d, shift, buf)
-                    unpack_xvw(buf, start, x, v, w)
-                continue
-            if source is not None and end > start:
-                buf = np.empty((end - start, 9))
-                requests.append(comm.Irecv(buf, source=source, tag=tag))
-                received.append((buf, start, end))
-        for tag, (send_idx, dest, source, _start, _end, d, shift) in enumerate(swaps[a : a + 2]):
-            if dest is not None and dest == source == dec.rank:
-                continue
-            # the receiver posts a receive only for a non-empty swap (its count was set by borders)
-            if dest is not None and send_idx.shape[0] > 0:
-                buf = np.empty((send_idx.shape[0], 9))
+    for local, sends, recvs in _forward_plan(dec, 9 if positions else 6).axes:
+        for send_idx, d, shift, buf, start in local:
+            if positions:
                 pack_xvw(x, v, w, send_idx, d, shift, buf)
-                requests.append(comm.Isend(buf, dest=dest, tag=tag))
-                received.append((buf, -1, -1))  # keep the send buffer alive until Waitall
-        if requests:
-            from mpi4py import MPI
-
-            MPI.Request.Waitall(requests)
-        for buf, start, _end in received:
-            if start >= 0:
                 unpack_xvw(buf, start, x, v, w)
+            else:
+                pack_vw(v, w, send_idx, buf)
+                unpack_vw(buf, start, v, w)
+        if not (sends or recvs):
+            continue
+        requests = [comm.Irecv(buf, source=source, tag=tag) for buf, _start, source, tag in recvs]
+        for send_idx, d, shift, buf, dest, tag in sends:
+            if positions:
+                pack_xvw(x, v, w, send_idx, d, shift, buf)
+            else:
+                pack_vw(v, w, send_idx, buf)
+            requests.append(comm.Isend(buf, dest=dest, tag=tag))
+        from mpi4py import MPI
+
+        MPI.Request.Waitall(requests)
+        for buf, start, _source, _tag in recvs:
+            if positions:
+                unpack_xvw(buf, start, x, v, w)
+            else:
+                unpack_vw(buf, start, v, w)
 
 
 def forward_values(sim, values: np.ndarray) -> None:
