@@ -17,7 +17,8 @@ Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
     wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
     :func:`surface_velocity` (a wall's velocity at a point: translation, rotation, radius rate);
-    partition-independent sums inside kernels: :func:`exact_accumulator`, :func:`exact_add`,
+    partition-independent sums inside kernels: :func:`exact_accumulator`, :func:`exact_add` (or
+    :func:`exact_add_many` with :func:`exact_bins` for up to 1024 terms at once, faster),
     :func:`exact_partials` (combine ranks with :func:`pdem.parallel.exact.exact_reduce`).
 Boundaries (``pdem.boundaries``)
     :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
@@ -120,7 +121,7 @@ from .io.base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .io.frame import Frame, WallState
 from .io.wall_mesh import wall_triangles
 from .materials import Material, MaterialTable
-from .parallel.exact import exact_accumulator, exact_add, exact_partials
+from .parallel.exact import exact_accumulator, exact_add, exact_add_many, exact_bins, exact_partials
 from .simulation import Simulation
 from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
@@ -130,7 +131,7 @@ __all__ = [
     "COL_DELTA", "COL_NX", "COL_NY", "COL_NZ", "COL_VX", "COL_VY", "COL_VZ", "COL_WX", "COL_WY", "COL_WZ",
     "COL_REFF", "COL_MEFF", "COL_IEFF", "COL_AI", "COL_AJ", "COL_HIST",
     "OUT_FX", "OUT_FY", "OUT_FZ", "OUT_MX", "OUT_MY", "OUT_MZ", "OUT_HIST",
-    "exact_accumulator", "exact_add", "exact_partials",
+    "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials",
     "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",

@@ -121,3 +121,78 @@ def test_long_partials_on_some_ranks_only():
         assert sums == [math.fsum([*terms, 3.0, 3.0]), 9.0]
         assert maxima == [3.0]
 
+
+
+def _hostile_terms(rng, n):
+    """Terms over the whole double range: subnormals, signed zeros, the largest doubles of both
+    signs, a cancelling pair, and ordinary values."""
+    x = rng.normal(size=n) * 10.0 ** rng.integers(-320, 300, n)
+    x[::7] = 0.0
+    x[::11] = -0.0
+    x[5], x[6], x[8] = 5e-324, -2.2250738585072014e-308, 1.7976931348623157e308
+    x[9] = -1.7976931348623157e308
+    x[12], x[13] = 1e300, -1e300
+    return x
+
+
+def test_exact_add_many_is_term_by_term_exact_add():
+    """A block added at once (a bin per exponent first) leaves the accumulator with the value of
+    the same terms added one by one: the same partials, the same plain sum of non-finite terms; the
+    bins are zeroed again."""
+    from numba import njit
+
+    from pdem.parallel.exact import (
+        EXACT_MANY_MAX,
+        exact_accumulator,
+        exact_add,
+        exact_add_many,
+        exact_bins,
+        exact_partials,
+    )  # fmt: skip
+
+    @njit
+    def one_by_one(x):
+        a, b, i = exact_accumulator()
+        sp = 0.0
+        for q in range(x.shape[0]):
+            sp += exact_add(a, b, i, x[q])
+        return exact_partials(a), sp
+
+    @njit
+    def in_blocks(x, bins, block):
+        a, _b, _i = exact_accumulator()
+        sp = 0.0
+        for q0 in range(0, x.shape[0], block):
+            m = min(block, x.shape[0] - q0)
+            sp += exact_add_many(a, bins, x[q0 : q0 + m], m)
+        return exact_partials(a), sp
+
+    rng = np.random.default_rng(7)
+    bins = exact_bins()
+    big = np.full(3 * EXACT_MANY_MAX, 1.7976931348623157e308)  # full bins of one exponent
+    big[EXACT_MANY_MAX:] *= -1.0
+    specials = rng.normal(size=3000)
+    specials[[10, 20, 30]] = np.inf, -np.inf, np.nan
+    cases = [_hostile_terms(rng, 13_000), rng.normal(size=13_000), big, rng.normal(scale=1e-310, size=5000),
+             specials, np.zeros(100)]  # fmt: skip
+    for x in cases:
+        want, want_special = one_by_one(x)
+        for block in (1, 500, EXACT_MANY_MAX):
+            got, got_special = in_blocks(x, bins, block)
+            assert np.array_equal(got, want)
+            assert got_special == want_special or (math.isnan(got_special) and math.isnan(want_special))
+            assert not bins.any()
+    full = np.full(EXACT_MANY_MAX, 1.7976931348623157e308)  # the largest significand, 1024 times
+    got, _ = in_blocks(full, bins, EXACT_MANY_MAX)
+    assert np.array_equal(got, one_by_one(full)[0])  # the bin held 1024 × (2⁵³ − 1) without wrapping
+
+
+def test_dot_partials_in_blocks_on_hostile_terms():
+    """dot_partials (blocks of products through exact_add_many) against math.fsum of the products."""
+    rng = np.random.default_rng(8)
+    a = _hostile_terms(rng, 4 * 3001).reshape(-1, 4) * 1e-8
+    b = rng.normal(size=a.shape)
+    rows = rng.permutation(a.shape[0])[:2500]
+    part, special = dot_partials(a, b, rows)
+    assert special == 0.0
+    assert math.fsum(part) == math.fsum((a[rows] * b[rows]).ravel())

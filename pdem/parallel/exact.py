@@ -17,7 +17,7 @@ from .._jit import njit
 
 __all__ = [
     "exact_sum", "exact_sums", "global_count", "dot_partials", "exact_reduce", "exact_accumulator",
-    "exact_add", "exact_partials",
+    "exact_add", "exact_add_many", "exact_bins", "exact_partials",
 ]  # fmt: skip
 
 
@@ -139,6 +139,64 @@ def exact_add(acc, buf, bits, x):
     return 0.0 if finite else x
 
 
+#: exponent bins of :func:`exact_add_many`: one per biased exponent of a double
+_EXP_BINS = 2048
+#: terms per call of :func:`exact_add_many`: 2⁶³ / 2⁵³, so that no exponent bin can overflow
+EXACT_MANY_MAX = 1024
+
+
+@njit
+def exact_bins():
+    """The zeroed work array of :func:`exact_add_many` (it is left zeroed after every call)."""
+    return np.zeros(_EXP_BINS, dtype=np.int64)
+
+
+@njit
+def exact_add_many(acc, bins, x, m):
+    """acc += x[0] + … + x[m − 1] exactly (m ≤ :data:`EXACT_MANY_MAX`; ``x`` contiguous); returns
+    the plain sum of the terms that are not finite, in order (0.0 if none), as :func:`exact_add`
+    does term by term. The same accumulator value as m calls of :func:`exact_add`.
+
+    Each term's signed significand is first added to the integer bin of its exponent (``bins``, from
+    :func:`exact_bins`: one read-modify-write per term instead of three digits); the bins that were
+    touched are then added to the accumulator and zeroed. 1024 significands of 53 bits fit in a
+    bin."""
+    xb = x.view(np.int64)
+    lo = _EXP_BINS
+    hi = -1
+    special = 0.0
+    for q in range(m):
+        b = xb[q]
+        ex = (b >> 52) & 0x7FF
+        finite = ex != 0x7FF
+        mi = b & 0xFFFFFFFFFFFFF
+        mi = (mi | (np.int64(1) << 52)) if ex != 0 else mi  # the hidden bit of normal numbers
+        e = max(ex, np.int64(1))  # subnormals share the exponent of the smallest normals
+        val = -mi if b < 0 else mi
+        val = val if finite else np.int64(0)
+        special += 0.0 if finite else x[q]
+        bins[e] += val
+        used = val != 0
+        lo = min(lo, e) if used else lo
+        hi = max(hi, e) if used else hi
+    for e in range(lo, hi + 1):
+        v = bins[e]
+        if v == 0:
+            continue
+        bins[e] = 0
+        sgn = np.int64(-1) if v < 0 else np.int64(1)
+        a = v * sgn  # |v| < 2⁶³: at most 1024 terms below 2⁵³
+        p = e - 1075 + _OFFSET  # |v| 2^(e − 1075) = a 2^(p − OFFSET)
+        k = p >> 5
+        sh = p & 31
+        d0 = (a & ((np.int64(1) << (32 - sh)) - 1)) << sh
+        rest = a >> (32 - sh)
+        acc[k] += sgn * d0
+        acc[k + 1] += sgn * (rest & 0xFFFFFFFF)
+        acc[k + 2] += sgn * (rest >> 32)
+    return special
+
+
 @njit(inline="always")
 def exact_partials(acc):
     """The accumulator's value as a few doubles whose sum is exact (combine ranks' with
@@ -153,13 +211,20 @@ def dot_partials(a, b, rows):
 
     Returns (partials, special); combine ranks' results with :func:`exact_reduce`."""
     acc = np.zeros(_BINS, dtype=np.int64)
-    buf = np.empty(1)
-    ibuf = buf.view(np.int64)  # the bits of a double
+    bins = exact_bins()
+    ncol = a.shape[1]
+    block = max(EXACT_MANY_MAX // max(ncol, 1), 1)  # rows whose products are summed together
+    buf = np.empty(block * ncol)
     special = 0.0
-    for q in range(rows.shape[0]):
-        c = rows[q]
-        for k in range(a.shape[1]):
-            special += exact_add(acc, buf, ibuf, a[c, k] * b[c, k])
+    nr = rows.shape[0]
+    for q0 in range(0, nr, block):
+        m = 0
+        for q in range(q0, min(q0 + block, nr)):
+            c = rows[q]
+            for k in range(ncol):
+                buf[m] = a[c, k] * b[c, k]
+                m += 1
+        special += exact_add_many(acc, bins, buf, m)
     return _acc_digits(acc), special
 
 
