@@ -120,6 +120,8 @@ class Simulation:
         self.dt_fraction: float | None = None
         self.force_dt = False
         self.skin: float | None = None
+        # the skin of the lists built from now on when a method narrows it (set_list_reach); None: skin
+        self._skin_override: float | None = None
         self.max_overlap = 0.25
         self.time = 0.0
         self.step_count = 0
@@ -609,6 +611,7 @@ class Simulation:
             self.envelope = self._list_envelope = 0.0
         # the list holds every pair within skin + envelope at the build; it is rebuilt when particles
         # may have moved more than the skin, so every pair within the envelope is always listed
+        self._skin_override = None
         self._list_skin = self.skin + self._list_envelope
         self._ghost_width_base = 2.0 * r_max
         self._ghost_width = self._ghost_width_base + self._list_skin
@@ -1156,9 +1159,8 @@ class Simulation:
         walls = self._wall_list
         moving = self.contact_store.moving
         wall_disp = max((walls[k].displacement_since_build() for k in moving), default=0.0)
-        return any_rank(
-            self.comm, self._force_rebuild or 2.0 * disp > self.skin or disp + wall_disp > self.skin
-        )
+        skin = self.skin if self._skin_override is None else self._skin_override
+        return any_rank(self.comm, self._force_rebuild or 2.0 * disp > skin or disp + wall_disp > skin)
 
     # ------------------------------------------------------------------ the integrator's API
     # What an Integrator (pdem.integrate) calls during a step; plugins implementing a new method use
@@ -1345,11 +1347,18 @@ class Simulation:
 
             forward(self, positions=positions)
 
-    def set_list_reach(self, envelope: float, force: bool = True) -> None:
+    def set_list_reach(self, envelope: float, force: bool = True, skin: float | None = None) -> None:
         """Make the neighbour list reach ``skin + envelope`` (DEM-C's collision envelope); a wider
-        reach needs a rebuild (``force``) and, under MPI, wider ghost layers and subdomains."""
+        reach needs a rebuild (``force``) and, under MPI, wider ghost layers and subdomains. ``skin``:
+        the skin of the lists built from now on, which the rebuild test then uses (e.g. 0 when the
+        method knows the next step must rebuild anyway; the list then holds exactly the pairs within
+        ``envelope``); ``None`` keeps the current one; :attr:`skin` restores the simulation's."""
+        if skin is not None:
+            if not (skin >= 0.0 and math.isfinite(skin)):
+                raise InputError(f"set_list_reach: skin = {skin!r} is invalid; give a non-negative distance")
+            self._skin_override = None if skin == self.skin else float(skin)
         self._list_envelope = envelope
-        self._list_skin = self.skin + envelope
+        self._list_skin = (self.skin if self._skin_override is None else self._skin_override) + envelope
         self._ghost_width = self._ghost_width_base + self._list_skin
         if self._decomp is not None:
             self._decomp.widen(self._ghost_width)

@@ -308,12 +308,17 @@ class Stepper(Integrator):
 
         def narrow() -> None:
             # at a rebuild the list's reach follows the grains' speed down again (fewer pairs), with
-            # room for the envelope to grow by a quarter before it forces a rebuild; none when the
-            # fastest grain travels more than half the skin per step (need = 2.5 × its travel), since
-            # the skin then makes the next step rebuild anyway: the DEM-C hopper's discharge rebuilds
-            # at every step, and its list held a third more pairs for nothing (serial run 1.3 s slower)
-            headroom = 1.0 if 0.8 * need > sim.skin else 1.25
-            sim.set_list_reach(max(headroom * need, self._base_envelope), force=False)
+            # room for the envelope to grow by a quarter before it forces a rebuild, and the skin
+            # for the grains' travel. Neither when the fastest grain travels more than half the skin
+            # per step (need = 2.5 × its travel): the skin then makes the next step rebuild anyway,
+            # so the list is built without skin (the next step rebuilds, as it would have) and holds
+            # just the pairs within this step's envelope. The DEM-C hopper's discharge rebuilds at
+            # every step; its list held half again as many pairs for nothing
+            fast = 0.8 * need > sim.skin
+            sim.set_list_reach(
+                max((1.0 if fast else 1.25) * need, self._base_envelope), force=False,
+                skin=0.0 if fast else sim.skin,
+            )  # fmt: skip
 
         sim.update_neighbours(before_rebuild=narrow)
         bodies = self._bodies = self._free_bodies()
