@@ -67,12 +67,18 @@ def _acc_add(acc, bits):
         ex = 1  # subnormal
     else:
         mi |= np.int64(1) << 52
-    sgn = np.int64(-1) if bits < 0 else np.int64(1)
-    p = ex - 1075 + _OFFSET  # |x| = mi 2^(p − OFFSET)
+    _acc_add_digits(acc, np.int64(-1) if bits < 0 else np.int64(1), mi, ex)
+
+
+@njit(inline="always")
+def _acc_add_digits(acc, sgn, a, ex):
+    """acc += sgn a 2^(ex − 1075) exactly, for 0 ≤ a < 2⁶³: a split into the three 32-bit digits it
+    spans (a shifted by up to 31 bits has at most 94)."""
+    p = ex - 1075 + _OFFSET  # a 2^(ex − 1075) = a 2^(p − OFFSET)
     k = p >> 5
     s = p & 31
-    d0 = (mi & ((np.int64(1) << (32 - s)) - 1)) << s
-    rest = mi >> (32 - s)
+    d0 = (a & ((np.int64(1) << (32 - s)) - 1)) << s
+    rest = a >> (32 - s)
     acc[k] += sgn * d0
     acc[k + 1] += sgn * (rest & 0xFFFFFFFF)
     acc[k + 2] += sgn * (rest >> 32)
@@ -185,15 +191,7 @@ def exact_add_many(acc, bins, x, m):
             continue
         bins[e] = 0
         sgn = np.int64(-1) if v < 0 else np.int64(1)
-        a = v * sgn  # |v| < 2⁶³: at most 1024 terms below 2⁵³
-        p = e - 1075 + _OFFSET  # |v| 2^(e − 1075) = a 2^(p − OFFSET)
-        k = p >> 5
-        sh = p & 31
-        d0 = (a & ((np.int64(1) << (32 - sh)) - 1)) << sh
-        rest = a >> (32 - sh)
-        acc[k] += sgn * d0
-        acc[k + 1] += sgn * (rest & 0xFFFFFFFF)
-        acc[k + 2] += sgn * (rest >> 32)
+        _acc_add_digits(acc, sgn, v * sgn, e)  # |v| < 2⁶³: at most 1024 terms below 2⁵³
     return special
 
 
