@@ -342,6 +342,7 @@ class Runner:
 
     # ---------------------------------------------------------------------------- measuring
     def measurements(self) -> dict[str, float]:
+        self.sim.check_deferred()  # the last step's check first (the loop defers it: _run_stage)
         out: dict[str, float] = {}
         for name, b in self.boundaries.items():
             for key, val in b.measurements(self.sim).items():
@@ -395,6 +396,7 @@ class Runner:
         """One row of ``series_<stage>.csv`` (collective); a step already written is not repeated
         (a stage's last step that is also on the series cadence, a resumed run's first step)."""
         sim = self.sim
+        sim.check_deferred()
         if self._last_series_step.get(stage) == sim.step_count:
             return
         self._last_series_step[stage] = sim.step_count
@@ -500,6 +502,7 @@ class Runner:
 
     def _write_frame(self, stage: str) -> None:
         """A snapshot for every writer that has none at this step yet (collective)."""
+        self.sim.check_deferred()
         step = self.sim.step_count
         gathered = [w for w in self._gathered_writers if self._last_frame.get(id(w)) != step]
         per_rank = [w for w in self._per_rank_writers if self._last_frame.get(id(w)) != step]
@@ -531,6 +534,7 @@ class Runner:
 
     def _checkpoint(self, stage_index: int, stage_start: tuple[float, int], started: bool = True) -> Path:
         sim = self.sim
+        sim.check_deferred()  # a checkpoint holds only a checked state
         stages = self.deck.stages
         meta = {
             "deck": self.deck_text,
@@ -1051,6 +1055,7 @@ class Runner:
             in_stage = sim.step_count - stage_start[1]
             done = target_steps is not None and in_stage >= target_steps
             if not done and in_stage > 0 and in_stage % check_every == 0:
+                sim.check_deferred()
                 if (
                     end.kinetic_energy_below is not None
                     and sum(sim.kinetic_energy()) < end.kinetic_energy_below
@@ -1087,7 +1092,10 @@ class Runner:
                 self._checkpoint(index, stage_start)
                 return False
             t_before = sim.time
-            sim.step()  # runs the boundaries' hooks
+            # runs the boundaries' hooks; the step's stability check rides on the next step's list
+            # test (one collective a step less on several ranks), or comes first in whatever reads
+            # or writes the state before it (series, frames, checkpoints, measurements, thermo)
+            sim.step(defer_check=True)
             in_stage = sim.step_count - stage_start[1]
             if series_dt is not None:
                 if _intervals(sim.time, stage_start[0], series_dt, sim.dt) > _intervals(
@@ -1118,6 +1126,7 @@ class Runner:
         every = getattr(out, "thermo_every", None)
         if not every or self.sim.step_count % every:
             return
+        self.sim.check_deferred()
         from .deck.schema import THERMO_DEFAULT
 
         keys = list(getattr(out, "thermo", None) or THERMO_DEFAULT)

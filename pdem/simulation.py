@@ -45,7 +45,7 @@ from .errors import GeometryError, InputError, InstabilityError, PdemError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor import _kernels as nk
-from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank
+from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank, any_ranks
 from .parallel.exact import exact_sum, global_count
 from .plugins import load_contact_law
 from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, dof_mask
@@ -131,6 +131,9 @@ class Simulation:
         self._next_id = 0
         self._prepared = False
         self._force_rebuild = False
+        # a step's kernel flags left for the next collective (step(defer_check=True)); None: none
+        self._pending_flags: int | None = None
+        self._defer_check = False
         self.dt_critical = math.nan
         #: live step bound from the contacts' stiffness (pdem.contact.stability), checked every this
         #: many steps for penalty laws that support it (0: never), and at steps 1, 2, 4, … below it
@@ -729,6 +732,7 @@ class Simulation:
         step. Independent of the storage order and (with MPI) of the number of ranks."""
         if not self._prepared:
             self._prepare()
+        self.check_deferred()  # a checkpoint holds only a checked state
         p = self.particles
         n = p.n_owned
         live = p.motion[:n] != REMOVED
@@ -1160,7 +1164,16 @@ class Simulation:
         moving = self.contact_store.moving
         wall_disp = max((walls[k].displacement_since_build() for k in moving), default=0.0)
         skin = self.skin if self._skin_override is None else self._skin_override
-        return any_rank(self.comm, self._force_rebuild or 2.0 * disp > skin or disp + wall_disp > skin)
+        need = self._force_rebuild or 2.0 * disp > skin or disp + wall_disp > skin
+        pending = self._pending_flags
+        if pending is None:
+            return any_rank(self.comm, need)
+        # the last step's flags ride on this reduction (step(defer_check=True)): one collective a step
+        self._pending_flags = None
+        need, unstable = any_ranks(self.comm, need, pending != 0)
+        if unstable:
+            self._raise_for_flags(pending)
+        return need
 
     # ------------------------------------------------------------------ the integrator's API
     # What an Integrator (pdem.integrate) calls during a step; plugins implementing a new method use
@@ -1266,26 +1279,52 @@ class Simulation:
         self._force_time += seconds
 
     # ------------------------------------------------------------------ the time step
-    def step(self) -> None:
+    def step(self, defer_check: bool = False) -> None:
         """Advance one time step: the boundaries' ``before_step`` hooks, the integrator's step (DEM-P
-        velocity Verlet or the law's own, e.g. DEM-C), the ``after_step`` hooks."""
+        velocity Verlet or the law's own, e.g. DEM-C), the ``after_step`` hooks.
+
+        ``defer_check``: on several ranks, the step's stability check (its kernels' flags, a
+        collective) is left to the next step's neighbour-list test, which then makes one reduction
+        of both; the error, if any, is raised there, naming this step. Call :meth:`check_deferred`
+        before reading or writing the state in between (``run`` and the deck runner do). A serial
+        run, a step with ``after_step`` hooks or a stiffness check checks at once."""
         if not self._prepared:
             self._prepare()
         if self._hooks["before_step"]:
+            self.check_deferred()  # the hooks see a checked state
             self._run_hooks("before_step")
-        self.integrator.step()
+        self._defer_check = defer_check and self.comm.size > 1 and not self._hooks["after_step"]
+        try:
+            self.integrator.step()
+        finally:
+            self._defer_check = False
         if self._hooks["after_step"]:
             self._run_hooks("after_step")
 
     def finish_step(self, flags: int) -> None:
         """End of an integrator's step: advance time and the step counter, then turn the kernels'
-        flags into an error on every rank alike (collective)."""
+        flags into an error on every rank alike (collective; left to the next step's list test under
+        ``step(defer_check=True)``)."""
+        self.check_deferred()  # an integrator that skipped update_neighbours left them unchecked
         self.time += self._dt
         self.step_count += 1
-        self.check_flags(flags)
         every, n = self.stiffness_every, self.step_count
-        if every and (n % every == 0 or (n < every and n & (n - 1) == 0)):
+        stiffness_due = every and (n % every == 0 or (n < every and n & (n - 1) == 0))
+        if self._defer_check and not stiffness_due:
+            self._pending_flags = int(flags)
+        else:
+            self.check_flags(flags)
+        if stiffness_due:
             self.check_stiffness()
+
+    def check_deferred(self) -> None:
+        """Raise, on every rank, the error of the last step if its check was deferred
+        (``step(defer_check=True)``) and any rank's kernels flagged a problem (collective, and a
+        no-op on every rank when nothing is deferred)."""
+        pending = self._pending_flags
+        if pending is not None:
+            self._pending_flags = None
+            self.check_flags(pending)
 
     def check_stiffness(self) -> float:
         """The step the contact network bears now (:func:`pdem.contact.stability.step_bound`),
@@ -1388,9 +1427,11 @@ class Simulation:
         if steps < 0:
             raise InputError(f"run: steps = {steps} must be ≥ 0")
         for k in range(steps):
-            self.step()
-            if callback is not None and (k + 1) % every == 0:
+            due = callback is not None and (k + 1) % every == 0
+            self.step(defer_check=not due)  # a step handed to the callback is checked at once
+            if due:
                 callback(self)
+        self.check_deferred()
         return self
 
     def check_flags(self, flags: int) -> None:

@@ -119,3 +119,30 @@ def test_per_rank_output_continued_on_another_rank_count(tmp_path):
     assert len(a[1]) > 0 and np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
     for key in ("id_i", "id_j", "force", "normal_force", "overlap"):
         assert np.array_equal(a[2][key], b[2][key]), key
+
+
+def test_instability_reported_alike_on_1_and_2_ranks(tmp_path):
+    """The deck runner defers each step's stability check to the next step's list test (one
+    collective a step less) and checks first in whatever writes the state: a run that blows up fails
+    on 1 and 2 ranks with the same error at the same step, and its series ends at the same row."""
+    from test_cli import SMALL
+
+    text = SMALL.replace("dt = 2e-6", "dt = 2e-5\nforce_dt = true\nstiffness_limit = 0").replace(
+        "velocity = [0.0, 0.0, -0.2]", "velocity = [0.0, 0.0, -3.0]"
+    ).replace("series_every_steps = 50", "series_every_steps = 1")
+    deck = tmp_path / "deck.toml"
+    deck.write_text(text)
+    found = {}
+    for ranks in (1, 2):
+        out = tmp_path / f"out{ranks}"
+        cmd = [MPIEXEC, "-n", str(ranks), sys.executable, "-m", "pdem.cli", str(deck), "--output", str(out),
+               "--quiet"]  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 3, proc.stderr[-3000:]
+        assert "Traceback" not in proc.stderr
+        msg = proc.stderr.split("the run became unstable at step ")[1]
+        rows = (out / "series_drop.csv").read_text().splitlines()
+        found[ranks] = (int(msg.split()[0]), int(rows[-1].split(",")[1]), len(rows))
+    assert found[1] == found[2], found
+    at, last, _ = found[1]
+    assert at > 5 and last == at - 1  # a row at every step up to the failed one, which has none

@@ -344,3 +344,72 @@ def test_particles_added_after_a_run_identical_on_1_2_3_ranks(tmp_path):
         assert proc.returncode == 0, proc.stderr[-2000:]
         out[n] = proc.stdout.split()
     assert out[1][0] == out[2][0] == out[3][0]
+
+
+_UNSTABLE_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    import numpy as np, pdem
+    from pdem.boundaries.shapes import Plane
+    from pdem.errors import InstabilityError
+    from pdem.parallel.comm import default_comm
+    comm = default_comm()
+    steps, every = int(sys.argv[1]), int(sys.argv[2])
+    sim = pdem.Simulation(comm=comm)
+    sim.add_material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.3,
+                     friction=0.4)
+    g = np.stack(np.meshgrid(np.arange(8), np.arange(3), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    sim.add_particles(g * 2.1e-3 + [1e-3, 1e-3, 1e-3], 1e-3)
+    # a projectile at 50 m/s, a radius a step: its first contact overlaps past max_overlap
+    sim.add_particles(np.array([[8.35e-3, 3.1e-3, 0.06]]), 1e-3, velocities=np.array([[0.0, 0.0, -50.0]]))
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)))
+    sim.gravity = (0.0, 0.0, -9.81)
+    sim.dt = 2e-5
+    seen = []
+    try:
+        sim.run(steps=steps, callback=lambda s: seen.append(s.step_count), every=every)
+        line = f"{comm.rank} ran {sim.step_count}"
+    except InstabilityError as exc:
+        at = str(exc).split("at step ")[1].split()[0]
+        line = f"{comm.rank} raised {at} {sim.step_count} {len(seen)} {seen[-1] if seen else -1}"
+    lines = comm.allgather(line)  # every rank is here (an error is raised on all ranks alike)
+    if comm.rank == 0:
+        print("\\n".join(lines))
+    """
+)
+
+
+@pytest.mark.parametrize("steps,every", [(200, 1), (200, 7), (200, 500)])
+def test_instability_raised_at_the_same_step_on_1_2_3_ranks(tmp_path, steps, every):
+    """A step's stability check is deferred to the next step's list test on several ranks
+    (Simulation.step(defer_check=True), which run() uses between callbacks): the error names the
+    same step on every rank count, every rank raises it, and no callback sees the failed step."""
+    script = tmp_path / "unstable.py"
+    script.write_text(_UNSTABLE_SCRIPT)
+    found = {}
+    for n in (1, 2, 3):
+        proc = subprocess.run([MPIEXEC, "-n", str(n), sys.executable, str(script), str(steps), str(every)],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        lines = sorted(proc.stdout.split("\n")[:-1])
+        assert len(lines) == n and all(ln.split()[1] == "raised" for ln in lines), proc.stdout
+        found[n] = {tuple(ln.split()[2:]) for ln in lines}
+        assert len(found[n]) == 1, found  # every rank raised the same error at the same point
+    at, count, calls, last = (int(v) for v in next(iter(found[1])))
+    assert found[2] == found[3] == found[1]
+    assert 20 < at < steps and count == at
+    assert calls == (at - 1) // every and last < at  # the failed step was never handed to a callback
+
+
+def test_instability_on_the_last_step_is_raised_by_run(tmp_path):
+    """A run that ends on the failed step still raises (run() checks what it deferred)."""
+    script = tmp_path / "unstable.py"
+    script.write_text(_UNSTABLE_SCRIPT)
+    proc = subprocess.run([MPIEXEC, "-n", "1", sys.executable, str(script), "200", "500"],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    at = int(proc.stdout.split()[2])
+    proc = subprocess.run([MPIEXEC, "-n", "2", sys.executable, str(script), str(at), "500"],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.split("\n")[:-1]
+    assert len(lines) == 2 and all(ln.split()[1:3] == ["raised", str(at)] for ln in lines), proc.stdout

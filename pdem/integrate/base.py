@@ -11,7 +11,9 @@ uses only public members of :class:`~pdem.Simulation`:
 * ``sim.advance_walls(dt)``, ``sim.update_neighbours(before_rebuild)``, ``sim.forward_ghosts(positions)``,
   ``sim.compute_forces()`` (contacts + boundary forces), ``sim.external_forces()`` (boundary forces
   only), ``sim.record_wall_loads()``, ``sim.add_work_time(s)``, ``sim.finish_step(flags)``
-  (time, step counter, collective error check).
+  (time, step counter, collective error check; under ``Simulation.step(defer_check=True)`` on
+  several ranks the check rides on the next step's ``update_neighbours``, so an integrator calls
+  that once per step, before any other collective that needs a checked state).
 
 ``step`` must end with ``sim.finish_step(flags)``. The boundaries' ``before_step``/``after_step``
 hooks run around it (``Simulation.step``); ``apply_forces`` hooks run inside ``compute_forces`` /

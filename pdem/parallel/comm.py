@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "SerialComm", "default_comm", "any_rank", "all_max", "all_min", "all_max_array", "all_sum_int_array",
+    "SerialComm", "default_comm", "any_rank", "any_ranks", "all_max", "all_min", "all_max_array",
+    "all_sum_int_array",
 ]
 
 
@@ -68,6 +69,16 @@ def any_rank(comm, flag: bool) -> bool:
     recv = np.empty(1, dtype=np.int32)
     comm.Allreduce(send, recv, op=_mpi_op("MAX"))
     return bool(recv[0])
+
+
+def any_ranks(comm, *flags: bool) -> tuple[bool, ...]:
+    """:func:`any_rank` of several flags in one reduction (collective)."""
+    if comm.size == 1:
+        return tuple(bool(f) for f in flags)
+    send = np.array([1 if f else 0 for f in flags], dtype=np.int32)
+    recv = np.empty_like(send)
+    comm.Allreduce(send, recv, op=_mpi_op("MAX"))
+    return tuple(bool(r) for r in recv)
 
 
 def all_max(comm, value: float) -> float:
