@@ -561,3 +561,40 @@ def test_checkpoint_state_before_any_bound_is_finite(law):
     other.load_state(state)
     assert other.stiffness["min_dt"] == math.inf
     assert other.stiffness["checks"] == sim.stiffness["checks"]  # 0 with DEM-C; steps 1, 2, 4, 8, 16
+
+
+def test_touching_pairs_kernel_matches_the_vectorised_geometry():
+    """network_bound's pair filter (a numba loop since session 23) gives the contacts, overlaps,
+    normals and normal velocities of a vectorised reference with the force loops' arithmetic
+    (|d|² = dx² + dy² + dz², left to right), bit for bit and in the pair order given, on a random
+    cloud with massless grains and a shuffled pair order."""
+    from pdem.contact.stability import _touching_pairs
+
+    rng = np.random.default_rng(5)
+    n = 400
+    x = rng.uniform(0.0, 0.01, (n, 3))
+    v = rng.normal(0.0, 0.5, (n, 3))
+    r = rng.uniform(0.4e-3, 0.6e-3, n)
+    inv_m = np.where(rng.random(n) < 0.1, 0.0, rng.uniform(1e3, 2e3, n))
+    i, j = np.triu_indices(n, 1)
+    near = np.flatnonzero(np.linalg.norm(x[j] - x[i], axis=1) < 1.6e-3)
+    pi, pj = i[near], j[near]
+    order = rng.permutation(pi.size).astype(np.int64)
+    a_, b_ = pi[order], pj[order]
+    d = x[b_] - x[a_]
+    dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+    overlap = r[a_] + r[b_] - dist
+    touch = np.flatnonzero(overlap > 0.0)
+    touch = touch[inv_m[a_[touch]] + inv_m[b_[touch]] > 0.0]
+    nrm_ref = d[touch] / dist[touch, None]
+    dv = v[b_[touch]] - v[a_[touch]]
+    vn_ref = dv[:, 0] * nrm_ref[:, 0] + dv[:, 1] * nrm_ref[:, 1] + dv[:, 2] * nrm_ref[:, 2]
+    assert 50 < touch.size < pi.size and np.any(inv_m[a_[touch]] == 0.0)
+    m_ = pi.size
+    rows, ov, nrm, vn = np.empty(m_, np.int64), np.empty(m_), np.empty((m_, 3)), np.empty(m_)
+    m = _touching_pairs(order, pi, pj, x, v, r, inv_m, rows, ov, nrm, vn)
+    assert m == touch.size
+    assert np.array_equal(rows[:m], order[touch])
+    assert np.array_equal(ov[:m], overlap[touch])
+    assert np.array_equal(nrm[:m], nrm_ref)
+    assert np.array_equal(vn[:m], vn_ref)
