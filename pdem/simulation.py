@@ -1172,7 +1172,7 @@ class Simulation:
         self._pending_flags = None
         need, unstable = any_ranks(self.comm, need, pending != 0)
         if unstable:
-            self._raise_for_flags(pending)
+            self._raise_for_flags(pending, drifted=self.law.kind != "complementarity")
         return need
 
     # ------------------------------------------------------------------ the integrator's API
@@ -1440,7 +1440,10 @@ class Simulation:
         if any_rank(self.comm, flags != 0):
             self._raise_for_flags(flags)
 
-    def _raise_for_flags(self, flags: int) -> None:
+    def _raise_for_flags(self, flags: int, drifted: bool = False) -> None:
+        """The error for the kernels' ``flags`` (collective). ``drifted``: raised from the next
+        step's rebuild test (a deferred check), after velocity Verlet's drift: the overlap
+        quoted is the one found then."""
         worst, who = self._global_worst_overlap()
         if self.comm.size > 1:
             flags = int(self.comm.allreduce(flags, op=_bor()))
@@ -1468,9 +1471,11 @@ class Simulation:
                 "well enough; reduce dt, raise contact.complementarity.max_iterations or lower "
                 "contact.complementarity.tolerance, or check the initial overlaps and prescribed velocities"
             )
+        drift_note = " after the next step's drift" if drifted else ""
         raise InstabilityError(
             f"the run became unstable at step {self.step_count} (t = {self.time:.6g} s): "
-            f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius, {who}. "
+            f"{' and '.join(causes)}; largest overlap {worst:.3g} of the radius"
+            f"{drift_note}, {who}. "
             f"dt = {self.dt:.4g} s, stability estimate {self.dt_critical:.4g} s; reduce dt (0.1–0.3 of "
             "the estimate), soften the material, or check the initial overlaps and prescribed velocities"
         )

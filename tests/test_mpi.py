@@ -371,7 +371,8 @@ _UNSTABLE_SCRIPT = textwrap.dedent(
         line = f"{comm.rank} ran {sim.step_count}"
     except InstabilityError as exc:
         at = str(exc).split("at step ")[1].split()[0]
-        line = f"{comm.rank} raised {at} {sim.step_count} {len(seen)} {seen[-1] if seen else -1}"
+        drift = "drift" in str(exc)
+        line = f"{comm.rank} raised {at} {sim.step_count} {len(seen)} {seen[-1] if seen else -1} {drift}"
     lines = comm.allgather(line)  # every rank is here (an error is raised on all ranks alike)
     if comm.rank == 0:
         print("\\n".join(lines))
@@ -386,17 +387,22 @@ def test_instability_raised_at_the_same_step_on_1_2_3_ranks(tmp_path, steps, eve
     same step on every rank count, every rank raises it, and no callback sees the failed step."""
     script = tmp_path / "unstable.py"
     script.write_text(_UNSTABLE_SCRIPT)
-    found = {}
+    found, drifts = {}, {}
     for n in (1, 2, 3):
         proc = subprocess.run([MPIEXEC, "-n", str(n), sys.executable, str(script), str(steps), str(every)],
                               capture_output=True, text=True, timeout=300)  # fmt: skip
         assert proc.returncode == 0, proc.stderr[-2000:]
         lines = sorted(proc.stdout.split("\n")[:-1])
         assert len(lines) == n and all(ln.split()[1] == "raised" for ln in lines), proc.stdout
-        found[n] = {tuple(ln.split()[2:]) for ln in lines}
+        found[n] = {tuple(ln.split()[2:6]) for ln in lines}
         assert len(found[n]) == 1, found  # every rank raised the same error at the same point
+        drifts[n] = {ln.split()[6] for ln in lines}
     at, count, calls, last = (int(v) for v in next(iter(found[1])))
     assert found[2] == found[3] == found[1]
+    # a deferred check (several ranks, no callback at the failed step) says that the overlap it
+    # quotes was found after the next step's drift
+    deferred = at % every != 0
+    assert drifts == {1: {"False"}, 2: {str(deferred)}, 3: {str(deferred)}}, (at, every, drifts)
     assert 20 < at < steps and count == at
     assert calls == (at - 1) // every and last < at  # the failed step was never handed to a callback
 
@@ -413,3 +419,4 @@ def test_instability_on_the_last_step_is_raised_by_run(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = proc.stdout.split("\n")[:-1]
     assert len(lines) == 2 and all(ln.split()[1:3] == ["raised", str(at)] for ln in lines), proc.stdout
+    assert all(ln.split()[6] == "False" for ln in lines)  # run()'s own last check: nothing drifted
