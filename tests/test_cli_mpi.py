@@ -146,3 +146,28 @@ def test_instability_reported_alike_on_1_and_2_ranks(tmp_path):
     assert found[1] == found[2], found
     at, last, _ = found[1]
     assert at > 5 and last == at - 1  # a row at every step up to the failed one, which has none
+
+
+def test_series_identical_on_1_and_3_ranks(tmp_path):
+    """Every measured column of a series, wall contact counts included (each rank counts its own:
+    they are summed over ranks), is the same on 1 and 3 ranks; only the balancing columns differ."""
+    from test_cli import SMALL
+
+    deck = tmp_path / "deck.toml"
+    # long enough for the grains to spread to the side walls on every rank
+    text = SMALL.replace("steps = 300", "steps = 3000")
+    deck.write_text(text.replace("series_every_steps = 50", "series_every_steps = 500"))
+    series = {}
+    for ranks in (1, 3):
+        out = tmp_path / f"out{ranks}"
+        cmd = [MPIEXEC, "-n", str(ranks), sys.executable, "-m", "pdem.cli", str(deck), "--output", str(out),
+               "--quiet"]  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        lines = (out / "series_rest.csv").read_text().splitlines()
+        header = lines[0].split(",")
+        keep = [k for k, name in enumerate(header) if not name.startswith(("imbalance", "rebalances"))]
+        series[ranks] = [[row.split(",")[k] for k in keep] for row in lines]
+        contacts = [k for k, name in enumerate(header) if name.endswith("contacts")]
+        assert contacts and any(float(lines[-1].split(",")[k]) > 0 for k in contacts)
+    assert series[1] == series[3]

@@ -132,13 +132,14 @@ class Boundary:
         """Called after every step of a stage in which the boundary is active."""
 
     def measurements(self, sim: Any) -> dict[str, float]:
-        """Scalars for the time series; default: force and contact count of each own wall."""
+        """Scalars for the time series; default: force and contact count of each own wall, both
+        over all ranks (collective)."""
         out: dict[str, float] = {}
         for wall in self.walls:
             prefix = "" if len(self.walls) == 1 else wall.name.split(".", 1)[-1] + "."
             f = wall.force
             out[prefix + "fx"], out[prefix + "fy"], out[prefix + "fz"] = (float(c) for c in f)
-            out[prefix + "contacts"] = float(wall.n_contacts)
+            out[prefix + "contacts"] = float(sim.count(int(wall.n_contacts)))  # n_contacts: this rank's
         return out
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:

@@ -352,7 +352,7 @@ class ShearBox(Boundary):
             "height": h,
             "dilation": h - self.height0 if self.height0 is not None else 0.0,
             "outside": float(self._outside(sim)),
-            "plate_contacts": float(self.plate.n_contacts),
+            "plate_contacts": float(sim.count(int(self.plate.n_contacts))),  # collective
             "inertial": inertial,
             "plane_normal_force": n_plane,
             "plane_normal_stress": n_plane / ((p.length - u) * p.width),
