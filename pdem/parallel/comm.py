@@ -7,6 +7,7 @@ of collective operations pdem uses.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -74,17 +75,31 @@ def any_ranks(comm, *flags: bool) -> tuple[bool, ...]:
 
 
 def all_max(comm, value: float) -> float:
-    """Maximum of ``value`` over ranks (exact, hence partition-independent)."""
+    """Maximum of ``value`` over ranks (exact, hence partition-independent); NaN if it is NaN on
+    any rank."""
     if comm.size == 1:
         return value
-    return comm.allreduce(value, op=_mpi_op("MAX"))
+    return _all_extreme(comm, float(value), 1.0)
 
 
 def all_min(comm, value: float) -> float:
-    """Minimum of ``value`` over ranks (exact, hence partition-independent)."""
+    """Minimum of ``value`` over ranks (exact, hence partition-independent); NaN if it is NaN on
+    any rank."""
     if comm.size == 1:
         return value
-    return comm.allreduce(value, op=_mpi_op("MIN"))
+    return _all_extreme(comm, float(value), -1.0)
+
+
+def _all_extreme(comm, value: float, sign: float) -> float:
+    """max (``sign`` 1) or min (−1, as −max(−v)) in a two-double buffer ``Allreduce``: the value, NaN
+    sent as −inf, and a NaN flag. The object ``allreduce`` it replaces pickled both ways (~45 µs a
+    call against ~8 on 2 ranks; DEM-C calls it at every Jacobi residual check) and kept the NaN or
+    not depending on the order in which MPI combined the ranks."""
+    nan = value != value
+    send = np.array([-math.inf if nan else sign * value, 1.0 if nan else 0.0])
+    recv = np.empty(2)
+    comm.Allreduce(send, recv, op=_mpi_op("MAX"))
+    return math.nan if recv[1] else sign * float(recv[0])
 
 
 def all_max_array(comm, values: np.ndarray) -> np.ndarray:
