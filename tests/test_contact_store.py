@@ -55,3 +55,25 @@ def test_rows_received_in_one_pass_go_on_with_their_particle():
     assert sorted(out["pair_keys"].tolist()) == [_key(1, 2), _key(3, 4)]
     assert out["wall_keys"].tolist() == [_key(0, 4)]
     assert out["wall_hist"].tolist() == [[7, 7]]
+
+
+def test_keys_with_ids_is_isin_on_the_key_halves():
+    """The migration's row selection (pdem.neighbor._kernels.keys_with_ids) against np.flatnonzero
+    of np.isin on the low id, and on either id: random keys and id sets, ids at 0, near 2³¹ and at
+    the range ends, empty sets and lists."""
+    from pdem.neighbor import _kernels as nk
+
+    rng = np.random.default_rng(5)
+    for n_ids, span in [(0, 10), (1, 10), (3, 50), (40, 2000), (7, 2**31 - 1)]:
+        lo_ids = rng.integers(0, span, 3000)
+        hi_ids = lo_ids + rng.integers(1, 50, 3000)
+        hi_ids = np.minimum(hi_ids, 2**31 - 1)
+        keys = (lo_ids.astype(np.int64) << 32) | hi_ids
+        ids = rng.choice(np.concatenate([lo_ids[:20], hi_ids[:20], [0, span - 1]]), n_ids).astype(np.int64)
+        for high in (True, False):
+            want = np.isin(keys & 0xFFFFFFFF, ids)
+            if high:
+                want |= np.isin(keys >> 32, ids)
+            got = nk.keys_with_ids(keys, ids, high)
+            assert got.dtype == np.int64 and np.array_equal(got, np.flatnonzero(want)), (n_ids, span, high)
+    assert nk.keys_with_ids(np.zeros(0, np.int64), np.array([3], np.int64), True).shape == (0,)

@@ -216,11 +216,9 @@ class ContactStore:
     def rows_of(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """The history rows of every pair and wall contact of the particles ``ids`` (to send with
         them to another rank)."""
-        if ids.size and self.keys.size:
-            rows = np.isin(self.keys >> 32, ids) | np.isin(self.keys & _LOW, ids)
-        else:
-            rows = np.zeros(self.keys.shape[0], dtype=bool)
-        wrows = np.isin(self.wall_keys & _LOW, ids) if ids.size else np.zeros(self.wall_keys.shape[0], bool)
+        ids = np.asarray(ids, dtype=np.int64)
+        rows = nk.keys_with_ids(self.keys, ids, True)
+        wrows = nk.keys_with_ids(self.wall_keys, ids, False)
         out = {
             "pair_keys": self.keys[rows],
             "pair_hist": self.hist[rows],
@@ -231,10 +229,8 @@ class ContactStore:
         for kind, kname, hname in (("pair", "pair_keys", "pair_hist"), ("wall", "wall_keys", "wall_hist")):
             if ids.size and self._pending[kind]:
                 pk, ph = self._pending_rows(kind)
-                sel = np.isin(pk & _LOW, ids)
-                if kind == "pair":
-                    sel |= np.isin(pk >> 32, ids)
-                if sel.any():
+                sel = nk.keys_with_ids(pk, ids, kind == "pair")
+                if sel.size:
                     out[kname] = np.concatenate([out[kname], pk[sel]])
                     out[hname] = np.concatenate([out[hname], ph[sel]])
         return out
