@@ -159,3 +159,49 @@ def test_running_simulation_lists_every_touching_pair():
     assert checked["samples"] == 30
     assert checked["max_contacts"] > 100
     assert sim.n_rebuilds > 50
+
+
+CACHE_ORDER = """
+import sys
+import numpy as np
+from pdem.neighbor import _kernels as nk
+
+first = sys.argv[1]  # a process that compiles the other kernels of the module before build_pairs
+rng = np.random.default_rng(3)
+n = 400
+x = rng.uniform(0.0, 10.0, (n, 3))
+r = np.full(n, 0.5)
+ids = 1000 + rng.permutation(n).astype(np.int64)  # ids are not storage rows
+if first == "others":
+    keys = (ids[:50] << 32) | ids[50:100]
+    nk.keys_with_ids(keys, np.sort(ids[:10]), True)
+    nk.keys_with_ids(keys, np.sort(ids[:10]) + (1 << 20), False)
+    nk.carry_history(np.sort(keys), np.zeros((50, 3)), np.sort(keys), np.zeros((50, 3)))
+    nk.schedule_pairs(np.arange(5), np.arange(1, 6), 6)
+lo = x.min(axis=0) - 1e-12
+dims = np.maximum(((x.max(axis=0) - lo) / 1.2).astype(np.int64), 1)
+pi, pj, count = nk.build_pairs(x, r, ids, n, n, 0.2, lo, 1.0 / 1.2, dims, 64 * n)
+bi, bj = nk.brute_force_pairs(x, r, ids, n, 0.2)
+got = sorted(zip(ids[pi[:count]].tolist(), ids[pj[:count]].tolist()))
+want = sorted(zip(ids[bi].tolist(), ids[bj].tolist()))
+assert got == want, "build_pairs disagrees with brute force"
+"""
+
+
+def test_kernels_are_right_whichever_were_cached_by_an_earlier_process(tmp_path):
+    """numba names some internal helpers (its sort and argsort) alike in every module: a kernel
+    loaded from the cache into a process that has just compiled another kernel can call that
+    kernel's helper. This happened to build_pairs (np.argsort) after a migration compiled a
+    np.sort in keys_with_ids: it listed ids as storage rows on rank 1. One process caches
+    build_pairs, a second compiles the module's other kernels first, then loads build_pairs."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PDEM_NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    script = tmp_path / "order.py"
+    script.write_text(CACHE_ORDER)
+    for first in ("build_pairs", "others"):
+        out = subprocess.run([sys.executable, str(script), first], env=env, capture_output=True, text=True,
+                             timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]

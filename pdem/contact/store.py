@@ -216,7 +216,7 @@ class ContactStore:
     def rows_of(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """The history rows of every pair and wall contact of the particles ``ids`` (to send with
         them to another rank)."""
-        ids = np.asarray(ids, dtype=np.int64)
+        ids = np.sort(np.asarray(ids, dtype=np.int64))
         rows = nk.keys_with_ids(self.keys, ids, True)
         wrows = nk.keys_with_ids(self.wall_keys, ids, False)
         out = {

@@ -131,26 +131,29 @@ def pair_keys(pi, pj, ids):
 @njit
 def keys_with_ids(keys, ids, high):
     """Positions (ascending) of the ``keys`` (id_lo·2³² + id_hi) whose low id, or (``high``) either
-    id, is one of ``ids`` (ids ≥ 0): ``np.flatnonzero`` of ``np.isin`` on the halves, in one pass
-    over the keys with a flag per id up to the largest of ``ids`` (a binary search per key when
-    that is large). A migration sends a few particles' rows out of tens of thousands of keys:
-    ``np.isin`` made two passes per id and took ~70 % of a migration's packing."""
+    id, is one of ``ids`` (sorted ascending, ≥ 0): ``np.flatnonzero`` of ``np.isin`` on the halves,
+    in one pass over the keys with a flag per id up to the largest of ``ids`` (a binary search per
+    key when that is large). A migration sends a few particles' rows out of tens of thousands of
+    keys: ``np.isin`` made two passes per id and took ~70 % of a migration's packing.
+
+    No ``np.sort`` in here (the caller sorts): numba names its sort and argsort helpers alike, and
+    a cached ``build_pairs`` (argsort) loaded into a process that had just compiled a sort here
+    called the sort and listed ids as rows (tests/test_neighbor.py)."""
     out = np.empty(0, dtype=np.int64)
     if ids.shape[0] == 0 or keys.shape[0] == 0:
         return out
-    top = ids.max()
+    top = ids[ids.shape[0] - 1]
     m = 0
     if top >= max(4 * keys.shape[0], 1 << 16):  # large ids: a binary search per key
-        srt = np.sort(ids)
         hit = np.zeros(keys.shape[0], dtype=np.bool_)
         for k in range(keys.shape[0]):
             b = keys[k] & 0xFFFFFFFF
-            q = np.searchsorted(srt, b)
-            h = q < srt.shape[0] and srt[q] == b
+            q = np.searchsorted(ids, b)
+            h = q < ids.shape[0] and ids[q] == b
             if high and not h:
                 a = keys[k] >> 32
-                q = np.searchsorted(srt, a)
-                h = q < srt.shape[0] and srt[q] == a
+                q = np.searchsorted(ids, a)
+                h = q < ids.shape[0] and ids[q] == a
             hit[k] = h
             m += h
         out = np.empty(m, dtype=np.int64)
