@@ -103,13 +103,21 @@ def _pack(sim, idx: np.ndarray) -> dict:
 
 
 def _remove(sim, mask: np.ndarray) -> None:
+    """Drop the owned rows in ``mask`` (already packed): the staying rows past the first n − k
+    fill the leavers' rows, which end up behind the owned ones. Only those rows move (a stable
+    compaction had reordered every field of every particle, ~0.7 ms on 10,000 particles at each
+    migration with departures). Storage order never changes results; DEM-P re-sorts it in space
+    when its pairs drift apart, DEM-C sorts it by id (``Simulation._order_storage``)."""
     p = sim.particles
     n = p.n_owned
     k = int(mask.sum())
     if k == 0:
         return
-    sim.particles.permute(np.concatenate([np.flatnonzero(~mask), np.flatnonzero(mask)]))
-    p.n_owned = n - k
+    keep = n - k
+    holes = np.flatnonzero(mask[:keep])
+    movers = keep + np.flatnonzero(~mask[keep:n])
+    p.swap_rows(holes, movers)
+    p.n_owned = keep
 
 
 def _unpack(sim, parcel: dict) -> None:

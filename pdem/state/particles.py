@@ -260,6 +260,17 @@ class ParticleStore:
         """Copies of the rows ``idx`` of the named fields."""
         return {name: self._data[name][idx] for name in names}
 
+    def swap_rows(self, a: np.ndarray, b: np.ndarray) -> None:
+        """Exchange owned rows ``a[k]`` and ``b[k]`` (disjoint) in every field (no ghosts may be
+        present): a reordering that costs the rows moved, not the whole storage."""
+        if self.n_ghost:
+            raise RuntimeError("storage can only be permuted without ghosts")
+        if a.shape[0]:
+            for arr in self._data.values():
+                tmp = arr[a]
+                arr[a] = arr[b]
+                arr[b] = tmp
+
     def permute(self, perm: np.ndarray) -> None:
         """Reorder the owned particles in memory (no ghosts may be present)."""
         if self.n_ghost:
