@@ -189,10 +189,20 @@ def main(argv=None) -> int:
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        result = pdem_worker(args.worker, args.steps, args.order)
         from pdem.parallel.comm import default_comm
 
-        if default_comm().rank == 0:
+        comm = default_comm()
+        try:
+            result = pdem_worker(args.worker, args.steps, args.order)
+        except BaseException:
+            if comm.size > 1:  # an error on one rank must end the job, not leave the others waiting
+                import traceback
+
+                traceback.print_exc()
+                sys.stderr.flush()
+                comm.Abort(1)
+            raise
+        if comm.rank == 0:
             print(json.dumps(result))
         return 0
 
