@@ -16,8 +16,8 @@ import os
 #:   of one node by CMA (the receiver reads the sender's memory with process_vm_readv after a
 #:   rendezvous handshake). pdem's ghost forwards, sent at every step, are 10–100 KiB, and the
 #:   handshake made them cost twice what a copy through MPICH's shared-memory queue does: on the
-#:   18k column's 2 ranks 57–70 against 30–36 µs a forward, loop time 26.8 against 25.0 s (medians
-#:   of 3, 25,000 steps; README, *Column collapse*). CMA is kept for messages from 1 MiB.
+#:   18k column's 2 ranks 57–70 against 30–36 µs a forward, loop time 28.8 against 24.7 s (medians
+#:   of 3 alternating pairs, 25,000 steps; docs/dem_c.md, *Session 24*). CMA is kept for messages from 1 MiB.
 MPICH_DEFAULTS = {"MPIR_CVAR_CH4_IPC_CMA_P2P_THRESHOLD": str(1 << 20)}
 
 for _name, _value in MPICH_DEFAULTS.items():
