@@ -138,37 +138,14 @@ def test_max_nonneg_is_the_maximum_and_sees_nan():
         assert math.isnan(ck.max_nonneg(y, 1001))
 
 
-@pytest.mark.parametrize("t", [1e-7, 1e-5, 1e-3])
-def test_apgd_projected_step_without_rolling_is_the_row_by_row_projection(t):
-    """Rows of 4 take a branch-free loop; it must give ``project_cone`` row by row, bit for bit."""
-    rng = np.random.default_rng(17)
-    nc = 3000
-    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, 4)
-    gy = rng.normal(scale=1e-3, size=(nc, 4))
-    gy[::9] = 0.0
-    gy[::13, 1:] = -0.0  # signed zeros on the tangential rows
-    out = np.full((nc, 4), 9.0)
-    ck.project_step(gam, gy, t, cmu, croll, nc, out)
-    ref = np.array([ck.project_cone(*(gam[c] - t * gy[c]), cmu[c]) for c in range(nc)])
-    assert np.array_equal(out.view(np.int64), ref.view(np.int64))
-    inside = (ref[:, 0] > 0) & (np.linalg.norm(ref[:, 1:], axis=1) < cmu * ref[:, 0] * (1 - 1e-9))
-    moved = out[:, 0] != gam[:, 0] - t * gy[:, 0]  # projected onto the cone's surface or its apex
-    assert inside.sum() > 50 and (ref[:, 0] == 0.0).sum() > 50 and moved.sum() > 50
+def cols(a):
+    """Rows (nc, width) as APGD holds them: in columns, C-contiguous (width, nc)."""
+    return np.ascontiguousarray(a.T)
 
 
-@pytest.mark.parametrize("width", [4, 8])
-def test_apgd_trial_sums_are_exact_sums_of_the_row_dot_products(width):
-    """The trial's three sums, formed a block of rows at a time, against ``math.fsum`` of the rows'
-    dot products (each formed in double, in column order), on more rows than one block."""
-    rng = np.random.default_rng(23 + width)
-    nc = 1234
-    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, width)
-    scales = (1e-6, 1e-6, 1e-2, 1e-2, 1e-6)
-    g_new, y, u_new, gy, gam_k = (rng.normal(scale=s, size=(nc, width)) for s in scales)
-    y[::7] = g_new[::7]  # rows whose step is zero
-    rows = np.sort(rng.choice(nc, 1100, replace=False)).astype(np.int64)
-    args = (g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc)
-    p1, e1, p2, e2, p3, e3, res = ck.apgd_trial_sums(*args, False)
+def row_dots(g_new, y, u_new, gy, gam_k, croll, rows):
+    """A line-search trial's three dot products per row, each formed in double in component order
+    (rolling components only where the row has them): the reference of the column kernels."""
     d1, d2, d3 = [], [], []
     for c in rows:
         kmax = 8 if croll[c, 2] > 0.0 else 4
@@ -179,11 +156,117 @@ def test_apgd_trial_sums_are_exact_sums_of_the_row_dot_products(width):
             a2 += s * s
             a3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
         d1.append(a1), d2.append(a2), d3.append(a3)
-    for parts, special, terms in ((p1, e1, d1), (p2, e2, d2), (p3, e3, d3)):
+    return np.array(d1), np.array(d2), np.array(d3)
+
+
+@pytest.mark.parametrize("width", [4, 8])
+@pytest.mark.parametrize("t", [1e-7, 1e-5, 1e-3])
+def test_apgd_projected_step_is_the_row_by_row_projection(width, t):
+    """Π(y − t ũ(y)) on columns (rows of 4 through a branch-free loop) must give ``project_cone``
+    and the rolling clamps row by row (``project_cone_array``), bit for bit; ũ's normal row is held
+    apart from u's other rows. The trial's |γ − y|² and ũ(y)·(γ − γ_k) formed in the same pass are
+    the row formulas' bits."""
+    rng = np.random.default_rng(17 + width)
+    nc = 3000
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, width)
+    gy = rng.normal(scale=1e-3, size=(nc, width))
+    gy[::9] = 0.0
+    gy[::13, 1:] = -0.0  # signed zeros on the tangential rows
+    gyn = rng.normal(scale=1e-3, size=nc)  # ũ_n(y)
+    gyn[::9] = 0.0
+    gam_k = rng.normal(scale=1e-6, size=(nc, width))
+    out = np.full((width, nc), 9.0)
+    D2, D3 = np.full((2, nc), 9.0)
+    GY = cols(gy)
+    GY[0] = 7.0  # u's own normal row is not read: ũ_n comes from gyn
+    ck.apgd_project_step(cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out, D2, D3, True)
+    full = gy.copy()
+    full[:, 0] = gyn
+    ref = ck.project_cone_array(gam - t * full, cmu, croll)
+    assert np.array_equal(out.T.view(np.int64), ref.view(np.int64))
+    inside = (ref[:, 0] > 0) & (np.linalg.norm(ref[:, 1:4], axis=1) < cmu * ref[:, 0] * (1 - 1e-9))
+    moved = out[0] != gam[:, 0] - t * gyn  # projected onto the cone's surface or its apex
+    assert inside.sum() > 50 and (ref[:, 0] == 0.0).sum() > 50 and moved.sum() > 50
+    if width == 8:
+        assert np.any(out[4:] != 0.0) and np.all(out[4:, croll[:, 2] == 0.0] == 0.0)
+    _, d2, d3 = row_dots(ref, gam, full, full, gam_k, croll, range(nc))
+    assert np.array_equal(D2.view(np.int64), d2.view(np.int64))
+    assert np.array_equal(D3.view(np.int64), d3.view(np.int64))
+    out2 = np.full((width, nc), 9.0)
+    E2, E3 = np.full((2, nc), 5.0)
+    ck.apgd_project_step(cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out2, E2, E3, False)
+    assert np.array_equal(out2, out) and np.all(E2 == 5.0) and np.all(E3 == 5.0)  # no trial: not formed
+
+
+@pytest.mark.parametrize("width", [4, 8])
+@pytest.mark.parametrize("corrected", [True, False])
+def test_apgd_gather_trial_dot_and_residual_are_the_row_formulas(width, corrected):
+    """u = Dᵀv + b on columns is ``contact_velocities_raw`` row by row (rolling rows 0.0 where a
+    contact has none), ũ_n = u_n + μ|u_t|; the trial's (γ − y)·(ũ(γ) − ũ(y)) formed in the same pass
+    is the row formula's, the residual ``residual_max``'s; the extrapolated velocities are
+    u + β (u − u_k) and their ũ_n: all bit for bit."""
+    rng = np.random.default_rng(41 + width + 2 * corrected)
+    nc, n = 2000, 300
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, n, width)
+    uraw = np.full((nc, width), 5.0)
+    u = np.full((nc, width), 5.0)
+    ck.contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u, corrected)
+    y = rng.normal(scale=1e-6, size=(nc, width))
+    gy = rng.normal(scale=1e-2, size=(nc, width))
+    gyn = rng.normal(scale=1e-2, size=nc) if corrected else gy[:, 0].copy()
+    U = np.full((width, nc), 9.0)
+    UN = np.full(nc, 9.0)
+    D1 = np.full(nc, 9.0)
+    res = ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, cols(gam),
+                         cols(y), cols(gy), gyn, D1, True, True)  # fmt: skip
+    assert np.array_equal(U.T.view(np.int64), uraw.view(np.int64))
+    if corrected:
+        assert np.array_equal(UN.view(np.int64), u[:, 0].view(np.int64))
+        assert not np.array_equal(UN, U[0])
+    else:
+        assert np.all(UN == 9.0)  # not written
+    full_gy = gy.copy()
+    full_gy[:, 0] = gyn
+    ut = u if corrected else uraw  # ũ (the relaxed cone: u itself; contact_velocities_raw left u alone)
+    d1, _, _ = row_dots(gam, y, ut, full_gy, gam, croll, range(nc))
+    assert np.array_equal(D1.view(np.int64), d1.view(np.int64))
+    ref_res = ck.residual_max(gam, ut, cmu, cscale, croll, nc)
+    assert ref_res > 0.0 and res == ref_res
+    none = np.empty((width, 0))
+    D1[:] = 9.0
+    assert ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, cols(gam),
+                          none, none, gyn, D1, False, False) == math.inf  # fmt: skip
+    assert np.all(D1 == 9.0) and np.array_equal(U.T, uraw)
+    uk = rng.normal(size=(nc, width))
+    beta = 0.37
+    GY = np.empty((width, nc))
+    GYN = np.full(nc, 9.0)
+    ck.apgd_extrapolate_velocities(U, cols(uk), beta, cmu, nc, GY, GYN, corrected)
+    ref = uraw + beta * (uraw - uk)
+    assert np.array_equal(GY.T.view(np.int64), ref.view(np.int64))
+    if corrected:
+        ref_n = ref[:, 0] + cmu * np.sqrt(ref[:, 1] ** 2 + ref[:, 2] ** 2 + ref[:, 3] ** 2)
+        np.testing.assert_array_equal(GYN, ref_n)
+    Y = np.empty((width, nc))
+    ck.apgd_extrapolate(cols(gam), cols(uk), beta, nc, Y)
+    assert np.array_equal(Y.T.view(np.int64), (gam + beta * (gam - uk)).view(np.int64))
+
+
+@pytest.mark.parametrize("all_rows", [True, False])
+def test_apgd_trial_sums_are_exact_sums_of_the_per_contact_dot_products(all_rows):
+    """The trial's three sums over the counted rows (all, or a sorted subset as under MPI), on more
+    rows than one block, against ``math.fsum``; a non-finite term goes to the plain sum."""
+    rng = np.random.default_rng(23 + all_rows)
+    nc = 1234
+    D = rng.normal(size=(3, nc)) * np.exp(rng.uniform(-60, 10, (3, nc)))
+    rows = np.arange(nc) if all_rows else np.sort(rng.choice(nc, 1100, replace=False))
+    rows = rows.astype(np.int64)
+    p1, e1, p2, e2, p3, e3 = ck.apgd_trial_sums(D[0], D[1], D[2], rows, all_rows, nc)
+    for parts, special, terms in ((p1, e1, D[0]), (p2, e2, D[1]), (p3, e3, D[2])):
         assert special == 0.0
-        assert math.fsum(parts) == math.fsum(terms)
-    assert res == math.inf
-    assert ck.apgd_trial_sums(*args, True)[6] == ck.residual_max(g_new, u_new, cmu, cscale, croll, nc)
+        assert math.fsum(parts) == math.fsum(terms[rows])
+    D[1, rows[5]] = np.inf
+    assert ck.apgd_trial_sums(D[0], D[1], D[2], rows, all_rows, nc)[3] == np.inf
 
 
 @pytest.mark.parametrize("env_factor", [0.0, 2.5e-3])

@@ -9,6 +9,7 @@ import math
 import threading
 
 import numpy as np
+import pytest
 
 from pdem.parallel.comm import SerialComm
 from pdem.parallel.exact import dot_partials, exact_reduce
@@ -196,3 +197,26 @@ def test_dot_partials_in_blocks_on_hostile_terms():
     part, special = dot_partials(a, b, rows)
     assert special == 0.0
     assert math.fsum(part) == math.fsum((a[rows] * b[rows]).ravel())
+
+
+@pytest.mark.parametrize("width", [1, 4, 8])
+def test_dot_partials_of_columns_are_those_of_the_rows(width):
+    """APGD's arrays in columns (a[k, c]): the same exact partials as the rows' dot_partials, over a
+    subset of the rows (sorted, as _counted_rows gives them) or all of them; non-finite products go
+    to the plain sum alike."""
+    from pdem.parallel.exact import dot_partials_columns
+
+    rng = np.random.default_rng(9 + width)
+    a = _hostile_terms(rng, width * 2999).reshape(-1, width) * 1e-8
+    b = rng.normal(size=a.shape)
+    ac, bc = np.ascontiguousarray(a.T), np.ascontiguousarray(b.T)
+    some = np.sort(rng.permutation(a.shape[0])[:2500])
+    for rows, all_rows in ((some, False), (np.arange(a.shape[0]), True)):
+        rows = rows.astype(np.int64)
+        part, special = dot_partials_columns(ac, bc, rows, all_rows)
+        ref, ref_special = dot_partials(a, b, rows)
+        assert special == ref_special == 0.0
+        assert math.fsum(part) == math.fsum(ref) == math.fsum((a[rows] * b[rows]).ravel())
+    a[7, 0] = np.inf
+    part, special = dot_partials_columns(np.ascontiguousarray(a.T), bc, np.arange(a.shape[0]), True)
+    assert special == dot_partials(a, b, np.arange(a.shape[0]))[1] and math.isinf(special)

@@ -999,89 +999,10 @@ def residual_max(gam, u, cmu, cscale, croll, nc):
 
 
 @njit
-def project_step(y, gy, t, mu, croll, nc, out):
-    """out = Π(y − t gy) row by row (APGD's projected gradient step; the arithmetic of
-    ``project_cone_array(y - t * gy, …)``, without the temporary). Rows of 4 (no contact has
-    rolling or spinning friction) take a loop without branches (:func:`_cone_select`)."""
-    if out.shape[1] == 4:
-        for c in range(nc):
-            out[c, 0], out[c, 1], out[c, 2], out[c, 3] = _cone_select(
-                y[c, 0] - t * gy[c, 0], y[c, 1] - t * gy[c, 1], y[c, 2] - t * gy[c, 2],
-                y[c, 3] - t * gy[c, 3], mu[c],
-            )  # fmt: skip
-        return
-    for c in range(nc):
-        g0 = y[c, 0] - t * gy[c, 0]
-        g1 = y[c, 1] - t * gy[c, 1]
-        g2 = y[c, 2] - t * gy[c, 2]
-        g3 = y[c, 3] - t * gy[c, 3]
-        out[c, 0], out[c, 1], out[c, 2], out[c, 3] = project_cone(g0, g1, g2, g3, mu[c])
-        if croll[c, 2] > 0.0:
-            r4 = y[c, 4] - t * gy[c, 4]
-            r5 = y[c, 5] - t * gy[c, 5]
-            r6 = y[c, 6] - t * gy[c, 6]
-            out[c, 4], out[c, 5], out[c, 6] = clamp_norm(r4, r5, r6, croll[c, 0] * out[c, 0])
-            out[c, 7] = clamp_abs(y[c, 7] - t * gy[c, 7], croll[c, 1] * out[c, 0])
-        else:
-            for k in range(4, out.shape[1]):
-                out[c, k] = 0.0
-
-
-@njit
 def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
     """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off); with
     ``corrected``, u_n += μ_c |u_t| (the corrected cone's ũ)."""
     contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, u, corrected)
-
-
-@njit(inline="always")
-def _trial_dots(g_new, y, u_new, gy, gam_k, croll, c):
-    """Row c's three dot products of :func:`apgd_trial_sums`, in double, in column order (a
-    function of the row's data only: the same on every rank); rows without rolling or spinning
-    friction have zeros in columns 4–7."""
-    kmax = 8 if croll[c, 2] > 0.0 else 4
-    d1 = 0.0
-    d2 = 0.0
-    d3 = 0.0
-    for k in range(kmax):
-        s = g_new[c, k] - y[c, k]
-        d1 += s * (u_new[c, k] - gy[c, k])
-        d2 += s * s
-        d3 += gy[c, k] * (g_new[c, k] - gam_k[c, k])
-    return d1, d2, d3
-
-
-_TRIAL_BLOCK = 500  # rows whose dot products are formed before they are summed (12 kB)
-
-
-@njit
-def apgd_trial_sums(g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, want_res=True):
-    """The local reductions of one corrected-cone APGD trial, in one pass: exact partials (as
-    :func:`pdem.parallel.exact.dot_partials`) of Σ (γ − y)·(ũ(γ) − ũ(y)), Σ |γ − y|² and
-    Σ ũ(y)·(γ − γ_k) over ``rows`` (each row's dot product formed in double, the rows' sum exact),
-    and the residual max of (γ, ũ(γ)) over all rows (+inf without ``want_res``: not formed).
-
-    A block of rows' dot products is formed first, then each sum's terms are added by
-    :func:`pdem.parallel.exact.exact_add_many` (a bin per exponent first: −38 % on 13,000 terms
-    against term-by-term additions)."""
-    a1 = exact_accumulator()[0]  # exact_add_many needs only the digits, not the scratch
-    a2 = exact_accumulator()[0]
-    a3 = exact_accumulator()[0]
-    bins = exact_bins()
-    sp1 = 0.0
-    sp2 = 0.0
-    sp3 = 0.0
-    D = np.empty((3, _TRIAL_BLOCK))
-    nr = rows.shape[0]
-    for q0 in range(0, nr, _TRIAL_BLOCK):
-        m = min(_TRIAL_BLOCK, nr - q0)
-        for q in range(m):
-            D[0, q], D[1, q], D[2, q] = _trial_dots(g_new, y, u_new, gy, gam_k, croll, rows[q0 + q])
-        sp1 += exact_add_many(a1, bins, D[0], m)
-        sp2 += exact_add_many(a2, bins, D[1], m)
-        sp3 += exact_add_many(a3, bins, D[2], m)
-    res = residual_max(g_new, u_new, cmu, cscale, croll, nc) if want_res else math.inf
-    return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3, res
 
 
 @njit
@@ -1127,29 +1048,202 @@ def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u
                 u[c, k] = uraw[c, k]
 
 
+# ---------------------------------------------------------------- APGD on columns
+# APGD's iterates, like Jacobi's, are held in columns: array[k, c] is component k of contact c
+# (``G``: 4 rows, or 8 with rolling rows), so that each pass streams through whole rows and the
+# elementwise ones vectorize (the same arithmetic per contact as the row layout it replaced, bit
+# for bit: session 25, tests/test_dem_c_kernels.py). The corrected cone's ũ differs from u in its
+# normal row only: it is kept as u in columns (``U``) plus the corrected normal row (``UN``, ``U[0]``
+# itself for the relaxed cone).
+
+
 @njit
-def extrapolate_velocities(u_new, u_k, beta, cmu, nc, uraw_out, u_out, corrected):
-    """uraw_out = u + β (u − u_k) (:func:`extrapolate`'s arithmetic) and, with ``corrected``, u_out its
-    ũ (u_n + μ|u_t|, as :func:`contact_velocities` forms it), in one pass."""
-    width = u_new.shape[1]
+def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, GN, Y, GY, GYN, D1,
+                trial, want_res):  # fmt: skip
+    """u = Dᵀv + b of every contact into the columns of ``U`` (as :func:`jacobi_gather`; with 8
+    rows, 0.0 in the rolling rows of a contact without rolling friction) and, with ``corrected``,
+    ũ_n = u_n + μ_c |u_t| into ``UN``. ``U`` holds u(γ) for γ = ``GN``.
+
+    In the same pass, while the contact's velocities are at hand (one pass less over the columns:
+    APGD's passes are bound by memory traffic, not arithmetic), with ``trial`` the first dot
+    product of a line-search trial, (γ − y)·(ũ(γ) − ũ(y)), into ``D1[c]`` (ũ(y): ``GY`` with normal
+    row ``GYN``; formed in double in component order, rolling rows only where the contact has them,
+    as :func:`apgd_project_step` forms the other two); and with ``want_res`` the residual of (γ,
+    ũ(γ)), max over contacts of |γ − Π(γ − B ũ)| / B and the rolling rows' residual, which is
+    returned (+inf without ``want_res``)."""
+    roll = U.shape[0] == 8
+    res = 0.0
     for c in range(nc):
-        for k in range(width):
-            uraw_out[c, k] = u_new[c, k] + beta * (u_new[c, k] - u_k[c, k])
+        u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
+        U[0, c] = u0
+        U[1, c] = u1
+        U[2, c] = u2
+        U[3, c] = u3
+        un = u0
         if corrected:
-            u1 = uraw_out[c, 1]
-            u2 = uraw_out[c, 2]
-            u3 = uraw_out[c, 3]
-            u_out[c, 0] = uraw_out[c, 0] + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
-            for k in range(1, width):
-                u_out[c, k] = uraw_out[c, k]
+            un = u0 + cmu[c] * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
+            UN[c] = un
+        rolling = roll and croll[c, 2] > 0.0
+        if roll:
+            if rolling:
+                U[4, c], U[5, c], U[6, c], U[7, c] = _rolling_velocity(c, cb, cn, cvw, croll, w)
+            else:
+                U[4, c] = 0.0
+                U[5, c] = 0.0
+                U[6, c] = 0.0
+                U[7, c] = 0.0
+        if trial:
+            d1 = 0.0
+            d1 += (GN[0, c] - Y[0, c]) * (un - GYN[c])
+            d1 += (GN[1, c] - Y[1, c]) * (u1 - GY[1, c])
+            d1 += (GN[2, c] - Y[2, c]) * (u2 - GY[2, c])
+            d1 += (GN[3, c] - Y[3, c]) * (u3 - GY[3, c])
+            if rolling:
+                for k in range(4, 8):
+                    d1 += (GN[k, c] - Y[k, c]) * (U[k, c] - GY[k, c])
+            D1[c] = d1
+        if want_res:
+            rc, p0 = _residual(GN[0, c], GN[1, c], GN[2, c], GN[3, c], un, u1, u2, u3, cscale[c],
+                               cmu[c])  # fmt: skip
+            if rolling:
+                rr = _roll_residual(GN[4, c], GN[5, c], GN[6, c], GN[7, c], U[4, c], U[5, c], U[6, c],
+                                    U[7, c], p0, croll[c, 3], croll[c, 0], croll[c, 1])  # fmt: skip
+                if rr > rc or rr != rr:
+                    rc = rr
+            if rc > res or rc != rc:
+                res = rc
+    return res if want_res else math.inf
 
 
 @njit
-def extrapolate(g_new, gam_k, beta, nc, out):
-    """out = γ + β (γ − γ_k) (APGD's momentum step; numpy's arithmetic, without temporaries)."""
+def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial):
+    """OUT = Π(Y − t ũ(Y)) contact by contact (APGD's projected gradient step; ũ's normal row from
+    ``GYN``, its others from ``GY``): each cone first, then the rolling rows clamped to the bounds of
+    the new γ_n (:func:`project_cone_array`'s order). Rows of 4 take a loop without branches
+    (:func:`_cone_select`, the same values).
+
+    With ``trial``, in the same pass, two of the trial's dot products per contact (formed in double
+    in component order, the rolling rows only where the contact has them): |γ − y|² into ``D2`` and
+    ũ(y)·(γ − γ_k) into ``D3`` (γ_k: ``GK``)."""
+    if OUT.shape[0] == 4:
+        for c in range(nc):
+            yn = GYN[c]
+            o0, o1, o2, o3 = _cone_select(
+                Y[0, c] - t * yn, Y[1, c] - t * GY[1, c], Y[2, c] - t * GY[2, c], Y[3, c] - t * GY[3, c],
+                mu[c],
+            )  # fmt: skip
+            OUT[0, c] = o0
+            OUT[1, c] = o1
+            OUT[2, c] = o2
+            OUT[3, c] = o3
+            if trial:
+                s0 = o0 - Y[0, c]
+                s1 = o1 - Y[1, c]
+                s2 = o2 - Y[2, c]
+                s3 = o3 - Y[3, c]
+                d2 = 0.0
+                d2 += s0 * s0
+                d2 += s1 * s1
+                d2 += s2 * s2
+                d2 += s3 * s3
+                d3 = 0.0
+                d3 += yn * (o0 - GK[0, c])
+                d3 += GY[1, c] * (o1 - GK[1, c])
+                d3 += GY[2, c] * (o2 - GK[2, c])
+                d3 += GY[3, c] * (o3 - GK[3, c])
+                D2[c] = d2
+                D3[c] = d3
+        return
     for c in range(nc):
-        for k in range(g_new.shape[1]):
-            out[c, k] = g_new[c, k] + beta * (g_new[c, k] - gam_k[c, k])
+        yn = GYN[c]
+        n0, n1, n2, n3 = project_cone(
+            Y[0, c] - t * yn, Y[1, c] - t * GY[1, c], Y[2, c] - t * GY[2, c], Y[3, c] - t * GY[3, c], mu[c]
+        )
+        OUT[0, c] = n0
+        OUT[1, c] = n1
+        OUT[2, c] = n2
+        OUT[3, c] = n3
+        rolling = croll[c, 2] > 0.0
+        if rolling:
+            r4 = Y[4, c] - t * GY[4, c]
+            r5 = Y[5, c] - t * GY[5, c]
+            r6 = Y[6, c] - t * GY[6, c]
+            OUT[4, c], OUT[5, c], OUT[6, c] = clamp_norm(r4, r5, r6, croll[c, 0] * n0)
+            OUT[7, c] = clamp_abs(Y[7, c] - t * GY[7, c], croll[c, 1] * n0)
+        else:
+            OUT[4, c] = 0.0
+            OUT[5, c] = 0.0
+            OUT[6, c] = 0.0
+            OUT[7, c] = 0.0
+        if trial:
+            s = n0 - Y[0, c]
+            d2 = 0.0 + s * s
+            d3 = 0.0 + yn * (n0 - GK[0, c])
+            for k in range(1, 8 if rolling else 4):
+                s = OUT[k, c] - Y[k, c]
+                d2 += s * s
+                d3 += GY[k, c] * (OUT[k, c] - GK[k, c])
+            D2[c] = d2
+            D3[c] = d3
+
+
+_TRIAL_BLOCK = 500  # terms gathered per exact_add_many call when only some rows count
+
+
+@njit
+def apgd_trial_sums(D1, D2, D3, rows, all_rows, nc):
+    """Exact partials (as :func:`pdem.parallel.exact.dot_partials`) of the sums over ``rows`` (every
+    contact with ``all_rows``) of a line-search trial's three per-contact dot products: D1 from
+    :func:`apgd_gather`, D2 and D3 from :func:`apgd_project_step`. Each is formed in double per
+    contact; the sums are exact (:func:`pdem.parallel.exact.exact_add_many`, a bin per exponent), so
+    they do not depend on how the contacts are split over ranks."""
+    a1 = exact_accumulator()[0]  # exact_add_many needs only the digits, not the scratch
+    a2 = exact_accumulator()[0]
+    a3 = exact_accumulator()[0]
+    bins = exact_bins()
+    sp1 = 0.0
+    sp2 = 0.0
+    sp3 = 0.0
+    nr = nc if all_rows else rows.shape[0]
+    B = np.empty((3, _TRIAL_BLOCK))
+    for q0 in range(0, nr, _TRIAL_BLOCK):
+        m = min(_TRIAL_BLOCK, nr - q0)
+        if all_rows:
+            sp1 += exact_add_many(a1, bins, D1[q0 : q0 + m], m)
+            sp2 += exact_add_many(a2, bins, D2[q0 : q0 + m], m)
+            sp3 += exact_add_many(a3, bins, D3[q0 : q0 + m], m)
+        else:
+            for q in range(m):
+                c = rows[q0 + q]
+                B[0, q] = D1[c]
+                B[1, q] = D2[c]
+                B[2, q] = D3[c]
+            sp1 += exact_add_many(a1, bins, B[0], m)
+            sp2 += exact_add_many(a2, bins, B[1], m)
+            sp3 += exact_add_many(a3, bins, B[2], m)
+    return exact_partials(a1), sp1, exact_partials(a2), sp2, exact_partials(a3), sp3
+
+
+@njit
+def apgd_extrapolate(GN, GK, beta, nc, OUT):
+    """OUT = γ + β (γ − γ_k) on columns (APGD's momentum step)."""
+    for k in range(GN.shape[0]):
+        a = GN[k]
+        b = GK[k]
+        o = OUT[k]
+        for c in range(nc):
+            o[c] = a[c] + beta * (a[c] - b[c])
+
+
+@njit
+def apgd_extrapolate_velocities(UN, UK, beta, cmu, nc, GY, GYN, corrected):
+    """GY = u + β (u − u_k) (u is affine in γ: the velocities of the extrapolated impulses) and,
+    with ``corrected``, GYN its ũ_n (u_n + μ|u_t|, as :func:`apgd_gather` forms it)."""
+    apgd_extrapolate(UN, UK, beta, nc, GY)
+    if corrected:
+        a0, a1, a2, a3 = GY[0], GY[1], GY[2], GY[3]
+        for c in range(nc):
+            GYN[c] = a0[c] + cmu[c] * math.sqrt(a1[c] * a1[c] + a2[c] * a2[c] + a3[c] * a3[c])
 
 
 @njit

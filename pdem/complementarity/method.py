@@ -62,7 +62,7 @@ from pydantic import Field
 
 from ..api import ContactLaw, InputError, Integrator, LawParams, MaterialTable
 from ..parallel.comm import all_max, any_rank
-from ..parallel.exact import dot_partials, exact_reduce
+from ..parallel.exact import dot_partials_columns, exact_reduce
 from . import _kernels as ck
 
 __all__ = ["Complementarity", "ComplementarityParams", "Stepper"]
@@ -243,7 +243,7 @@ class Stepper(Integrator):
         self._cap = 0
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
         self._bodies: list = []
-        self._apgd_work = np.empty((9, 0, 8))  # APGD's work arrays (see _apgd)
+        self._apgd_work = np.empty(0)  # APGD's work arrays (see _apgd)
         self.corrected = self.p.cone == "corrected"
 
     def prepare(self) -> None:
@@ -802,39 +802,53 @@ class Stepper(Integrator):
         cscale = self.cscale[:nc]
         croll = self.croll[:nc]
         rows = self._counted_rows(nc)
+        all_rows = rows.shape[0] == nc  # serially, or no contact held by two ranks: every row counts
 
         def reduce(pairs, maxima=()):
-            """Global exact Σ a·b for each (a, b) and global max of each local value."""
-            return exact_reduce(comm, [dot_partials(a, b, rows) for a, b in pairs], maxima)
+            """Global exact Σ a·b for each (a, b) (columns) and global max of each local value."""
+            return exact_reduce(comm, [dot_partials_columns(a, b, rows, all_rows) for a, b in pairs], maxima)
 
-        # work arrays reused through the solve and across steps (views of one block): allocating
-        # them per iteration cost as much as the iteration's kernels on a 10,000-contact scene
-        # (page faults of fresh memory)
+        # The iterates live in columns (array[k, c]: component k of contact c), as Jacobi's, so that
+        # the passes stream (ck.apgd_*). Work arrays are reused through the solve and across steps
+        # (views of one block): allocating them per iteration cost as much as the iteration's
+        # kernels on a 10,000-contact scene (page faults of fresh memory).
         width = self.gam.shape[1]
-        if self._apgd_work.shape[1] < nc or self._apgd_work.shape[2] != width:
-            self._apgd_work = np.empty((9, max(nc, int(1.25 * self._apgd_work.shape[1])), width))
-        work = self._apgd_work
-        Y, GY, GYR, GK, UKR, GN, UN, UNR, BEST = (work[k, :nc] for k in range(9))
+        # (a flat buffer reshaped: every array C-contiguous, which lets numba vectorize the passes)
+        if self._apgd_work.shape[0] < (9 * width + 5) * nc:
+            self._apgd_work = np.empty(int(1.25 * (9 * width + 5) * nc))
+        work = self._apgd_work[: 9 * width * nc].reshape(9, width, nc)
+        Y, GY, GK, UK, GN, UN, BEST, G0, GH = work
+        GYN_c, UNN_c = self._apgd_work[9 * width * nc : (9 * width + 2) * nc].reshape(2, nc)
 
-        def grad2(gv: np.ndarray, u: np.ndarray, uraw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """(ũ(γ), u(γ)) written into ``u`` and ``uraw``: the solver's velocities and the raw ones
-            (the relaxed cone: both ``uraw``). u is affine in γ, so u at an extrapolated point is
-            the same combination of the u's it was made from (see the iteration below)."""
-            self._sync_velocities(nc, v_free, w_free, P, L, gv)  # from gv itself: no copy into self.gam
-            if not corrected:
-                u = uraw
-            ck.contact_velocities_raw(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, uraw, u,
-                corrected,
+        def normal(u: np.ndarray, un: np.ndarray) -> np.ndarray:
+            """The normal row of ũ: the corrected one, or u's own for the relaxed cone."""
+            return un if corrected else u[0]
+
+        D = self._apgd_work[(9 * width + 2) * nc : (9 * width + 5) * nc].reshape(3, nc)  # trial dots
+        no_trial = np.empty((width, 0))
+
+        def grad(gv: np.ndarray, u: np.ndarray, un: np.ndarray, trial: bool = False, want_res: bool = False):
+            """u(γ) into ``u`` (and ũ_n into ``un`` for the corrected cone), from γ = ``gv``; with
+            ``trial`` also the trial's first dot products (against y), with ``want_res`` the residual
+            (returned)."""
+            ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, gv, nc, P, L)
+            self._apply_impulses(nc, v_free, w_free, P, L, gv.T)
+            return ck.apgd_gather(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, cscale, self.V, self.W, nc,
+                u, un, corrected, gv, Y if trial else no_trial, GY if trial else no_trial, GYN_c, D[0], trial,
+                want_res,
             )  # fmt: skip
-            return u, uraw
 
         # a cold start: from the last step's impulses (the Jacobi warm start) APGD took 23.8 instead
         # of 22.8 iterations per step on the 300-bead hopper scene, and the 4,000-bead hopper's fill
         # (h = 1e-3 s) no longer settled below its kinetic-energy threshold by 0.3 s
         warm = self.gam[:nc].copy() if pr.apgd_start == "warm" else np.zeros((nc, width))
         # u(0) = r (the relaxed cone's f), kept for the solve
-        r_vec = None if corrected else grad2(np.zeros((nc, width)), UN, UNR)[0].copy()
+        r_vec = None
+        if not corrected:
+            G0[:] = 0.0
+            grad(G0, UN, UNN_c)
+            r_vec = UN.copy()
 
         def objective(s_nu: float, s_r: float) -> float:
             # f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ
@@ -845,11 +859,16 @@ class Stepper(Integrator):
         e_n = np.zeros(width)
         e_n[0] = 1.0
         ghat = ck.project_cone_array(g0 + 1e-3 * (1.0 / cscale)[:, None] * e_n, cmu, croll)
-        d = g0 - ghat
+        G0[:] = g0.T
+        GH[:] = ghat.T
+        d = G0 - GH
         nd = math.sqrt(reduce([(d, d)])[0][0])
-        gy, gy_raw = grad2(g0, GY, GYR)  # ũ and u at the first y = γ0
+        grad(G0, GY, GYN_c)  # ũ and u at the first y = γ0
+        gyn = normal(GY, GYN_c)
         if nd > 0.0:
-            du = gy - grad2(ghat, UN, UNR)[0]
+            grad(GH, UN, UNN_c)
+            du = GY - UN
+            du[0] = gyn - normal(UN, UNN_c)
             lip = math.sqrt(reduce([(du, du)])[0][0]) / nd
         else:
             lip = 0.0
@@ -858,15 +877,15 @@ class Stepper(Integrator):
             lip = reduce([], [local])[1][0]
         t = 1.0 / lip
         gam_k = GK
-        gam_k[:] = g0
-        u_k_raw = UKR
-        u_k_raw[:] = gy_raw  # u(γ_k)
+        gam_k[:] = G0
+        u_k = UK
+        u_k[:] = GY  # u(γ_k)
         y = Y
-        y[:] = g0
+        y[:] = G0
         theta = 1.0
         best = BEST
-        best[:] = g0
-        g_new, u_new_raw = GN, UNR
+        best[:] = G0
+        g_new, u_new = GN, UN
         best_res = math.inf
         res = math.inf
         it = 0
@@ -879,25 +898,23 @@ class Stepper(Integrator):
             if corrected:
                 fy = 0.0
             else:
-                s = reduce([(y, gy - r_vec), (r_vec, y)])[0]
+                s = reduce([(y, GY - r_vec), (r_vec, y)])[0]
                 fy = objective(s[0], s[1])
             while True:
-                ck.project_step(y, gy, t, cmu, croll, nc, g_new)  # Π(y − t ∇)
-                u_new, u_new_raw = grad2(g_new, UN, u_new_raw)
+                # Π(y − t ∇), with the corrected cone's trial sums |γ − y|² and ũ(y)·(γ − γ_k)
+                ck.apgd_project_step(y, GY, gyn, gam_k, t, cmu, croll, nc, g_new, D[1], D[2], corrected)
+                local_res = grad(g_new, u_new, UNN_c, corrected, check)  # and (γ − y)·(ũ(γ) − ũ(y))
                 # one collective per trial: the acceptance test's sums, the restart test's and the
                 # residual (the last two used only if the trial is accepted)
-                if corrected:  # the three sums and the residual in one pass (fused kernel)
-                    p1, e1, p2, e2, p3, e3, local_res = ck.apgd_trial_sums(
-                        g_new, y, u_new, gy, gam_k, rows, cmu, cscale, croll, nc, check
-                    )
+                if corrected:
+                    p1, e1, p2, e2, p3, e3 = ck.apgd_trial_sums(D[0], D[1], D[2], rows, all_rows, nc)
                     s, m = exact_reduce(comm, [(p1, e1), (p2, e2), (p3, e3)], [local_res])
                     accept = s[0] <= lip * s[1]
                 else:
                     step = g_new - y
-                    local_res = ck.residual_max(g_new, u_new, cmu, cscale, croll, nc) if check else math.inf
-                    restart_terms = (gy, g_new - gam_k)
+                    restart_terms = (GY, g_new - gam_k)
                     s, m = reduce(
-                        [(g_new, u_new - r_vec), (r_vec, g_new), (gy, step), (step, step), restart_terms],
+                        [(g_new, u_new - r_vec), (r_vec, g_new), (GY, step), (step, step), restart_terms],
                         [local_res],
                     )
                     accept = objective(s[0], s[1]) <= fy + s[2] + 0.5 * lip * s[3]
@@ -925,23 +942,23 @@ class Stepper(Integrator):
                     break
             if s[-1] > 0.0:  # restart
                 y[:] = g_new
-                gy_raw[:] = u_new_raw
+                GY[:] = u_new
                 if corrected:
-                    gy[:] = u_new
+                    GYN_c[:] = UNN_c
                 theta_new = 1.0
             else:
                 # y = γ + β (γ − γ_k), and u(y) = u(γ) + β (u(γ) − u(γ_k)) without solving for the
                 # bodies' velocities again (u is affine in γ; elementwise, so the same on every rank):
                 # one evaluation of ũ per iteration instead of two
-                ck.extrapolate(g_new, gam_k, beta, nc, y)
-                ck.extrapolate_velocities(u_new_raw, u_k_raw, beta, cmu, nc, gy_raw, gy, corrected)
+                ck.apgd_extrapolate(g_new, gam_k, beta, nc, y)
+                ck.apgd_extrapolate_velocities(u_new, u_k, beta, cmu, nc, GY, GYN_c, corrected)
             lip *= 0.9
             t = 1.0 / lip
             # γ_k ← γ, u(γ_k) ← u(γ); the old γ_k's arrays take the next trial
             gam_k, g_new = g_new, gam_k
-            u_k_raw, u_new_raw = u_new_raw, u_k_raw
+            u_k, u_new = u_new, u_k
             theta = theta_new
-        self.gam[:nc] = best
+        self.gam[:nc] = best.T
         self._sync_velocities(nc, v_free, w_free, P, L)
         return it, best_res
 

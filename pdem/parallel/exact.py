@@ -16,8 +16,8 @@ import numpy as np
 from .._jit import njit
 
 __all__ = [
-    "exact_sum", "exact_sums", "global_count", "dot_partials", "exact_reduce", "exact_accumulator",
-    "exact_add", "exact_add_many", "exact_bins", "exact_partials",
+    "exact_sum", "exact_sums", "global_count", "dot_partials", "dot_partials_columns", "exact_reduce",
+    "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials",
 ]  # fmt: skip
 
 
@@ -223,6 +223,37 @@ def dot_partials(a, b, rows):
                 buf[m] = a[c, k] * b[c, k]
                 m += 1
         special += exact_add_many(acc, bins, buf, m)
+    return _acc_digits(acc), special
+
+
+@njit
+def dot_partials_columns(a, b, rows, all_rows):
+    """:func:`dot_partials` of arrays held in columns (``a[k, c]``: component k of row c): Σ over
+    the rows ``rows`` (every column with ``all_rows``) of Σ_k a[k, c] b[k, c], each product rounded
+    once, as a few doubles whose sum is exact, and the plain sum of non-finite products. The same
+    result as :func:`dot_partials` of the transposed arrays (the sum is exact, so the order in which
+    the products are added does not matter)."""
+    acc = np.zeros(_BINS, dtype=np.int64)
+    bins = exact_bins()
+    ncol = a.shape[0]
+    nr = a.shape[1] if all_rows else rows.shape[0]
+    block = max(EXACT_MANY_MAX // max(ncol, 1), 1)
+    buf = np.empty(block * ncol)
+    special = 0.0
+    for q0 in range(0, nr, block):
+        m = min(block, nr - q0)
+        for k in range(ncol):
+            ak = a[k]
+            bk = b[k]
+            o = k * m
+            if all_rows:
+                for q in range(m):
+                    buf[o + q] = ak[q0 + q] * bk[q0 + q]
+            else:
+                for q in range(m):
+                    c = rows[q0 + q]
+                    buf[o + q] = ak[c] * bk[c]
+        special += exact_add_many(acc, bins, buf, m * ncol)
     return _acc_digits(acc), special
 
 
