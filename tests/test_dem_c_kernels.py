@@ -310,3 +310,33 @@ def test_pairs_entering_the_problem_and_missed_pairs_against_numpy(env_factor):
     ends = np.sum(e * e, axis=1) < (r[pi] + r[pj]) ** 2
     free = (inv_m[pi] != 0) | (inv_m[pj] != 0)
     assert missed == np.count_nonzero(free & ~(d2 <= lim * lim) & ends) > 0
+
+
+@pytest.mark.parametrize("width", [4, 8])
+def test_scatter_skips_zero_impulses_without_changing_a_bit(width):
+    """``accumulate_columns`` skips contacts whose impulses are all ±0.0 (half the rows of the
+    hopper's problems): the sums are still the row scatter's bit for bit, with −0.0 impulses, sums
+    that cancel to zero, and bodies that only have zero contacts."""
+    rng = np.random.default_rng(61 + width)
+    nc, n = 3000, 400
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, n, width)
+    gam[rng.random(nc) < 0.5] = 0.0
+    gam[rng.random(nc) < 0.1] = -0.0
+    gam[5, 0] = -0.0  # one negative zero among non-zero rows
+    for k in range(width):  # rows with one non-zero component: not skipped
+        gam[20 + k] = 0.0
+        gam[20 + k, k] = 1e-6
+        croll[20 + k] = (0.1, 0.05, 5e-4, 1e-3) if width == 8 else 0.0
+    if width == 8:
+        gam[9, :4] = 0.0  # a rolling impulse alone
+        croll[9] = (0.1, 0.05, 5e-4, 1e-3)
+    # a pair of contacts whose impulses cancel exactly on a body
+    cb[10], cb[11] = (3, 4), (3, 5)
+    cn[10], cn[11] = cn[12], -cn[12]
+    gam[10, :4], gam[11, :4] = (1e-6, 0.0, 0.0, 0.0), (1e-6, 0.0, 0.0, 0.0)
+    P1, L1, P2, L2 = (np.full((n, 3), 7.0) for _ in range(4))
+    ck.accumulate(cb, cn, ca, croll, gam, nc, P1, L1)
+    ck.accumulate_columns(cb, cn, ca, croll, np.ascontiguousarray(gam.T), nc, P2, L2)
+    assert np.array_equal(P1.view(np.int64), P2.view(np.int64))
+    assert np.array_equal(L1.view(np.int64), L2.view(np.int64))
+    assert (P1 == 0.0).any() and not np.signbit(P1[P1 == 0.0]).any()
