@@ -203,7 +203,7 @@ def test_apgd_projected_step_is_the_row_by_row_projection(width, t):
 def test_apgd_gather_trial_dot_and_residual_are_the_row_formulas(width, corrected):
     """u = Dᵀv + b on columns is ``contact_velocities_raw`` row by row (rolling rows 0.0 where a
     contact has none), ũ_n = u_n + μ|u_t|; the trial's (γ − y)·(ũ(γ) − ũ(y)) formed in the same pass
-    is the row formula's, the residual ``residual_max``'s; the extrapolated velocities are
+    is the row formula's, the residual's pass ``residual_max``'s; the extrapolated velocities are
     u + β (u − u_k) and their ũ_n: all bit for bit."""
     rng = np.random.default_rng(41 + width + 2 * corrected)
     nc, n = 2000, 300
@@ -217,8 +217,8 @@ def test_apgd_gather_trial_dot_and_residual_are_the_row_formulas(width, correcte
     U = np.full((width, nc), 9.0)
     UN = np.full(nc, 9.0)
     D1 = np.full(nc, 9.0)
-    res = ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, cols(gam),
-                         cols(y), cols(gy), gyn, D1, True, True)  # fmt: skip
+    ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, U, UN, corrected, cols(gam), cols(y),
+                   cols(gy), gyn, D1, True)  # fmt: skip
     assert np.array_equal(U.T.view(np.int64), uraw.view(np.int64))
     if corrected:
         assert np.array_equal(UN.view(np.int64), u[:, 0].view(np.int64))
@@ -230,12 +230,20 @@ def test_apgd_gather_trial_dot_and_residual_are_the_row_formulas(width, correcte
     ut = u if corrected else uraw  # ũ (the relaxed cone: u itself; contact_velocities_raw left u alone)
     d1, _, _ = row_dots(gam, y, ut, full_gy, gam, croll, range(nc))
     assert np.array_equal(D1.view(np.int64), d1.view(np.int64))
+    # the residual's pass: residual_max's value (rows of 4 without branches)
     ref_res = ck.residual_max(gam, ut, cmu, cscale, croll, nc)
+    res = ck.apgd_residual(U.copy(), U, UN if corrected else U[0], cmu, cscale, croll, nc, np.empty(nc))
+    assert res == ck.residual_max(U.T.copy(), ut, cmu, cscale, croll, nc)
+    res = ck.apgd_residual(cols(gam), U, UN if corrected else U[0], cmu, cscale, croll, nc, np.empty(nc))
     assert ref_res > 0.0 and res == ref_res
+    bad = gam.copy()
+    bad[77, 1] = np.nan
+    res = ck.apgd_residual(cols(bad), U, UN if corrected else U[0], cmu, cscale, croll, nc, np.empty(nc))
+    assert math.isnan(res) and math.isnan(ck.residual_max(bad, ut, cmu, cscale, croll, nc))
     none = np.empty((width, 0))
     D1[:] = 9.0
-    assert ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, cols(gam),
-                          none, none, gyn, D1, False, False) == math.inf  # fmt: skip
+    ck.apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, U, UN, corrected, cols(gam), none, none, gyn,
+                   D1, False)  # fmt: skip
     assert np.all(D1 == 9.0) and np.array_equal(U.T, uraw)
     uk = rng.normal(size=(nc, width))
     beta = 0.37

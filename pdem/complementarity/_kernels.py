@@ -1066,8 +1066,7 @@ def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u
 
 
 @njit
-def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, corrected, GN, Y, GY, GYN, D1,
-                trial, want_res):  # fmt: skip
+def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, U, UN, corrected, GN, Y, GY, GYN, D1, trial):
     """u = Dᵀv + b of every contact into the columns of ``U`` (as :func:`jacobi_gather`; with 8
     rows, 0.0 in the rolling rows of a contact without rolling friction) and, with ``corrected``,
     ũ_n = u_n + μ_c |u_t| into ``UN``. ``U`` holds u(γ) for γ = ``GN``.
@@ -1076,11 +1075,9 @@ def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, cor
     APGD's passes are bound by memory traffic, not arithmetic), with ``trial`` the first dot
     product of a line-search trial, (γ − y)·(ũ(γ) − ũ(y)), into ``D1[c]`` (ũ(y): ``GY`` with normal
     row ``GYN``; formed in double in component order, rolling rows only where the contact has them,
-    as :func:`apgd_project_step` forms the other two); and with ``want_res`` the residual of (γ,
-    ũ(γ)), max over contacts of |γ − Π(γ − B ũ)| / B and the rolling rows' residual, which is
-    returned (+inf without ``want_res``)."""
+    as :func:`apgd_project_step` forms the other two). (The residual is a pass of its own,
+    :func:`apgd_residual`: formed here, its branches cost twice the gather.)"""
     roll = U.shape[0] == 8
-    res = 0.0
     for c in range(nc):
         u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
         U[0, c] = u0
@@ -1110,17 +1107,42 @@ def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, cscale, v, w, nc, U, UN, cor
                 for k in range(4, 8):
                     d1 += (GN[k, c] - Y[k, c]) * (U[k, c] - GY[k, c])
             D1[c] = d1
-        if want_res:
-            rc, p0 = _residual(GN[0, c], GN[1, c], GN[2, c], GN[3, c], un, u1, u2, u3, cscale[c],
-                               cmu[c])  # fmt: skip
-            if rolling:
-                rr = _roll_residual(GN[4, c], GN[5, c], GN[6, c], GN[7, c], U[4, c], U[5, c], U[6, c],
-                                    U[7, c], p0, croll[c, 3], croll[c, 0], croll[c, 1])  # fmt: skip
-                if rr > rc or rr != rr:
-                    rc = rr
-            if rc > res or rc != rc:
-                res = rc
-    return res if want_res else math.inf
+
+
+@njit
+def apgd_residual(G, U, UN, cmu, cscale, croll, nc, RES):
+    """max over contacts of |γ − Π(γ − B ũ)| / B and the rolling rows' residual, on columns (ũ's
+    normal row from ``UN``): :func:`residual_max`'s value. Rows of 4 take a loop without branches
+    (``_cone_select`` gives ``project_cone``'s bits) that writes each contact's residual into
+    ``RES``, then its maximum (NaN if any is NaN)."""
+    if G.shape[0] == 4:
+        for c in range(nc):
+            b = cscale[c]
+            g0 = G[0, c]
+            g1 = G[1, c]
+            g2 = G[2, c]
+            g3 = G[3, c]
+            p0, p1, p2, p3 = _cone_select(
+                g0 - b * UN[c], g1 - b * U[1, c], g2 - b * U[2, c], g3 - b * U[3, c], cmu[c]
+            )
+            d0 = g0 - p0
+            d1 = g1 - p1
+            d2 = g2 - p2
+            d3 = g3 - p3
+            RES[c] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) / b
+        return max_nonneg(RES, nc)
+    res = 0.0
+    for c in range(nc):
+        rc, p0 = _residual(G[0, c], G[1, c], G[2, c], G[3, c], UN[c], U[1, c], U[2, c], U[3, c], cscale[c],
+                           cmu[c])  # fmt: skip
+        if croll[c, 2] > 0.0:
+            rr = _roll_residual(G[4, c], G[5, c], G[6, c], G[7, c], U[4, c], U[5, c], U[6, c], U[7, c], p0,
+                                croll[c, 3], croll[c, 0], croll[c, 1])  # fmt: skip
+            if rr > rc or rr != rr:
+                rc = rr
+        if rc > res or rc != rc:
+            res = rc
+    return res
 
 
 @njit

@@ -814,8 +814,8 @@ class Stepper(Integrator):
         # kernels on a 10,000-contact scene (page faults of fresh memory).
         width = self.gam.shape[1]
         # (a flat buffer reshaped: every array C-contiguous, which lets numba vectorize the passes)
-        if self._apgd_work.shape[0] < (9 * width + 5) * nc:
-            self._apgd_work = np.empty(int(1.25 * (9 * width + 5) * nc))
+        if self._apgd_work.shape[0] < (9 * width + 6) * nc:
+            self._apgd_work = np.empty(int(1.25 * (9 * width + 6) * nc))
         work = self._apgd_work[: 9 * width * nc].reshape(9, width, nc)
         Y, GY, GK, UK, GN, UN, BEST, G0, GH = work
         GYN_c, UNN_c = self._apgd_work[9 * width * nc : (9 * width + 2) * nc].reshape(2, nc)
@@ -824,19 +824,18 @@ class Stepper(Integrator):
             """The normal row of ũ: the corrected one, or u's own for the relaxed cone."""
             return un if corrected else u[0]
 
-        D = self._apgd_work[(9 * width + 2) * nc : (9 * width + 5) * nc].reshape(3, nc)  # trial dots
+        # the trial's three dot products per contact, and the contacts' residuals
+        D = self._apgd_work[(9 * width + 2) * nc : (9 * width + 6) * nc].reshape(4, nc)
         no_trial = np.empty((width, 0))
 
-        def grad(gv: np.ndarray, u: np.ndarray, un: np.ndarray, trial: bool = False, want_res: bool = False):
+        def grad(gv: np.ndarray, u: np.ndarray, un: np.ndarray, trial: bool = False) -> None:
             """u(γ) into ``u`` (and ũ_n into ``un`` for the corrected cone), from γ = ``gv``; with
-            ``trial`` also the trial's first dot products (against y), with ``want_res`` the residual
-            (returned)."""
+            ``trial`` also the trial's first dot products (against y)."""
             ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, gv, nc, P, L)
             self._apply_impulses(nc, v_free, w_free, P, L, gv.T)
-            return ck.apgd_gather(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, cscale, self.V, self.W, nc,
-                u, un, corrected, gv, Y if trial else no_trial, GY if trial else no_trial, GYN_c, D[0], trial,
-                want_res,
+            ck.apgd_gather(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, u, un,
+                corrected, gv, Y if trial else no_trial, GY if trial else no_trial, GYN_c, D[0], trial,
             )  # fmt: skip
 
         # a cold start: from the last step's impulses (the Jacobi warm start) APGD took 23.8 instead
@@ -903,7 +902,9 @@ class Stepper(Integrator):
             while True:
                 # Π(y − t ∇), with the corrected cone's trial sums |γ − y|² and ũ(y)·(γ − γ_k)
                 ck.apgd_project_step(y, GY, gyn, gam_k, t, cmu, croll, nc, g_new, D[1], D[2], corrected)
-                local_res = grad(g_new, u_new, UNN_c, corrected, check)  # and (γ − y)·(ũ(γ) − ũ(y))
+                grad(g_new, u_new, UNN_c, corrected)  # and (γ − y)·(ũ(γ) − ũ(y))
+                res_args = (g_new, u_new, normal(u_new, UNN_c), cmu, cscale, croll, nc, D[3])
+                local_res = ck.apgd_residual(*res_args) if check else math.inf
                 # one collective per trial: the acceptance test's sums, the restart test's and the
                 # residual (the last two used only if the trial is accepted)
                 if corrected:
