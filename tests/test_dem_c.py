@@ -840,3 +840,32 @@ def test_cost_study_tool_runs_on_its_block():
     assert out["contacts_dem_c"] == out["touching_pairs_dem_p"] == pairs
     for kind in ("jacobi_iteration", "apgd_iteration", "dem_p_force"):
         assert 0.0 < out[f"{kind}_ns_per_contact"] < 1e6
+
+
+@pytest.mark.parametrize("tolerance", [1e-30, 1e-3])
+def test_serial_jacobi_sweeps_in_one_kernel_call_give_the_python_loops_bits(tolerance):
+    """Serially (nothing to forward) the Jacobi sweeps of a step run in one kernel call
+    (``ck.jacobi_solve``); the Python loop, which forwards ghosts between sweeps, must give the same
+    bits: positions, velocities, iterations and residuals, with the cap and with the tolerance met
+    (a loose tolerance stops some solves early)."""
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(6), indexing="ij"), -1).reshape(-1, 3)
+    x = (g * 2.2 + 1.2) * R + rng.uniform(-0.05, 0.05, g.shape) * R  # a loose pile that falls and settles
+    v = rng.normal(0.0, 0.02, g.shape)
+    runs = []
+    for fused in (True, False):
+        sim = make_sim("jacobi", mu=0.4, dt=2e-4, tolerance=tolerance, max_iterations=60, check_every=3,
+                       mu_r=0.05)  # fmt: skip
+        sim.add_particles(x, R, material="glass", velocities=v)
+        floor(sim)
+        sim.prepare()
+        sim.integrator.fused_sweeps = fused
+        sim.run(steps=80)
+        p = sim.get_particles()
+        runs.append((p["x"], p["v"], np.array(sim.integrator.log), None))
+    (xa, va, la, _), (xb, vb, lb, _) = runs
+    assert np.array_equal(xa.view(np.int64), xb.view(np.int64))
+    assert np.array_equal(va.view(np.int64), vb.view(np.int64))
+    assert np.array_equal(la, lb)
+    its = la[:, 1]
+    assert its.max() == 60 and (tolerance < 1e-10 or its.min() < 60)

@@ -933,6 +933,31 @@ def accumulate_columns(cb, cn, ca, croll, G, nc, P, L):
 
 
 @njit
+def jacobi_solve(cb, cn, ca, cvw, cbias, croll, cmu, cscale, IB, CR, G, U, RES, P, L, v, w, v_free, w_free,
+                 inv_m, inv_i, dof, n, nc, omega_relax, corrected, check_every, max_iterations,
+                 tolerance):  # fmt: skip
+    """The Jacobi sweeps of a step in one call, for a run whose velocities need no forwarding (one
+    rank, no periodic images, no rigid bodies): the loop of ``Stepper._jacobi`` (gather, project,
+    scatter, velocities; the residual of the impulses before sweeps 1, k + 1, …), the same kernels
+    in the same order, without returning to Python between sweeps (~10 µs a sweep). Returns
+    (sweeps, residual of the last checked sweep or inf)."""
+    it = 0
+    res = math.inf
+    while it < max_iterations:
+        check = it % check_every == 0
+        jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U)
+        jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega_relax, corrected, check, RES)
+        accumulate_columns(cb, cn, ca, croll, G, nc, P, L)
+        it += 1
+        velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, dof, n)
+        if check:
+            res = math.sqrt(max_nonneg(RES, nc))
+            if res <= tolerance:
+                break
+    return it, res
+
+
+@njit
 def gauss_seidel_sweep(
     cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, inv_m, inv_i, dof, nc, omega_relax,
     corrected=True,

@@ -244,6 +244,8 @@ class Stepper(Integrator):
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
         self._bodies: list = []
         self._apgd_work = np.empty(0)  # APGD's work arrays (see _apgd)
+        # serial Jacobi sweeps in one kernel call (False: the Python loop, which forwards ghosts; tests)
+        self.fused_sweeps = True
         self.corrected = self.p.cone == "corrected"
 
     def prepare(self) -> None:
@@ -701,7 +703,15 @@ class Stepper(Integrator):
         it = 0
         k = pr.check_every
         res = math.inf
-        while it < pr.max_iterations:
+        if sim.decomposition is None and not self._bodies and self.fused_sweeps:
+            # nothing to forward between sweeps: the whole loop below in one kernel call, same bits
+            p = sim.particles
+            it, res = ck.jacobi_solve(
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.cscale, IB, CR, G,
+                U, RES, P, L, p.v, p.w, v_free, w_free, self.IM, p.inv_i, p.dof, p.n_owned, nc, pr.relaxation,
+                self.corrected, k, pr.max_iterations, pr.tolerance,
+            )  # fmt: skip
+        while it < pr.max_iterations and not res <= pr.tolerance:  # (after the fused call: done)
             check = it % k == 0  # sweeps 1, k + 1, 2k + 1, …: residual of the impulses before them
             ck.jacobi_gather(
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, U
