@@ -959,8 +959,9 @@ class Simulation:
     def _cell_grid(self, x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
         """(lo, 1/cell, dims) of the cell grid over positions ``x``: cells of the largest pair reach
         (2 r_max + list skin), widened by 1.26× until there are at most 4 n + 1000 of them."""
-        lo = x.min(axis=0) - 1e-12
-        hi = x.max(axis=0) + 1e-12
+        lo, hi = nk.bounds(x, x.shape[0])
+        lo -= 1e-12
+        hi += 1e-12
         cell = 2.0 * float(r.max()) + self._list_skin
         ext = np.maximum(hi - lo, cell)
         while True:
@@ -1065,7 +1066,7 @@ class Simulation:
         cands = []
         no = p.n_owned
         if no:
-            box_lo, box_hi = x[:no].min(axis=0), x[:no].max(axis=0)
+            box_lo, box_hi = nk.bounds(x, no)
         else:
             box_lo = box_hi = np.full(3, np.nan)
         for wall in self._wall_list:

@@ -205,3 +205,18 @@ def test_kernels_are_right_whichever_were_cached_by_an_earlier_process(tmp_path)
         out = subprocess.run([sys.executable, str(script), first], env=env, capture_output=True, text=True,
                              timeout=600)
         assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_bounds_are_numpys_min_and_max_with_nan():
+    """``bounds`` (the rebuild's box of the positions) is x[:n].min/max(axis=0), NaN included."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(500, 3))
+    for n in (1, 2, 499, 500):
+        lo, hi = nk.bounds(x, n)
+        assert np.array_equal(lo, x[:n].min(axis=0)) and np.array_equal(hi, x[:n].max(axis=0))
+    for row in (0, 250, 499):
+        y = x.copy()
+        y[row, 1] = np.nan
+        lo, hi = nk.bounds(y, 500)
+        assert np.isnan(lo[1]) and np.isnan(hi[1])
+        assert lo[0] == y[:, 0].min() and hi[2] == y[:, 2].max()
