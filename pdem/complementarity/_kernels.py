@@ -1014,31 +1014,6 @@ def gauss_seidel_sweep(
 
 
 @njit
-def residual_max(gam, u, cmu, cscale, croll, nc):
-    """max over contacts of |γ − Π(γ − B u)| / B and the rolling rows' residual (pass ũ for the
-    corrected cone's residual)."""
-    res = 0.0
-    for c in range(nc):
-        rc, p0 = _residual(gam[c, 0], gam[c, 1], gam[c, 2], gam[c, 3], u[c, 0], u[c, 1], u[c, 2], u[c, 3],
-                           cscale[c], cmu[c])  # fmt: skip
-        if croll[c, 2] > 0.0:
-            rr = _roll_residual(gam[c, 4], gam[c, 5], gam[c, 6], gam[c, 7], u[c, 4], u[c, 5], u[c, 6],
-                                u[c, 7], p0, croll[c, 3], croll[c, 0], croll[c, 1])  # fmt: skip
-            if rr > rc or rr != rr:
-                rc = rr
-        if rc > res or rc != rc:
-            res = rc
-    return res
-
-
-@njit
-def contact_velocities(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, corrected):
-    """u[c] = (u_n, u_t, u_r, u_s) = Dᵀ v + b for every contact (rolling rows zero when off); with
-    ``corrected``, u_n += μ_c |u_t| (the corrected cone's ũ)."""
-    contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, u, u, corrected)
-
-
-@njit
 def body_impulse_partials(cb, cn, gam, nc, body):
     """Exact partials (as :func:`pdem.parallel.exact.dot_partials`) of the three components of
     Σ (γ_n n + γ_t) over this rank's contacts with the rigid body ``body`` (rows whose first index is
@@ -1137,9 +1112,9 @@ def apgd_gather(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, U, UN, corrected, 
 @njit
 def apgd_residual(G, U, UN, cmu, cscale, croll, nc, RES):
     """max over contacts of |γ − Π(γ − B ũ)| / B and the rolling rows' residual, on columns (ũ's
-    normal row from ``UN``): :func:`residual_max`'s value. Rows of 4 take a loop without branches
-    (``_cone_select`` gives ``project_cone``'s bits) that writes each contact's residual into
-    ``RES``, then its maximum (NaN if any is NaN)."""
+    normal row from ``UN``; ``_residual`` and ``_roll_residual`` per contact). Rows of 4 take a loop
+    without branches (``_cone_select`` gives ``project_cone``'s bits) that writes each contact's
+    residual into ``RES``, then its maximum (NaN if any is NaN)."""
     if G.shape[0] == 4:
         for c in range(nc):
             b = cscale[c]

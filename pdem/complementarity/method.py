@@ -729,17 +729,7 @@ class Stepper(Integrator):
         self.gam[:nc] = G.T
         if res > pr.tolerance:
             # the residual above is that of the impulses before the last sweep: measure the final one
-            # (on the columns: residual_max's value, two streaming passes instead of two row passes)
-            UN = RES  # ũ_n of every contact (the squared residuals are no longer needed)
-            none = np.empty((width, 0))
-            ck.apgd_gather(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.V, self.W, nc, U,
-                UN, self.corrected, G, none, none, UN, UN, False,
-            )  # fmt: skip
-            own = ck.apgd_residual(
-                G, U, UN if self.corrected else U[0], self.cmu, self.cscale, self.croll, nc, np.empty(nc)
-            )
-            res = all_max(sim.comm, own)
+            res = self._residual(nc, G, U, RES)
         return it, res
 
     def _pair_work(self) -> np.ndarray:
@@ -751,15 +741,25 @@ class Stepper(Integrator):
             work = self._tk = np.empty(int(n * 1.25) + 64, dtype=np.int64)
         return work
 
-    def _residual(self, nc) -> float:
-        """The residual of the current impulses and velocities: of Coulomb's law (ũ) for the corrected
-        cone, of the relaxed cone problem (u) otherwise."""
-        u = np.empty((nc, self.gam.shape[1]))
-        ck.contact_velocities(
-            self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.V, self.W, nc, u,
-            self.corrected,
+    def _residual(self, nc, G=None, U=None, UN=None) -> float:
+        """The global residual of the current impulses and velocities: of Coulomb's law (ũ) for the
+        corrected cone, of the relaxed cone problem (u) otherwise. On columns (the column gather and
+        the branch-free residual pass): ``G`` the impulses in columns (default: ``self.gam``'s),
+        ``U`` (width, nc) and ``UN`` (nc) work space, overwritten."""
+        width = self.gam.shape[1]
+        if G is None:
+            G = np.ascontiguousarray(self.gam[:nc].T)
+        U = np.empty((width, nc)) if U is None else U
+        UN = np.empty(nc) if UN is None else UN  # ũ_n of every contact
+        none = np.empty((width, 0))
+        ck.apgd_gather(
+            self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.V, self.W, nc, U, UN,
+            self.corrected, G, none, none, UN, UN, False,
         )  # fmt: skip
-        return ck.residual_max(self.gam, u, self.cmu, self.cscale, self.croll, nc)
+        own = ck.apgd_residual(
+            G, U, UN if self.corrected else U[0], self.cmu, self.cscale, self.croll, nc, np.empty(nc)
+        )
+        return all_max(self.sim.comm, own)
 
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         pr = self.p
