@@ -47,11 +47,11 @@ def bounds(x, n):
     hi = x[0, :3].copy()
     for i in range(1, n):
         for k in range(3):
-            v = x[i, k]
-            if v < lo[k] or v != v:
-                lo[k] = v if lo[k] == lo[k] else lo[k]
-            if v > hi[k] or v != v:
-                hi[k] = v if hi[k] == hi[k] else hi[k]
+            v = x[i, k]  # a NaN, once taken, stays (comparisons with it are false)
+            if lo[k] == lo[k] and (v < lo[k] or v != v):
+                lo[k] = v
+            if hi[k] == hi[k] and (v > hi[k] or v != v):
+                hi[k] = v
     return lo, hi
 
 
