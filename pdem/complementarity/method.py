@@ -789,6 +789,62 @@ class Stepper(Integrator):
         pair = (i >= 0) & (i < p.n)  # −1: a fixed wall; ≥ n: a rigid-body wall (after the particles)
         return np.flatnonzero(np.where(pair, i < p.n_owned, j < p.n_owned)).astype(np.int64)
 
+    def jacobi_bound(self, active: bool = True, iterations: int = 200) -> float:
+        """λ_max of B N on the last step's contact problem, by power iteration: Jacobi's sweep
+        γ ← Π_K(γ − ω B (N γ + r)) is a contraction on a set of contacts that stay in contact only
+        while ω λ_max < 2, so 2/λ_max bounds ``relaxation`` there. ``active``: the contacts whose
+        solved γ_n > 0 (those that carry load; the others are projected to zero and leave the
+        iteration), else every row of the problem. N = D M⁻¹ Dᵀ (rolling rows included), B the
+        rows' scaling (3/trace of the contact's block, B_r for rolling rows).
+
+        A diagnostic, for choosing ``relaxation`` on a scene (docs/dem_c.md, *Session 26*): call it
+        on every rank after a step. Partition-independent up to rounding (exact global sums, each
+        contact counted once); the state is left as it was."""
+        sim = self.sim
+        p = sim.particles
+        comm = sim.comm
+        nc = int(self.log[-1][3]) if self.log else 0
+        width = self.gam.shape[1]
+        mask = (self.gam[:nc, 0] > 0.0) if active else np.ones(nc, dtype=bool)
+        B = np.zeros((width, nc))
+        B[:4] = np.where(mask, self.cscale[:nc], 0.0)
+        if width == 8:
+            B[4:] = np.where(mask, self.croll[:nc, 3], 0.0)  # 0: a row without rolling friction
+        IB = np.divide(1.0, B, out=np.zeros_like(B), where=B > 0.0)
+        rows = self._counted_rows(nc)
+        all_rows = rows.shape[0] == nc
+
+        def dot(a, b):
+            return dot_partials_columns(a, b, rows, all_rows)
+
+        n_all = p.n + len(self._bodies)
+        saved = [a.copy() for a in (p.v, p.w, self.V, self.W)]
+        zero = np.zeros((n_all, 3))
+        cvw = np.zeros_like(self.cvw)  # walls at rest, no bias: the linear part N γ alone
+        cbias = np.zeros_like(self.cbias)
+        P, L = np.empty((n_all, 3)), np.empty((n_all, 3))
+        U = np.empty((width, nc))
+        G = np.where(B > 0.0, 1.0, 0.0)  # the same start on every rank: partition-independent
+        (gg,), _ = exact_reduce(comm, [dot(G, G * IB)])
+        lam = 0.0
+        if gg > 0.0:
+            G /= math.sqrt(gg)
+            for _ in range(iterations):
+                P[:] = 0.0
+                L[:] = 0.0
+                ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, G, nc, P, L)
+                self._apply_impulses(nc, zero, zero, P, L, np.ascontiguousarray(G.T))
+                ck.jacobi_gather(self.cb, self.cn, self.ca, cvw, cbias, self.croll, self.V, self.W, nc, U)
+                U *= B > 0.0
+                # Rayleigh quotient of B^½ N B^½ at h = B^-½ γ (γ normalised: γ·B⁻¹γ = 1)
+                (lam, uu), _ = exact_reduce(comm, [dot(G, U), dot(U, U * B)])
+                if not uu > 0.0:
+                    break
+                G = U * B / math.sqrt(uu)
+        for a, s in zip((p.v, p.w, self.V, self.W), saved, strict=True):
+            a[:] = s
+        return float(lam)
+
     MAX_TRIALS = 60  # line-search doublings of the Lipschitz estimate per APGD iteration
 
     def _apgd(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
