@@ -68,6 +68,9 @@ def main(argv=None) -> int:
     if rank == 0:
         print(header, flush=True)
     code = pdem_main(rest)
+    if rank == 0 and not rows:
+        print(f"nothing measured: no DEM-C step (contact.law = \"complementarity\") at a multiple of "
+              f"--every {args.every}", file=sys.stderr)  # fmt: skip
     if rank == 0 and rows:
         if args.csv:
             with open(args.csv, "w") as f:
