@@ -430,9 +430,9 @@ def test_jacobi_bound_tool_agrees_on_1_and_2_ranks(tmp_path):
             "materials.steel.rolling_friction=0.1"]  # fmt: skip
     tables = {}
     for n in (1, 2):
-        cmd = [MPIEXEC, "-n", str(n), sys.executable, str(ROOT / "tools" / "jacobi_bound.py"), "--every", "100",
-               "--csv", str(tmp_path / f"b{n}.csv"), str(ROOT / "inputs" / "hopper.toml"), "--steps", "400",
-               "--output", str(tmp_path / f"o{n}"), "--quiet"]  # fmt: skip
+        cmd = [MPIEXEC, "-n", str(n), sys.executable, str(ROOT / "tools" / "jacobi_bound.py"),
+               "--every", "100", "--csv", str(tmp_path / f"b{n}.csv"), str(ROOT / "inputs" / "hopper.toml"),
+               "--steps", "400", "--output", str(tmp_path / f"o{n}"), "--quiet"]  # fmt: skip
         for s in sets:
             cmd += ["--set", s]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
