@@ -26,10 +26,13 @@ _PKG = Path(__file__).resolve().parent
 
 
 def _kernel_sources() -> list[Path]:
-    """Files whose numba code can be inlined into cached functions defined in *other* files: the
-    kernel modules (``_*.py``, e.g. ``contact/_kernels.py``, ``boundaries/_geometry.py``) and the
-    built-in laws. Editing any other file cannot make a cached kernel stale."""
-    files = [p for p in _PKG.rglob("_*.py") if p.name != "__init__.py"]
+    """Files whose numba code can be inlined into cached functions defined in *other* files: every
+    module of pdem that mentions ``njit`` (the kernel modules ``_*.py``, and others whose numba
+    functions the plugin API exports, e.g. ``parallel/exact.py``'s exact sums, which
+    ``complementarity/_kernels.py`` inlines), and the built-in laws. Editing any other file cannot
+    make a cached kernel stale (``tests/test_jit_cache.py`` checks every numba function pdem defines
+    against this list)."""
+    files = [p for p in _PKG.rglob("*.py") if "njit" in p.read_text(encoding="utf-8")]
     files += list((_PKG / "laws").glob("*.py"))
     return sorted(set(files))
 
