@@ -38,10 +38,11 @@ def pile(mu_r=0.0, steps=120, **params):
     return sim
 
 
-def dense_bound(sim, active=True):
-    """λ_max of B^½ D M⁻¹ Dᵀ B^½ from the rows' geometry: contact c between bodies i (−1: a wall)
-    and j, normal n, lever arms a_i n and −a_j n; rows u_n, u_t (3, in the tangent plane) and with
-    rolling friction R* × the relative spin (3 rows tangential, 1 about n)."""
+def dense_operator(sim, active=True, normal_only=False):
+    """N = D M⁻¹ Dᵀ and the rows' scaling B from the rows' geometry: contact c between bodies i
+    (−1: a wall) and j, normal n, lever arms a_i n and −a_j n; rows u_n, u_t (3, in the tangent
+    plane) and with rolling friction R* × the relative spin (3 rows tangential, 1 about n).
+    ``normal_only``: the u_n rows alone (a frictionless problem)."""
     st = sim.integrator
     p = sim.particles
     nc = st.log[-1][3]
@@ -69,6 +70,10 @@ def dense_bound(sim, active=True):
             full[:, 6 * i + 3 : 6 * i + 6] = cross_mat(ai * n)  # −(−[a_i n]×)
         J[0] = n @ full
         J[1:4] = proj @ full
+        if normal_only:
+            rows.append(J[:1])
+            scale.append(st.cscale[c])
+            continue
         rows.append(J)
         scale += [st.cscale[c]] * 4
         if width == 8 and st.croll[c, 3] > 0.0:
@@ -83,8 +88,13 @@ def dense_bound(sim, active=True):
             scale += [st.croll[c, 3]] * 4
     D = np.vstack(rows)
     minv = np.repeat(np.stack([p.inv_m[:nb]] * 3 + [p.inv_i[:nb]] * 3, axis=1).reshape(-1), 1)
-    N = D @ (minv[:, None] * D.T)
-    b = np.sqrt(np.array(scale))
+    return D @ (minv[:, None] * D.T), np.array(scale)
+
+
+def dense_bound(sim, active=True, normal_only=False):
+    """λ_max of B^½ D M⁻¹ Dᵀ B^½ (:func:`dense_operator`)."""
+    N, B = dense_operator(sim, active, normal_only)
+    b = np.sqrt(B)
     return float(np.linalg.eigvalsh(b[:, None] * N * b[None, :]).max())
 
 
@@ -133,27 +143,9 @@ def test_jacobi_converges_below_the_bound_and_diverges_above_it():
     sim = pile()
     lam = sim.integrator.jacobi_bound(iterations=3000)
     assert lam == pytest.approx(dense_bound(sim), rel=1e-6)
-    st = sim.integrator
-    nc = st.log[-1][3]
-    keep = st.gam[:nc, 0] > 0.0
     # the normal rows only (a frictionless problem): their spectrum lies within the full one's
-    p = sim.particles
-    nb = p.n
-    rows, scale = [], []
-    for c in np.flatnonzero(keep):
-        i, j = st.cb[c]
-        n = st.cn[c]
-        r = np.zeros(6 * nb)
-        r[6 * j : 6 * j + 3] = n
-        if i >= 0:
-            r[6 * i : 6 * i + 3] = -n
-        rows.append(r)
-        scale.append(st.cscale[c])
-    D = np.array(rows)
-    minv = np.repeat(np.stack([p.inv_m[:nb]] * 3 + [p.inv_i[:nb]] * 3, axis=1).reshape(-1), 1)
-    N = D @ (minv[:, None] * D.T)
-    B = np.array(scale)
-    lam_n = float(np.linalg.eigvalsh(np.sqrt(B)[:, None] * N * np.sqrt(B)[None, :]).max())
+    N, B = dense_operator(sim, normal_only=True)
+    lam_n = dense_bound(sim, normal_only=True)
     assert lam_n <= lam * (1 + 1e-9)
     rhs = np.ones(len(B))
     for omega, grows in ((0.95 * 2.0 / lam_n, False), (1.05 * 2.0 / lam_n, True)):

@@ -35,7 +35,7 @@ def main(argv=None) -> int:
 
     from pdem.cli import main as pdem_main
     from pdem.complementarity import method
-    from pdem.parallel.exact import exact_reduce
+    from pdem.parallel.exact import global_count
 
     rows: list[tuple] = []
     step = method.Stepper.step
@@ -49,9 +49,8 @@ def main(argv=None) -> int:
         counted = self._counted_rows(nc)
         loaded = np.zeros(nc, dtype=bool)
         loaded[counted] = self.gam[counted, 0] > 0.0
-        (n_all, n_loaded), _ = exact_reduce(
-            sim.comm, [(np.array([float(counted.size)]), 0.0), (np.array([float(loaded.sum())]), 0.0)]
-        )  # fmt: skip
+        n_all = global_count(sim.comm, counted.size)
+        n_loaded = global_count(sim.comm, int(loaded.sum()))
         lam_l = self.jacobi_bound(active=True, iterations=args.iterations)
         lam_a = self.jacobi_bound(active=False, iterations=args.iterations)
         row = (sim.step_count, int(n_all), int(n_loaded), lam_l, 2.0 / lam_l if lam_l > 0 else float("inf"),
@@ -68,7 +67,7 @@ def main(argv=None) -> int:
     if rank == 0:
         print(header, flush=True)
     code = pdem_main(rest)
-    if rank == 0 and not rows:
+    if rank == 0 and not rows and code == 0:
         print(f"nothing measured: no DEM-C step (contact.law = \"complementarity\") at a multiple of "
               f"--every {args.every}", file=sys.stderr)  # fmt: skip
     if rank == 0 and rows:
