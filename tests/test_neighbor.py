@@ -109,8 +109,9 @@ def test_build_pairs_with_ghosts():
 
 
 def test_build_pairs_capacity_overflow():
-    """With too small a capacity the true count is returned (count > capacity) and the entries
-    written are the first ``capacity`` pairs of the complete list."""
+    """With too small a capacity the true count is returned (count > capacity), with arrays of
+    ``capacity`` entries (their contents unspecified: the caller retries), and a retry at that count
+    gives the complete list."""
     x, r, ids = _packing(5, 300, 12.0, shuffle_ids=True)
     skin = 0.3
     lo, inv_cell, dims = _grid(x, r, skin)
@@ -118,8 +119,7 @@ def test_build_pairs_capacity_overflow():
     for cap in (0, 1, count // 3, count - 1):
         qi, qj, c2 = nk.build_pairs(x, r, ids, x.shape[0], x.shape[0], skin, lo, inv_cell, dims, cap)
         assert c2 == count > cap
-        assert qi.shape[0] == cap
-        assert np.array_equal(qi, pi[:cap]) and np.array_equal(qj, pj[:cap])
+        assert qi.shape[0] == qj.shape[0] == cap
     qi, qj, c3 = nk.build_pairs(x, r, ids, x.shape[0], x.shape[0], skin, lo, inv_cell, dims, count)
     assert c3 == count and np.array_equal(qi, pi[:count]) and np.array_equal(qj, pj[:count])
 
@@ -220,3 +220,18 @@ def test_bounds_are_numpys_min_and_max_with_nan():
         lo, hi = nk.bounds(y, 500)
         assert np.isnan(lo[1]) and np.isnan(hi[1])
         assert lo[0] == y[:, 0].min() and hi[2] == y[:, 2].max()
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 2048, 5000])
+def test_id_order_is_the_argsort_of_the_first_n_ids(n):
+    """The build's radix sort of rows by id against numpy's sort: ids in random order, sorted, with
+    a span needing three 11-bit passes, and negative; only the first n rows count."""
+    rng = np.random.default_rng(n)
+    cases = [
+        rng.permutation(n + 10).astype(np.int64),
+        np.arange(n + 3, dtype=np.int64),
+        rng.choice(10**12, n + 5, replace=False).astype(np.int64) - 5 * 10**11,
+        (rng.permutation(n + 1) * 3 - 10**9).astype(np.int64),
+    ]
+    for ids in cases:
+        assert np.array_equal(nk.id_order(ids, n), np.argsort(ids[:n], kind="stable"))

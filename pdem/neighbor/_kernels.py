@@ -56,15 +56,50 @@ def bounds(x, n):
 
 
 @njit
+def id_order(ids, n):
+    """The rows ``0..n-1`` sorted by ``ids`` (distinct integers): a radix sort by 11-bit digits of
+    ``id - min``, as many passes as its largest value needs (2 below 4 million). ``np.argsort``
+    took 1.1 ms on 18,000 ids in random order (0.19 ms sorted), this 0.1 ms either way."""
+    order = np.arange(n)
+    if n < 2:
+        return order
+    lo = ids[0]
+    hi = ids[0]
+    for q in range(n):
+        lo = min(lo, ids[q])
+        hi = max(hi, ids[q])
+    span = hi - lo
+    src = order
+    dst = np.empty(n, dtype=np.int64)
+    count = np.empty(2049, dtype=np.int64)
+    shift = 0
+    while True:  # least significant digit first; each pass is stable
+        count[:] = 0
+        for q in range(n):
+            count[((ids[src[q]] - lo) >> shift & 2047) + 1] += 1
+        for c in range(2048):
+            count[c + 1] += count[c]
+        for q in range(n):
+            row = src[q]
+            d = (ids[row] - lo) >> shift & 2047
+            dst[count[d]] = row
+            count[d] += 1
+        src, dst = dst, src
+        shift += 11
+        if span >> shift == 0:
+            return src
+
+
+@njit
 def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
     """Verlet pair list sorted by (lower id, higher id).
 
-    Returns (pi, pj, count). If ``count > capacity`` the arrays are incomplete and the caller must
-    retry with a capacity of at least ``count``.
+    Returns (pi, pj, count). If ``count > capacity`` the arrays (of ``capacity`` entries) hold nothing
+    usable and the caller must retry with a capacity of at least ``count``.
     """
     cell_start, cell_items = bin_particles(x, n, lo, inv_cell, dims)
     # positions, radii and ids copied in cell order: the neighbour cells' particles are then read
-    # from contiguous memory instead of scattered rows (storage is in id order, not in space; the
+    # from contiguous memory instead of scattered rows (the storage need not follow space; the
     # scattered reads made a build ~1.2 µs per particle on the hopper). The same candidates in the
     # same order: the same list, bit for bit
     xs = np.empty((n, 3))
@@ -79,9 +114,13 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
         rs[s] = r[j]
         ids_s[s] = ids[j]
         own_s[s] = j < n_owned
-    order = np.argsort(ids[:n])
-    pi = np.empty(capacity, dtype=np.int64)
-    pj = np.empty(capacity, dtype=np.int64)
+    # particles visited in cell order (consecutive ones scan overlapping cells, which stay in cache;
+    # a visit in id order read the cells of a random place at each particle when ids are scattered in
+    # space: 9.0 against 6.2 ms a build on the 18k column read from a file in random row order). Each
+    # particle's partners go to its own segment of ``seg``; the list is then written in id order
+    start = np.empty(n, dtype=np.int64)
+    size = np.empty(n, dtype=np.int64)
+    seg = np.empty(capacity, dtype=np.int64)
     # room for every particle of 27 cells: no growth inside the loop (an array re-bound there made
     # numba count references at every candidate, ~45 % of a build)
     most = 1
@@ -91,16 +130,16 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
     cand_id = np.empty(27 * most, dtype=np.int64)
     count = 0
     for q in range(n):
-        i = order[q]
-        idi = ids[i]
-        xi0 = x[i, 0]
-        xi1 = x[i, 1]
-        xi2 = x[i, 2]
-        ri = r[i]
-        ghost_i = i >= n_owned
-        cx = min(max(int((x[i, 0] - lo[0]) * inv_cell), 0), dims[0] - 1)
-        cy = min(max(int((x[i, 1] - lo[1]) * inv_cell), 0), dims[1] - 1)
-        cz = min(max(int((x[i, 2] - lo[2]) * inv_cell), 0), dims[2] - 1)
+        i = cell_items[q]
+        idi = ids_s[q]
+        xi0 = xs[q, 0]
+        xi1 = xs[q, 1]
+        xi2 = xs[q, 2]
+        ri = rs[q]
+        ghost_i = not own_s[q]
+        cx = min(max(int((xi0 - lo[0]) * inv_cell), 0), dims[0] - 1)
+        cy = min(max(int((xi1 - lo[1]) * inv_cell), 0), dims[1] - 1)
+        cz = min(max(int((xi2 - lo[2]) * inv_cell), 0), dims[2] - 1)
         nc = 0
         ex0 = max(cx - 1, 0)
         ex1 = min(cx + 1, dims[0] - 1)
@@ -128,11 +167,25 @@ def build_pairs(x, r, ids, n_owned, n, skin, lo, inv_cell, dims, capacity):
                         cand_id[p] = idj
                         cand[p] = j
                         nc += 1
+        start[i] = count
+        size[i] = nc
         for s in range(nc):
             if count < capacity:
-                pi[count] = i
-                pj[count] = cand[s]
+                seg[count] = cand[s]
             count += 1
+    pi = np.empty(capacity, dtype=np.int64)
+    pj = np.empty(capacity, dtype=np.int64)
+    if count > capacity:
+        return pi, pj, count
+    order = id_order(ids, n)
+    k = 0
+    for q in range(n):
+        i = order[q]
+        a = start[i]
+        for e in range(size[i]):
+            pi[k] = i
+            pj[k] = seg[a + e]
+            k += 1
     return pi, pj, count
 
 
