@@ -131,10 +131,7 @@ class ContactStore:
         self.key_order = None
         if schedule_rows >= 0 and keys.shape[0] > 1:
             order = nk.schedule_pairs(pi, pj, schedule_rows)
-            pi, pj, keys, hist = pi[order], pj[order], keys[order], hist[order]
-            inverse = np.empty_like(order)
-            inverse[order] = np.arange(order.shape[0])
-            self.key_order = inverse
+            pi, pj, keys, hist, self.key_order = nk.take_pairs(order, pi, pj, keys, hist)
         self.pi, self.pj, self.keys, self.hist = pi, pj, keys, hist
         self.force = np.zeros((keys.shape[0], 3))
 
@@ -142,7 +139,7 @@ class ContactStore:
         """(keys, history) of the pairs in key order (views when the list is in key order)."""
         if self.key_order is None:
             return self.keys, self.hist
-        return self.keys[self.key_order], self.hist[self.key_order]
+        return nk.take_keyed(self.key_order, self.keys, self.hist)
 
     def pair_rows_in_key_order(self) -> np.ndarray | slice:
         """Index of the pair rows in key order: for sums over pairs that must not depend on the

@@ -279,6 +279,38 @@ def carry_history(old_keys, old_hist, new_keys, new_hist, zero_others=True):
 
 
 @njit
+def take_keyed(order, keys, hist):
+    """``(keys[order], hist[order])``: a pair list's rows in another order, in one loop (NumPy's
+    fancy indexing took 1.5-2.1 ms for 65,000 rows of keys and history, this ~0.3 ms)."""
+    m = order.shape[0]
+    h = hist.shape[1]
+    k2 = np.empty(m, dtype=keys.dtype)
+    h2 = np.empty((m, h), dtype=hist.dtype)
+    for q in range(m):
+        s = order[q]
+        k2[q] = keys[s]
+        for c in range(h):
+            h2[q, c] = hist[s, c]
+    return k2, h2
+
+
+@njit
+def take_pairs(order, pi, pj, keys, hist):
+    """``pi[order], pj[order], keys[order], hist[order]`` and the inverse of ``order``, in one loop."""
+    m = order.shape[0]
+    pi2 = np.empty(m, dtype=pi.dtype)
+    pj2 = np.empty(m, dtype=pj.dtype)
+    inverse = np.empty(m, dtype=np.int64)
+    for q in range(m):
+        s = order[q]
+        pi2[q] = pi[s]
+        pj2[q] = pj[s]
+        inverse[s] = q
+    k2, h2 = take_keyed(order, keys, hist)
+    return pi2, pj2, k2, h2, inverse
+
+
+@njit
 def max_displacement2(x, x_ref, n):
     """Largest squared displacement of particles 0..n-1 since ``x_ref``."""
     best = 0.0
