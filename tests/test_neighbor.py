@@ -235,3 +235,19 @@ def test_id_order_is_the_argsort_of_the_first_n_ids(n):
     ]
     for ids in cases:
         assert np.array_equal(nk.id_order(ids, n), np.argsort(ids[:n], kind="stable"))
+
+
+def test_take_pairs_and_take_keyed_are_numpy_gathers():
+    """The rebuild's gathers against NumPy's indexing, with history of 3 and of 0 columns."""
+    rng = np.random.default_rng(4)
+    m = 1000
+    order = rng.permutation(m)
+    pi, pj = rng.integers(0, 500, m), rng.integers(0, 500, m)
+    keys = rng.choice(10**9, m, replace=False).astype(np.int64)
+    for hist in (rng.normal(size=(m, 3)), np.zeros((m, 0))):
+        a, b, k, h, inv = nk.take_pairs(order, pi, pj, keys, hist)
+        assert np.array_equal(a, pi[order]) and np.array_equal(b, pj[order])
+        assert np.array_equal(k, keys[order]) and np.array_equal(h, hist[order])
+        assert np.array_equal(inv[order], np.arange(m))
+        k2, h2 = nk.take_keyed(inv, k, h)
+        assert np.array_equal(k2, keys) and np.array_equal(h2, hist)

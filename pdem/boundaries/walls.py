@@ -482,9 +482,9 @@ class Wall:
         """Row by row: ``buffers[r][:counts[r]]`` holds row r's contributions this step."""
         if buffers is not None:
             self._buffers = list(buffers)
-        # kept as given (the contact store passes a view of its counts, rewritten at every step, as
-        # the buffers are): converting and summing them here cost ~4 µs a wall at every step
-        self._counts = counts
+        # an array is kept as given (the contact store passes a view of its counts, rewritten at every
+        # step, as the buffers are): converting and summing them here cost ~4 µs a wall at every step
+        self._counts = counts if isinstance(counts, np.ndarray) else list(counts)
         self._load = None
 
     @property

@@ -296,7 +296,8 @@ def take_keyed(order, keys, hist):
 
 @njit
 def take_pairs(order, pi, pj, keys, hist):
-    """``pi[order], pj[order], keys[order], hist[order]`` and the inverse of ``order``, in one loop."""
+    """``pi[order], pj[order], keys[order], hist[order]`` and the inverse of ``order``, without NumPy's
+    fancy indexing (:func:`take_keyed` for the keys and history)."""
     m = order.shape[0]
     pi2 = np.empty(m, dtype=pi.dtype)
     pj2 = np.empty(m, dtype=pj.dtype)
