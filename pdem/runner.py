@@ -60,7 +60,22 @@ from . import __version__
 from .errors import InputError, PdemError
 from .io.checkpoint import write_checkpoint
 from .io.frame import Frame, WallState
-from .io.paths import entries, first_missing, output_dir_problem, remove_created
+from .io.journal import Journal, discard, settle_stale
+from .io.paths import (
+    LOCK,
+    MARKER,
+    OutputLock,
+    entries,
+    first_missing,
+    is_pdem_output,
+    lock_holder,
+    named_as_pdem,
+    output_dir_problem,
+    pdem_entries,
+    record_entries,
+    remove_created,
+    remove_pdem_entries,
+)
 from .plugins import load
 from .simulation import Simulation
 
@@ -236,16 +251,17 @@ class Runner:
         problem = None
         self._before: set[str] | None = None
         self._created_root: Path | None = None
+        self._lock = OutputLock(self.out)
+        self._journal: Journal | None = None
+        self._recorded: set[str] = set()
+        self._foreign: set[str] = set()
+        self._lock_made = False
         if self.root and not dry:
             problem = output_dir_problem(self.out, "the output directory", "choose another output directory")
             if problem is None:
                 self._before = entries(self.out)
                 self._created_root = first_missing(self.out)
-                if self._before and not self.overwrite and not self.append:
-                    problem = (
-                        f"output directory {self.out} exists and is not empty; pass --overwrite to "
-                        "replace it, or choose another with --output DIR"
-                    )
+                problem = self._output_refusal()
         problem = self.comm.bcast(problem, root=0)
         if problem:
             raise InputError(problem)
@@ -271,6 +287,59 @@ class Runner:
         self._contacts_last: int | None = None
         self._contact_writer: Any = None
         self._thermo_header: str | None = None
+
+    def _output_refusal(self) -> str | None:
+        """Why the existing output directory cannot take this run (rank 0; looks only): another run
+        holds it, or it is not empty and neither continued (a resume's own directory) nor replaceable
+        (``--overwrite`` of a directory pdem made)."""
+        holder = lock_holder(self.out) if self._before is not None else None
+        if holder is not None:
+            what = "this resume" if self.resume is not None else "this run"
+            return (
+                f"output directory {self.out} is in use by {holder}; pdem runs one run at a time per "
+                f"output directory, so {what} was refused and nothing there was touched: wait for that "
+                "run to end (or stop it), or choose another directory with --output DIR"
+            )
+        if not self._before or self.append:
+            return None
+        if not self.overwrite:
+            return (
+                f"output directory {self.out} exists and is not empty; pass --overwrite to replace "
+                "pdem's output there, or choose another with --output DIR"
+            )
+        if not is_pdem_output(self.out):
+            return (
+                f"output directory {self.out} was not made by pdem (it has no {MARKER} "
+                "marker), so --overwrite does not replace it and nothing in it was touched; choose a new "
+                "or empty directory with --output DIR, or empty it yourself (an output of a pdem older "
+                "than its marker, too, must be removed by hand)"
+            )
+        return None
+
+    def _protected(self) -> set[Path]:
+        """Paths ``--overwrite`` never removes: the deck being run and the files its sources read."""
+        keep: set[Path] = set()
+        if self.resolved.path is not None:
+            keep.add(Path(self.resolved.path))
+        for src in self.deck.particles or []:
+            path = getattr(src, "path", None)
+            if isinstance(path, str | Path) and str(path):
+                keep.add(Path(self.resolved.base_dir) / path)
+        return keep
+
+    def _record_output(self) -> None:
+        """Add what pdem created in the output directory to its marker (rank 0; cheap when nothing
+        changed: one directory listing)."""
+        if not self.root or not self._lock.held:
+            return
+        now = entries(self.out) or set()
+        new = now - self._recorded - self._foreign
+        if new:
+            try:
+                record_entries(self.out, new, __version__)
+            except OSError:
+                return  # the marker is bookkeeping: a full disk is reported by the writes themselves
+            self._recorded |= new
 
     def build(self) -> Simulation:
         deck = self.deck
@@ -422,6 +491,7 @@ class Runner:
             writer = SeriesWriter(self.out / f"series_{stage}.csv", list(row), append=self._series_append)
             self._series_writers[stage] = writer
         writer.append(row)
+        self._record_output()
 
     def _boundary_records(self, stage: str) -> None:
         """Rows the boundaries sampled since the last series row (``Boundary.records``, collective),
@@ -557,6 +627,7 @@ class Runner:
         path = self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5"
         if self.root:
             write_checkpoint(path, state, meta)
+            self._record_output()
         self.comm.Barrier()
         return path
 
@@ -596,6 +667,7 @@ class Runner:
             kept = self._root_do(lambda: self._continue_output(start))
         else:
             kept = self._root_do(lambda: self._new_output(start))
+        self._root_do(self._record_output)
         for stage, rows in (kept or {}).items():
             self.series[stage] = rows
             if rows and "step" in rows[-1]:
@@ -639,17 +711,66 @@ class Runner:
 
             self._contacts_last = self._root_do(make)
 
+    def _make_output_dir(self) -> None:
+        """Create the output directory and its missing parents, remembering the outermost one this
+        process created itself (another process may create the same path at the same moment)."""
+        out = Path(os.path.abspath(self.out))
+        missing = []
+        p = out
+        while not os.path.lexists(p) and p.parent != p:
+            missing.append(p)
+            p = p.parent
+        self._created_root = None
+        for path in reversed(missing):
+            try:
+                os.mkdir(path)
+            except FileExistsError:
+                continue
+            if self._created_root is None:
+                self._created_root = path
+        if self._created_root is None:  # it existed (or another process made it): keep its entries
+            self._before = entries(self.out) if self._before is None else self._before
+
+    def _take_lock(self) -> None:
+        """Rank 0: the directory's lock, then settle what a killed resume left (see io.journal)."""
+        self._lock_made = not os.path.lexists(self.out / LOCK)
+        self._lock.acquire("this resume" if self.resume is not None else "this run")
+        note = settle_stale(self.out, self.resume_step)
+        if note and self.progress.stream is not None:
+            self.progress.stream.write(f"pdem: {self.out}: {note}\n")
+
     def _new_output(self, start: Any) -> dict[str, list]:
         out = self.out
-        if self._before:  # --overwrite: the old content goes only now that the run has started well
-            for name in sorted(self._before):
-                path = out / name
-                if path.is_dir() and not path.is_symlink():
-                    shutil.rmtree(path)
-                else:
-                    path.unlink()
-            self._before = set()
-        out.mkdir(parents=True, exist_ok=True)
+        self._make_output_dir()
+        try:
+            self._take_lock()
+        except InputError:
+            if self._created_root is not None:  # an empty folder of ours: leave no trace
+                shutil.rmtree(self._created_root, ignore_errors=True)
+                self._created_root = None
+            self._output_open = False  # nothing of this run's to undo
+            raise
+        if self._created_root is None:
+            present = (entries(out) or set()) - {LOCK}
+            if present and self.overwrite:
+                # --overwrite: pdem's old output goes only now that the run has started well and
+                # holds the lock; whatever pdem did not make (the deck, notes, a user's files) stays
+                if not is_pdem_output(out):
+                    self._output_open = False
+                    raise InputError(self._output_refusal() or f"{out} was not made by pdem")
+                remove_pdem_entries(out, self._protected())
+            elif present - {MARKER}:
+                self._output_open = False  # filled by another process since the start checks
+                raise InputError(
+                    f"output directory {out} is no longer empty (another process wrote there since this "
+                    "run started); choose another with --output DIR"
+                )
+            # what the undo of a failed start keeps: what was there, less a lock file this run made
+            self._before = (entries(out) or set()) - ({LOCK} if self._lock_made else set())
+        else:
+            self._before = None
+        self._foreign = set(self._before or ()) - {LOCK, MARKER}
+        record_entries(out, set(), __version__)
         (out / "checkpoints").mkdir(exist_ok=True)
         (out / "deck.resolved.toml").write_text(self.deck_text)
         if self.series_from is None:
@@ -697,22 +818,30 @@ class Runner:
 
         out = self.out
         out.mkdir(parents=True, exist_ok=True)
+        self._take_lock()
+        # what pdem did not make stays out of the marker (in a folder without one, an output of an
+        # older pdem, what is named as pdem names its output is taken as pdem's)
+        known = set(entries(out) or ())
+        own = pdem_entries(out) if is_pdem_output(out) else {n for n in known if named_as_pdem(n)}
+        self._foreign = known - own - {LOCK, MARKER}
+        self._journal = Journal(out)
+        self._journal.begin(start.step)  # from here on, what the resume drops is held, not deleted
         ckdir = out / "checkpoints"
         ckdir.mkdir(exist_ok=True)
         for directory in (out, out / "particles", out / "walls", *sorted(out.glob("particles/r*"))):
             if directory.is_dir():
                 for path in directory.iterdir():  # temporary files of writes a kill interrupted
                     if re.fullmatch(r"\..+\.[0-9a-f]{8}(\.tmp|\.vtu)", path.name):
-                        path.unlink()
+                        discard(out, path)
         later = []
         for path in ckdir.iterdir():
             m = re.fullmatch(r"step_(\d+)\.h5", path.name)
             if path.name.endswith(".tmp"):
-                path.unlink()
+                discard(out, path)
             elif m and int(m.group(1)) > start.step:
                 later.append(path)
         for path in later:
-            path.unlink()
+            discard(out, path)
         latest = ckdir / "latest.h5"
         if latest.is_symlink() and not latest.exists():
             steps = sorted(p.name for p in ckdir.glob("step_*.h5"))
@@ -739,10 +868,46 @@ class Runner:
 
     def _undo_output(self) -> None:
         """The run failed before its first step: remove what it created (rank 0; never what was
-        there before it, never a continued output)."""
-        if not self.root or not self._output_open or self.append:
+        there before it, never a continued output, nothing in a directory whose lock it does not
+        hold)."""
+        if not self.root or not self._output_open or self.append or not self._lock.held:
             return
         remove_created(self.out, self._before, self._created_root)
+
+    def _settle_journal(self, failed: BaseException | None) -> None:
+        """Rank 0, at the end of a resume into its own directory: commit what it wrote, or, when it
+        failed and had replaced a future (later checkpoints, rows, frames), put the directory back as
+        it was before the resume. A failed resume that replaced nothing keeps what it wrote, as a
+        failed run does."""
+        journal, self._journal = self._journal, None
+        if journal is None or not self.root:
+            return
+        try:
+            if failed is None or isinstance(failed, StageLimitError) or not journal.replaced_anything:
+                journal.commit()
+                return
+            journal.rollback()
+        except OSError as exc:  # never hide the run's own error behind the bookkeeping's
+            if self.progress.stream is not None:
+                self.progress.stream.write(f"pdem: warning: could not settle {journal.path}: {exc}\n")
+            return
+        if self.progress.stream is not None:
+            self.progress.stream.write(
+                f"pdem: the resume failed, so {self.out} was put back as it was before it (the later "
+                "checkpoints, rows and snapshots it was replacing are kept); to keep a failing attempt's "
+                "output, resume into a new directory with --output DIR\n"
+            )
+
+    def _finish_output(self, failed: BaseException | None) -> None:
+        """Rank 0, last: the journal settled, the marker brought up to date, the lock released."""
+        if not self.root:
+            return
+        try:
+            self._settle_journal(failed)
+            if failed is None or self._setup_done:
+                self._record_output()
+        finally:
+            self._lock.release()
 
     # ---------------------------------------------------------------------------- running
     def check_scene(self) -> str:
@@ -752,6 +917,7 @@ class Runner:
         stages), writing nothing. A one-line description of the scene."""
         sim = self.build()
         stages = list(self.deck.stages)
+        self._check_dt_before_insertion(0)
         self._insert_particles(stages[0].name, stages[0].name)
         self._enter_stage(0, stages[0])
         self._check_stages(0)
@@ -761,6 +927,47 @@ class Runner:
             f"{sim.count_particles()} particles at the start, dt = {sim.dt:.4g} s (stability estimate "
             f"{sim.dt_critical:.4g} s)"
         )
+
+    def _check_dt_before_insertion(self, start_index: int) -> None:
+        """Refuse, before any source makes its grains (a pour can take minutes), a stage dt above
+        the law's stability estimate for the *largest* grains the deck's sources can make: the
+        estimate grows with the radius, so such a dt is above it for any grains they make. Sources
+        that cannot tell their largest radius beforehand are left to the check after insertion."""
+        if self.deck.run.force_dt:
+            return
+        sim = self.sim
+        radii, mats, masses = [], [], []
+        for params in self.deck.particles or []:
+            try:
+                r = load("sources", params.source)(params).r_max()
+            except PdemError:
+                raise
+            except Exception:  # noqa: BLE001 - a plugin's estimate is optional
+                r = None
+            if r is None or not math.isfinite(r) or r <= 0:
+                continue
+            k = sim.materials.index(params.material)
+            radii.append(r)
+            mats.append(k)
+            masses.append(4.0 / 3.0 * math.pi * r**3 * sim.materials[k].density)
+        if not radii:
+            return
+        with np.errstate(all="ignore"):
+            crit = sim.law.critical_dt(
+                sim.materials, np.asarray(radii), np.asarray(mats, dtype=np.int64), np.asarray(masses)
+            )
+        if not math.isfinite(crit):
+            return
+        for index, stage in enumerate(self.deck.stages):
+            dt = self._stage_dt(stage)
+            if index >= start_index and dt is not None and dt > crit:
+                raise InputError(
+                    f"{self._dt_key(index, stage)}: dt = {dt:.4g} s for stage '{stage.name}' exceeds the "
+                    f"stability estimate of law '{sim.law.name}' even for the largest grains the deck's "
+                    f"sources make (radius {max(radii):.4g} m: {crit:.4g} s), so for any grains they "
+                    f"make; use dt ≤ {crit:.4g} s (practice: 0.1–0.3 of the estimate for the smallest "
+                    "grains, which `pdem check` prints), or set run.force_dt = true to run anyway"
+                )
 
     def _check_measured(self, start_index: int) -> None:
         """Every quantity a stage ends on (and every thermo column) is one the boundaries measure:
@@ -814,6 +1021,7 @@ class Runner:
         started = False
         stage_start: tuple[float, int] | None = None
         if self.resume is None:
+            self._check_dt_before_insertion(0)
             self._insert_particles(first, first)
             start = ResumePoint(0, False, 0, 0.0)
         else:
@@ -857,10 +1065,11 @@ class Runner:
                 if not self._run_stage(index, stage, stage_start, resumed_here):
                     self.stopped_early = True
                     break
-        except BaseException:
+        except BaseException as exc:
             self._close()
-            if not self._setup_done:
+            if not self._setup_done and not self._journal:
                 self._undo_output()
+            self._finish_output(exc)
             raise
         self._close()
         wall = _time.perf_counter() - t_start
@@ -901,7 +1110,11 @@ class Runner:
             if res:
                 summary["results"][name] = res
         if self.root:
-            (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+            try:
+                text = json.dumps(json_finite(summary), indent=2, allow_nan=False)
+                (self.out / "summary.json").write_text(text + "\n")
+            finally:
+                self._finish_output(None)
         return summary
 
     def _close(self) -> None:
@@ -1166,6 +1379,23 @@ class Runner:
             else:
                 values.append(meas.get(k, math.nan))
         return values
+
+
+def json_finite(value: Any) -> Any:
+    """``value`` for strict JSON: non-finite floats (NaN, ±inf) as ``null``, NumPy scalars as Python
+    numbers, tuples as lists (``summary.json`` is read by every JSON parser, and bare ``NaN`` is not
+    JSON)."""
+    if isinstance(value, dict):
+        return {str(k): json_finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_finite(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [json_finite(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _where(cls: Any) -> str:

@@ -166,8 +166,18 @@ def test_existing_output_not_overwritten(tmp_path, capsys):
     code, _, err = run_cli([deck, "--output", out, "--steps", "5", "--quiet"], capsys)
     assert code == 2 and "--overwrite" in err
     assert (out / "precious.txt").read_text() == "keep me"
-    code, _, _ = run_cli([deck, "--output", out, "--steps", "5", "--quiet", "--overwrite"], capsys)
-    assert code == 0 and not (out / "precious.txt").exists()
+    # --overwrite replaces only pdem's output: a folder pdem did not make is refused untouched
+    code, _, err = run_cli([deck, "--output", out, "--steps", "5", "--quiet", "--overwrite"], capsys)
+    assert code == 2 and "not made by pdem" in err, err
+    assert sorted(p.name for p in out.iterdir()) == ["precious.txt"]
+    # in pdem's own output folder it replaces pdem's files and keeps the user's
+    made = tmp_path / "made"
+    assert run_cli([deck, "--output", made, "--steps", "5", "--quiet"], capsys)[0] == 0
+    (made / "precious.txt").write_text("keep me")
+    code, _, err = run_cli([deck, "--output", made, "--steps", "3", "--quiet", "--overwrite"], capsys)
+    assert code == 0, err
+    assert (made / "precious.txt").read_text() == "keep me"
+    assert not (made / "checkpoints" / "step_0000000005.h5").exists()
 
 
 def test_instability_exit_3(tmp_path, capsys):

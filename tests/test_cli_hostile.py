@@ -182,7 +182,8 @@ def test_output_files_follow_the_umask(tmp_path, capsys):
     assert any(p.suffix == ".vtu" for p in files)
     modes = {str(p.relative_to(out)): oct(stat.S_IMODE(p.stat().st_mode)) for p in files}
     assert set(modes.values()) == {oct(0o640)}, modes
-    assert not [p for p in out.rglob(".*")], "temporary files left behind"
+    hidden = {p.name for p in out.rglob(".*")} - {".pdem-output.json", ".pdem-lock"}  # marker and lock
+    assert not hidden, f"temporary files left behind: {hidden}"
 
 
 # ------------------------------------------------------------------------------ 3. --steps

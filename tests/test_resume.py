@@ -115,7 +115,8 @@ def assert_one_series(out: Path, full: Path, resumed_from: int, stops: tuple[int
             assert np.array_equal(a[key][keep], b[key], equal_nan=True), (stage, key)
     steps = sorted(int(p.name[5:15]) for p in (out / "checkpoints").glob("step_*.h5"))
     assert steps[-1] == int(final_state(full)["scalars/step"])
-    assert not list(out.rglob("*.tmp")) and not list(out.rglob(".*"))
+    assert not list(out.rglob("*.tmp"))
+    assert {p.name for p in out.rglob(".*")} <= {".pdem-output.json", ".pdem-lock"}  # marker and lock
     summary = json.loads((out / "summary.json").read_text())
     reference = json.loads((full / "summary.json").read_text())
     assert summary["results"] == reference["results"]  # the flow rate from the whole series

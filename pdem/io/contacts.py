@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import OutputError
 from .base import atomic_write_text
+from .journal import discard
 from .vtk import _frame_number, _int, _pvd_text, _read_pvd, write_vtu
 
 __all__ = ["ContactNetworkWriter", "contact_lines"]
@@ -88,7 +89,7 @@ class ContactNetworkWriter:
             for path in files:
                 n = _frame_number(path.name)
                 if n is not None and n >= self.n_frames:
-                    path.unlink()
+                    discard(self.directory, path)  # held while a resume is undecided
         elif files and not overwrite:
             raise OutputError(
                 f"contact network files already exist in '{self.directory}' ({files[0].name}, …); choose "

@@ -73,6 +73,7 @@ from ..api import KIND_NAMES
 from ..errors import OutputError
 from .base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .frame import PARTICLE_FIELDS, Frame, WallState
+from .journal import discard_frame
 from .wall_mesh import wall_triangles
 
 __all__ = ["HDF5Writer", "xdmf_number_type"]
@@ -308,7 +309,7 @@ class HDF5Writer(Writer):
             step = int(step) if step is not None else None
             time = float(time) if time is not None else None
             if not self._keeps(step, time):
-                del frames[key]
+                discard_frame(self.directory, frames, key)  # held while a resume is undecided
                 continue
             stage = g.attrs.get("stage", "")
             stage = stage.decode() if isinstance(stage, bytes) else str(stage)

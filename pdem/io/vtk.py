@@ -59,6 +59,7 @@ import numpy as np
 from ..errors import OutputError
 from .base import Piece, Writer, atomic_write_text, make_temp_file, piece_name, write_metadata_json
 from .frame import Frame, WallState
+from .journal import discard
 from .wall_mesh import wall_triangles
 
 __all__ = ["VTKWriter", "write_vtu"]
@@ -177,7 +178,7 @@ class VTKWriter(Writer):
         for path in stale:
             number = _frame_number(path.name)
             if number is not None and number >= n_frames:
-                path.unlink()
+                discard(self.directory, path)  # held while a resume is undecided
         try:
             self.particles_dir.mkdir(exist_ok=True)
             self.walls_dir.mkdir(exist_ok=True)
