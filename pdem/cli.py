@@ -492,9 +492,22 @@ def cmd_study(argv: list[str]) -> int:
     return 0
 
 
+def _same_command_on_every_rank(argv: list[str]) -> None:
+    """Under MPI, before anything else (parsing included: a rank refused by argparse would leave the
+    others waiting): every rank must have been given the same arguments and the same deck, checkpoint
+    or spec, else every rank raises the same InputError (exit 2). A serial run does not start MPI
+    for it (:mod:`pdem.parallel.agree`)."""
+    from .parallel.agree import check_same_command, launched_comm
+
+    comm = launched_comm()
+    if comm is not None:
+        check_same_command(comm, argv)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
+        _same_command_on_every_rank(argv)
         if argv and argv[0] in SUBCOMMANDS:
             return {
                 "check": cmd_check,

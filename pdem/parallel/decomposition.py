@@ -1,6 +1,7 @@
 """Spatial domain decomposition: a Cartesian grid of subdomains, one per rank.
 
-Cut planes sit at particle-count quantiles when the simulation is first prepared. The outermost
+Cut planes sit at particle-count quantiles when the simulation is first prepared (or, when it had
+no particles then, when the first ones are added: an empty first stage). The outermost
 subdomains extend to infinity in non-periodic directions, so a particle can never be outside every
 subdomain; along a periodic axis they end at the box faces, and the first and last subdomains are
 neighbours across the periodic boundary (the same rank when the axis is not split: a rank is then its
@@ -13,6 +14,7 @@ the rank itself).
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 
@@ -68,20 +70,42 @@ class Decomposition:
     """
 
     def __init__(self, comm, x_all: np.ndarray, dims=None, min_width: float = 0.0, box=None) -> None:
-        self.swaps: list = []  # ghost swaps recorded by parallel.exchange.borders, replayed by forward
-        x_all = np.atleast_2d(np.asarray(x_all, dtype=float))
+        x_all = np.atleast_2d(np.asarray(x_all, dtype=float)).reshape(-1, 3)
         self.box = box
         self.periodic = tuple(bool(p) for p in box.periodic) if box is not None else (False, False, False)
+        self.min_width = min_width
+        self._world = comm
+        self._given_dims = dims
+        #: False while no particle exists on any rank (a first stage without grains): the cut planes
+        #: are then provisional, and the first particles added (:meth:`owned_mask`) place them, and
+        #: choose the grid, as if they had been there from the start
+        self.placed = comm.size == 1 or x_all.shape[0] > 0
+        self._just_placed = False  # placed since the last imbalance(): the work measured before is moot
+        self._grid(self._choose_dims(x_all))
+        if self.placed:
+            self.set_cuts([self._quantile_cuts(np.sort(x_all[:, d]), d) for d in range(3)])
+        else:
+            self.set_cuts([self._even_cuts(d) for d in range(3)])
+        self.n_rebalances = 0
+
+    def _choose_dims(self, x_all: np.ndarray) -> tuple[int, ...]:
+        """The grid: the one given, else the one with the least cut area over the particles' extent."""
         if x_all.shape[0]:
             extent = np.maximum(x_all.max(axis=0) - x_all.min(axis=0), 1e-12)
         else:
             extent = np.ones(3)
-        if box is not None:
-            extent = np.where(box.periodic, box.length, extent)
-        self.dims = tuple(int(d) for d in (dims or choose_dims(comm.size, extent, self.periodic, min_width)))
+        if self.box is not None:
+            extent = np.where(self.box.periodic, self.box.length, extent)
+        dims = self._given_dims or choose_dims(self._world.size, extent, self.periodic, self.min_width)
+        return tuple(int(d) for d in dims)
+
+    def _grid(self, dims: tuple[int, ...]) -> None:
+        """The Cartesian communicator of ``dims`` (collective on several ranks), this rank's place in
+        it and its neighbours."""
+        comm = self._world
+        self.dims = dims
         if len(self.dims) != 3 or int(np.prod(self.dims)) != comm.size:
             raise InputError(f"decomposition {self.dims} does not match {comm.size} ranks")
-        self.min_width = min_width
         self.neighbours = []
         if comm.size == 1:  # serial (periodic): no MPI; along a periodic axis the rank is its own neighbour
             self.comm = comm
@@ -106,18 +130,48 @@ class Decomposition:
         for d in range(3):
             if self.periodic[d]:
                 if self.coords[d] == 0:
-                    self.shift_down[d] = box.length[d]
+                    self.shift_down[d] = self.box.length[d]
                 if self.coords[d] == self.dims[d] - 1:
-                    self.shift_up[d] = -box.length[d]
-        self.set_cuts([self._quantile_cuts(np.sort(x_all[:, d]), d) for d in range(3)])
-        self.n_rebalances = 0
+                    self.shift_up[d] = -self.box.length[d]
+        self.swaps: list = []  # ghost swaps recorded by parallel.exchange.borders, replayed by forward
 
     def _quantile_cuts(self, sorted_x: np.ndarray, d: int) -> np.ndarray:
         k = self.dims[d]
-        if k == 1 or sorted_x.size == 0:
+        if k == 1:
             return np.zeros(0)
+        if sorted_x.size == 0:
+            return self._even_cuts(d)
         idx = (np.arange(1, k) * sorted_x.size) // k
         return self._spread(sorted_x[idx].astype(float), d)
+
+    def _even_cuts(self, d: int) -> np.ndarray:
+        """The ``dims[d] − 1`` cut planes along ``d`` with no particle to place them: evenly over the
+        box along a periodic axis, else ``min_width`` apart from 0."""
+        k = self.dims[d]
+        if self.periodic[d]:
+            lo, hi = self.box.lo[d], self.box.hi[d]
+            return self._spread(lo + (hi - lo) * np.arange(1, k) / k, d)
+        return self._spread(np.zeros(k - 1), d)
+
+    def _place(self, x: np.ndarray) -> None:
+        """Place the provisional cut planes at the first particles (collective: every caller of
+        :meth:`owned_mask` is; nothing happens while no rank has a particle).
+
+        ``Simulation.add_particles`` gives every rank the same new particles: their quantiles are then
+        computed locally, as at a first preparation; should the ranks hold different ones, the
+        quantiles are those of all of them. Either way every rank computes the same planes."""
+        digest = hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest() if x.shape[0] else ""
+        seen = self._world.allgather((int(x.shape[0]), digest))
+        if not any(n for n, _ in seen):
+            return
+        if len(set(seen)) > 1:
+            x = np.concatenate(self._world.allgather(x))
+        dims = self._choose_dims(x)
+        if dims != self.dims:
+            self._grid(dims)
+        self.placed = True
+        self._just_placed = True
+        self.set_cuts([self._quantile_cuts(np.sort(x[:, d]), d) for d in range(3)])
 
     def _spread(self, cuts: np.ndarray, d: int | None = None) -> np.ndarray:
         """Keep subdomains at least ``min_width`` wide (ghosts move one subdomain per swap): the interior
@@ -169,11 +223,22 @@ class Decomposition:
         return (c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]
 
     def owned_mask(self, x: np.ndarray) -> np.ndarray:
+        """Which of positions ``x`` this rank owns. While the cut planes are provisional (no particle
+        yet) it places them at ``x`` first, collectively (see :meth:`_place`)."""
+        if not self.placed:
+            self._place(np.atleast_2d(np.asarray(x, dtype=float)).reshape(-1, 3))
         c = self.cell_coords(x)
         return np.all(c == np.asarray(self.coords), axis=1)
 
     def imbalance(self, work: float) -> float:
-        """max / mean of a per-rank work estimate (1 = perfect; collective)."""
+        """max / mean of a per-rank work estimate (1 = perfect; collective).
+
+        1 at the first call after the provisional cut planes were placed (every rank alike): the work
+        measured until then, without particles, says nothing about the planes just placed at the
+        particle quantiles (a first preparation does not rebalance either)."""
+        if self._just_placed:
+            self._just_placed = False
+            return 1.0
         loads = self.comm.allgather(float(work))
         mean = sum(loads) / len(loads)
         return max(loads) / mean if mean > 0 else 1.0
@@ -216,6 +281,23 @@ class Decomposition:
         self.set_cuts([self._spread(c, d) for d, c in enumerate(self.cuts)])
         if self.box is not None:
             self.box.check_width(min_width)
+            self._check_periodic_room()
+
+    def _check_periodic_room(self) -> None:
+        """Along a split periodic axis the subdomains fill the box: when it has no room for ``dims[d]``
+        of them ``min_width`` wide (the ghost width grew: larger grains added, a wider skin or
+        envelope), refuse rather than miss the ghosts two subdomains away."""
+        for d in range(3):
+            if not (self.periodic[d] and self.dims[d] > 1):
+                continue
+            lo, hi = self.box.lo[d], self.box.hi[d]
+            widths = np.diff(np.concatenate([[lo], self.cuts[d], [hi]]))
+            if widths.min() < self.min_width - 1e-9 * (hi - lo):
+                raise InputError(
+                    f"{self.dims[d]} subdomains along the periodic axis {'xyz'[d]} do not fit in the "
+                    f"{hi - lo:.4g} m box at the ghost width {self.min_width:.3g} m (2 r_max + skin) each; "
+                    "run on fewer ranks, or give run.decomposition without splitting that axis"
+                )
 
     def narrowest(self) -> float:
         """The width of the narrowest subdomain that must hold a ghost layer (interior ones, and
