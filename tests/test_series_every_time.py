@@ -108,6 +108,9 @@ def test_a_checkpoint_whose_deck_no_longer_validates_names_the_key(tmp_path, cap
         deck = str(fh.attrs["deck"])
         assert f"series_every_time = {EVERY}" in deck
         fh.attrs["deck"] = deck.replace(f"series_every_time = {EVERY}", "series_every_time = -1.0")
+        # an unchecked (format-1) file: a format-2 checkpoint's checksums refuse any edit of its deck
+        del fh.attrs["pdem_checksums"]
+        fh.attrs["pdem_checkpoint_format"] = 1
     capsys.readouterr()
     assert main(["resume", str(ckpt), "--quiet"]) == 2
     err = capsys.readouterr().err
