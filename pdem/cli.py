@@ -67,8 +67,10 @@ def _common(p: argparse.ArgumentParser, resume: bool = False) -> None:
         help=(
             "change a key of the checkpoint's deck, value in TOML syntax; allowed: end conditions, dt and "
             "output of the current stage and of later ones (stages.discharge.end.max_time=12), stages "
-            "added at the end (stages.2.name=more), output.*, run.dt, run.force_dt, run.max_particles, "
-            "run.balance_threshold, run.decomposition, DEM-C's solver settings (contact.max_iterations, "
+            "added at the end (stages.2.name=more), output.*, run.dt, run.force_dt, run.stiffness_limit, "
+            "run.max_overlap, run.max_particles, run.balance_threshold, run.decomposition, a "
+            "boundary's stage keys for stages not yet run (boundaries.cell.off_stages=[\"more\"]), "
+            "DEM-C's solver settings (contact.max_iterations, "
             "contact.tolerance, ...); anything else (materials, particles, boundaries, "
             "...) is refused with the key named; repeatable"
             if resume

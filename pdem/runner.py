@@ -1125,9 +1125,11 @@ class Runner:
         self.progress.done()
 
     def _merged_series(self) -> dict[str, np.ndarray]:
-        rows = [r for stage in self.deck.stages for r in self.series.get(stage.name, [])]
-        keys = sorted({k for r in rows for k in r})
-        return {k: np.array([r.get(k, math.nan) for r in rows]) for k in keys}
+        """Every stage's series rows in stage order, with a ``stage`` column (the stage's index), so
+        that a boundary's summary reads each value from the stage it belongs to."""
+        from .boundaries.api import merge_series
+
+        return merge_series(self.series, [s.name for s in self.deck.stages])
 
     def _stage_dt(self, stage: Any) -> float | None:
         """The dt a stage runs with: its own, else ``run.dt``; None keeps the current step (the law's

@@ -266,10 +266,30 @@ class Penetrometer(Boundary):
     def tip_z(self) -> float:
         return float(self.body.reference_point[2] + self._tip0)
 
+    @classmethod
+    def stage_roles(cls, params: Any, stages: Any) -> list[str | None]:
+        """Off before ``penetration_stage``, its ``mode`` in it, ``"hold"`` after it (the body stays
+        where it is), off from a stage ``off_stages`` names on."""
+        out: list[str | None] = []
+        phase: str | None = None
+        off = set(params.off_stages or ())
+        for s in stages:
+            if s in off:
+                phase = None
+            elif s == params.penetration_stage:
+                phase = params.mode
+            elif phase is not None:
+                phase = "hold"
+            out.append(phase)
+        return out
+
     def on_stage(self, sim: Any, stage: str) -> None:
         p = self.params
         resumed, self._restored = self._restored, None
-        if stage == p.penetration_stage:
+        if stage in (p.off_stages or ()):  # said off: the body is gone from then on
+            self.phase = "off"
+            self.set_active(sim, False)
+        elif stage == p.penetration_stage:
             self.set_active(sim, True)
             if resumed is not None and resumed.get("phase") in ("push", "drop"):
                 self._resume(sim, resumed)

@@ -100,6 +100,7 @@ from pdem.api import (
     servo_gain,
     shapes,
 )
+from pdem.boundaries.api import STAGE_COLUMN, listed, stage_rows
 
 __all__ = ["ShearBox", "ShearBoxParams"]
 
@@ -381,6 +382,11 @@ class ShearBox(Boundary):
             return {}
         u = np.asarray(series[key + "displacement"], float)
         sel = u > 0.0
+        names = series.get(STAGE_COLUMN)
+        if names is not None:  # rows of the stages in which the box is on (not one switched off after)
+            on = stage_rows(series, [s for s in dict.fromkeys(names) if listed(self.params, s)], len(u))
+            if on is not None:
+                sel &= on
         if sel.sum() < 3 or not np.any(np.isfinite(series[key + "ratio"][sel])):
             return {}
         u = u[sel]

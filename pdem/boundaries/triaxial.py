@@ -46,6 +46,15 @@ the platen radius, ``tie_length`` high (one mean diameter by default), stands on
 the membrane acts (the top one follows the top platen); the specimen barrels instead, and the rings'
 radial loads are part of the grains' own stress (Love–Weber), not of σ₃.
 
+**Stages**: the cell holds the specimen in ``mould_stages`` (the mould and the seating platen),
+``consolidation_stage`` and ``shear_stage``, and shears on through ``later_shear_stages`` (at the
+same strain rate, strains still from the start of ``shear_stage``: e.g. a stage added when a
+finished run is resumed). In any other stage it stands idle: the platens stay as walls, but no
+mould, membrane or servo holds the specimen, which springs apart if it was under pressure; so a stage
+added on resume after a stage the cell held must be named, by ``later_shear_stages`` or
+``off_stages`` (:mod:`pdem.deck.stage_roles`). The summary takes every value from the rows of the
+stage it belongs to.
+
 **Preparation**: an optional rigid mould (a cylinder wall of the specimen's radius) is active in the
 stages listed in ``mould_stages`` (e.g. while grains are poured and settle), while the top platen is
 servoed down to a small seating stress; the membrane takes over in ``consolidation_stage`` (its
@@ -63,17 +72,18 @@ centres), an independent check of the boundary stresses. Lengths in m, stresses 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from ..contact.stability import servo_gain
 from ..errors import InstabilityError
 from ..parallel.comm import all_max, all_max_array, all_sum_int_array
 from . import _membrane as _mb
 from . import shapes
-from .api import Boundary, BoundaryParams, Vec3
+from .api import Boundary, BoundaryParams, Vec3, listed, stage_rows
 from .walls import Controlled, Follow, RigidBody
 
 __all__ = ["TriaxialCell", "TriaxialParams"]
@@ -92,6 +102,12 @@ class TriaxialParams(BoundaryParams):
     shear_stage: str = Field(description="stage in which it is sheared at constant axial strain rate")
     mould_stages: list[str] = Field(
         default_factory=list, description="stages with the rigid mould in place"
+    )
+    later_shear_stages: list[str] | None = Field(
+        default=None,
+        description="stages after shear_stage in which the shearing goes on at the same strain rate, the "
+        "axial and volumetric strains still counted from the start of shear_stage (e.g. a stage added "
+        "when a finished run is resumed)",
     )
     cell_size: float | None = Field(
         default=None, gt=0,
@@ -167,6 +183,13 @@ class TriaxialParams(BoundaryParams):
     def _stages(self):
         if self.consolidation_stage == self.shear_stage:
             raise ValueError("consolidation_stage and shear_stage must be different stages")
+        later = set(self.later_shear_stages or ())
+        clash = sorted(later & {self.consolidation_stage, self.shear_stage, *self.mould_stages})
+        if clash:
+            raise ValueError(
+                f"later_shear_stages names {clash}, which consolidation_stage, shear_stage or mould_stages "
+                "name already; a stage has one role: list only the stages after shear_stage"
+            )
         if self.tie_length is not None and self.tie_length >= 0.5 * self.height:
             raise ValueError(
                 f"tie_length = {self.tie_length!r} m must be below half the height "
@@ -217,21 +240,58 @@ class TriaxialCell(Boundary):
             self.rings = (low, high)
         self._comm = sim.comm
 
+    @classmethod
+    def stage_roles(cls, params: BaseModel, stages: Sequence[str]) -> list[str | None]:
+        """``"mould"``, ``"consolidate"``, ``"shear"`` in the stages the cell holds the specimen,
+        None where it is off or idle (a stage none of its role keys names: the platens stand, but
+        nothing confines the specimen)."""
+        p = params
+        shear = {p.shear_stage, *(p.later_shear_stages or ())}
+        out: list[str | None] = []
+        for s in stages:
+            if not listed(p, s):
+                out.append(None)
+            elif s == p.consolidation_stage:
+                out.append("consolidate")
+            elif s in shear:
+                out.append("shear")
+            elif s in p.mould_stages:
+                out.append("mould")
+            else:
+                out.append(None)
+        return out
+
+    @classmethod
+    def stage_remedies(cls, params: BaseModel, stage: str) -> list[tuple[str, Any, str]]:
+        """Shear on in ``stage`` (``later_shear_stages``) or switch the cell off (``off_stages``)."""
+        later = [*(params.later_shear_stages or []), stage]
+        off = [*(params.off_stages or []), stage]
+        return [
+            ("later_shear_stages", later, "the shearing goes on at strain_rate, strains counted from the "
+             f"start of '{params.shear_stage}'"),
+            ("off_stages", off, "the cell is off: platens, membrane and servo"),
+        ]  # fmt: skip
+
+    def _shear_stages(self) -> tuple[str, ...]:
+        return (self.params.shear_stage, *(self.params.later_shear_stages or ()))
+
     def on_stage(self, sim: Any, stage: str) -> None:
         p = self.params
         resumed = getattr(self, "_restored", None)
         self._restored = None
+        carried = None  # a later shear stage after a checkpoint at the end of a shear stage: its strains
         if resumed is not None and resumed.get("stage") != stage:
+            if resumed.get("stage") in self._shear_stages():
+                carried = resumed
             resumed = None  # the checkpoint was taken at the end of an earlier stage
         self._size = None
         self._grid = tuple(resumed["grid"]) if resumed is not None and resumed.get("grid") else None
-        stages = getattr(p, "stages", None)
-        self.active = stages is None or stage in stages
+        self.active = listed(p, stage)
         for wall in (self.bottom, self.top):
             sim.set_wall_active(wall.name, self.active)
         if self.mould is not None:
             sim.set_wall_active(self.mould.name, self.active and stage in p.mould_stages)
-        membrane = self.active and stage in (p.consolidation_stage, p.shear_stage)
+        membrane = self.active and stage in (p.consolidation_stage, *self._shear_stages())
         for ring in self.rings:
             sim.set_wall_active(ring.name, membrane)
         if membrane and self.rings:
@@ -257,11 +317,15 @@ class TriaxialCell(Boundary):
             else:
                 self.motion = Controlled()
                 sim.set_wall_motion(self.top.name, self.motion)
-        elif stage == p.shear_stage:
+        elif stage in self._shear_stages():
             self.phase = "shear"
             self.motion = Controlled()
             sim.set_wall_motion(self.top.name, self.motion)
-            self.h0 = self.v0 = None  # taken at the first step of shearing
+            if stage == p.shear_stage:
+                self.h0 = self.v0 = None  # taken at the first step of shearing
+            elif carried is not None:  # a later shear stage, resumed: the strains' references
+                self.h0, self.v0 = carried.get("h0"), carried.get("v0")
+            # (a later shear stage in the same run keeps them)
         else:
             self.phase = "prepare"
             if self.force_control and self._seated:  # resumed after the plate came down
@@ -643,7 +707,12 @@ class TriaxialCell(Boundary):
         ea, q, s1, s3 = key("eps_a"), key("q"), key("sigma1"), key("sigma3")
         if ea is None or q is None or len(ea) < 3:
             return {}
-        shear = ea > 0
+        p = self.params
+        # each value from the rows of its own stage (the series' stage column): a stage after the
+        # shearing, with the cell off or idle, must not count as shearing nor as consolidation
+        in_shear = stage_rows(series, self._shear_stages(), len(ea))
+        shear = ea > 0 if in_shear is None else in_shear & (ea > 0)
+        consolidating = stage_rows(series, p.consolidation_stage, len(ea))
         out: dict[str, float] = {}
         if shear.any():
             k = int(np.nanargmax(np.where(shear, q, -np.inf)))
@@ -668,7 +737,7 @@ class TriaxialCell(Boundary):
             inert = key("inertial")
             if inert is not None and np.isfinite(inert[shear]).any():
                 out["inertial_number_max"] = float(np.nanmax(inert[shear]))
-        before = ~shear & np.isfinite(s1)
+        before = (~shear if consolidating is None else consolidating) & np.isfinite(s1)
         if before.any():
             out["sigma1_end_of_consolidation"] = float(s1[before][-1])
         return out

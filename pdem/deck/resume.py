@@ -14,8 +14,9 @@ What a resume may change is what decides *how the run goes on*, never the scene 
 * ``output.*`` (snapshot cadence, formats, fields, series, checkpoints) except ``output.directory``
   (``pdem resume --output DIR`` chooses where the continuation goes);
 * ``run.dt`` (the stability limit is checked when the run starts), ``run.force_dt``,
-  ``run.stiffness_limit``,
-  ``run.max_particles``, ``run.balance_threshold``, ``run.decomposition``; and ``title``;
+  ``run.stiffness_limit``, ``run.max_overlap`` (the overlap that stops the run as unstable: it changes
+  when a run is stopped, never its trajectory), ``run.max_particles``, ``run.balance_threshold``,
+  ``run.decomposition``; and ``title``;
 * the contact law's solver settings that it lists as resumable (``LawParams.resumable``: DEM-C's
   solver, tolerance, iteration cap, …), e.g. to continue a run with a tighter solve.
 
@@ -36,12 +37,21 @@ from ..errors import DeckError
 from .load import ResolvedDeck, validate_deck
 from .overrides import apply_overrides
 from .problems import Loc, make_deck_error
+from .stage_roles import stage_key_changes, switch_off_problems
 
 __all__ = ["ResumePoint", "resume_deck", "resume_changes", "RESUMABLE_RUN_KEYS"]
 
 #: keys of [run] a resume may change
 RESUMABLE_RUN_KEYS = frozenset(
-    {"dt", "force_dt", "stiffness_limit", "max_particles", "balance_threshold", "decomposition"}
+    {
+        "dt",
+        "force_dt",
+        "stiffness_limit",
+        "max_overlap",
+        "max_particles",
+        "balance_threshold",
+        "decomposition",
+    }
 )
 
 ALLOWED = (
@@ -49,8 +59,8 @@ ALLOWED = (
     "(stages.<name>.end.*, stages.<name>.dt, stages.<name>.output.*, stages.<name>.contact.*), "
     "anything in later stages, stages added at the end, "
     "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.stiffness_limit, "
-    "run.max_particles, "
-    "run.balance_threshold, run.decomposition, title and the contact law's solver settings (DEM-C: "
+    "run.max_overlap, run.max_particles, run.balance_threshold, run.decomposition, title and the "
+    "contact law's solver settings (DEM-C: "
     "contact.solver, tolerance, max_iterations, check_every, apgd_start, relaxation, "
     "load_mass_scaling); to change anything else start a new run"
 )
@@ -143,6 +153,10 @@ def resume_deck(
     if old.law_class is new.law_class:
         resumable = frozenset(getattr(new.law_class.Params, "resumable", frozenset()))
     problems = resume_changes(old.resolved_dict(), new.resolved_dict(), point, resumable)
+    # a boundary's stage keys may change while every stage already run keeps its role, and a stage
+    # added (or renamed before it runs) must not switch a boundary off without the deck saying so
+    problems = stage_key_changes(old, new, point, problems)
+    problems += switch_off_problems(old, new)
     if problems:
         texts = {o.loc: o.text for o in applied}
         marked = []
