@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.paths import record_entries
 
 __all__ = ["RunRecord", "command", "launch", "read_record", "scan_nonfinite", "RECORD"]
 
@@ -184,6 +185,9 @@ def launch(
         finished=time.strftime("%Y-%m-%dT%H:%M:%S"),
     )
     _write_atomic(run_dir / RECORD, record.to_json())
+    # the run directory is pdem's even when the run was refused before it wrote anything: listed in
+    # its marker, the study's files are replaced by the next attempt's --overwrite like the run's
+    record_entries(run_dir, {"stdout.log", "stderr.log", RECORD})
     return record, True
 
 
