@@ -45,12 +45,15 @@ from ._jit import njit
 from .boundaries import shapes
 from .boundaries._geometry import KIND_NAMES, surface_velocity, wall_contact
 from .boundaries.api import (
+    STAGE_COLUMN,
     Boundary,
     BoundaryParams,
     MotionSpec,
     Vec3,
     WallBoundaryParams,
     make_motion,
+    merge_series,
+    stage_rows,
 )
 from .boundaries.walls import (
     ConstantVelocity,
@@ -136,6 +139,7 @@ __all__ = [
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
+    "STAGE_COLUMN", "merge_series", "stage_rows",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
     "Controlled", "Rotation", "Resize", "RigidBody", "Follow", "rotation_matrix",
     "servo_gain", "wall_stiffness",
