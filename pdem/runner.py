@@ -854,7 +854,7 @@ class Runner:
         kept: dict[str, list] = {}
         for stage, path in self._series_files(out):
             if not self._stage_ran(stage, start):
-                path.unlink()
+                discard(out, path)  # held while the resume is undecided
                 continue
             truncate_series(path, start.step)
             if path.name.startswith("series_"):

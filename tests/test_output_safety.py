@@ -309,3 +309,27 @@ def test_summary_file_parses_strictly(full):
         raise ValueError(f"not JSON: {name}")
 
     json.loads((full / "summary.json").read_text(), parse_constant=refuse)
+
+
+def test_journal_counts_cut_rows_as_replaced(tmp_path):
+    """Rows after the checkpoint that a resume cuts off (a run killed past its last checkpoint) are
+    a future too: a failing resume must put them back; rows only appended are not."""
+    from pdem.io.journal import Journal
+
+    csv = tmp_path / "series_fill.csv"
+    original = "time,step\n0.0,0\n0.1,100\n0.2,200\n"
+    csv.write_text(original)
+    journal = Journal(tmp_path)
+    journal.begin(200)
+    with open(csv, "a") as fh:
+        fh.write("0.3,300\n")
+    assert not journal.replaced_anything
+    journal.commit()
+    assert not (tmp_path / ".pdem-journal").exists()
+    journal.begin(100)
+    csv.write_text("time,step\n0.0,0\n0.1,100\n0.15,150\n")  # cut at step 100, a new row appended
+    (tmp_path / "new.csv").write_text("x\n")
+    assert journal.replaced_anything
+    journal.rollback()
+    assert csv.read_text() == original + "0.3,300\n"
+    assert not (tmp_path / "new.csv").exists() and not (tmp_path / ".pdem-journal").exists()

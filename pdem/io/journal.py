@@ -136,10 +136,23 @@ class Journal:
 
     @property
     def replaced_anything(self) -> bool:
-        """Did the resume hold anything back (a future it replaces)?"""
+        """Did the resume hold anything back or cut anything short (a future it replaces)? A file
+        it only appended to (series rows after the checkpoint's) still starts with its copy."""
         held = self.path / "held"
         if held.is_dir() and any(held.rglob("*")):
             return True
+        copies = self.path / "copies"
+        for src in (p for p in copies.rglob("*") if p.is_file()):
+            if src.suffix != ".csv":
+                continue  # indexes and the deck are rewritten whole; the frames they list are held
+            now = self.directory / src.relative_to(copies)
+            old = src.read_bytes()
+            try:
+                with open(now, "rb") as fh:
+                    if fh.read(len(old)) != old:
+                        return True
+            except OSError:
+                return True
         for rel in self._state()["h5_frames"]:
             path = self.directory / rel
             try:
