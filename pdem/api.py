@@ -104,7 +104,7 @@ from .contact._kernels import (
     wall_forces,
 )  # fmt: skip
 from .contact._tangential import tangential_spring, tangential_spring_values
-from .contact.law import ContactLaw, LawParams
+from .contact.law import ContactLaw, LawParams, ListNeeds
 from .contact.stability import servo_gain, wall_stiffness
 from .contact.store import ContactStore
 from .errors import (
@@ -137,7 +137,7 @@ __all__ = [
     "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials",
     "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
-    "ContactLaw", "LawParams", "ContactStore", "Integrator", "VelocityVerlet",
+    "ContactLaw", "LawParams", "ListNeeds", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
     "STAGE_COLUMN", "merge_series", "stage_rows",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",

@@ -58,7 +58,7 @@ def worst_contact(sim: Any) -> tuple[float, str, tuple | None]:
             worst, who = float(ratio[k]), f"particles {p.id[pi[k]]} and {p.id[pj[k]]}"
             where = ("pair", k)
     n = p.n_owned
-    for wall in sim._wall_list:
+    for wall in sim.contact_store.walls:
         if n == 0:
             break
         if not wall.active:  # a switched-off wall (an opened plug) may cut through the grains
@@ -232,9 +232,10 @@ def raise_for_flags(sim: Any, flags: int, drifted: bool = False) -> None:
         causes.append("a velocity became non-finite")
     if flags & FLAG_COINCIDENT:
         causes.append("two particle centres coincide")
-    if sim.law.kind == "complementarity":
-        # DEM-C finds overlaps when it assembles a step's contacts; the same step's solve pushes
-        # them apart, so the state now may show less than what was found
+    advice = sim.law.instability_advice(sim)
+    if advice is not None:
+        # a method that solves for its contacts (DEM-C) finds overlaps when it assembles a step's
+        # contacts; the same step's solve pushes them apart, so the state now may show less
         now = (
             f"largest overlap {worst:.3g} of the radius, {who}"
             if worst > sim.max_overlap or not flags & FLAG_OVERLAP
@@ -243,11 +244,7 @@ def raise_for_flags(sim: Any, flags: int, drifted: bool = False) -> None:
         )
         raise InstabilityError(
             f"the run became unstable at step {sim.step_count} (t = {sim.time:.6g} s): "
-            f"{' and '.join(causes)}; {now}. "
-            f"dt = {sim.dt:.4g} s, complementarity solver '{sim.law.params.solver}' with "
-            f"max_iterations = {sim.law.params.max_iterations}: the contact problem was not solved "
-            "well enough; reduce dt, raise contact.complementarity.max_iterations or lower "
-            "contact.complementarity.tolerance, or check the initial overlaps and prescribed velocities"
+            f"{' and '.join(causes)}; {now}. dt = {sim.dt:.4g} s, {advice}"
         )
     if flags == FLAG_OVERLAP and detail is not None and worst > sim.max_overlap:
         raise InstabilityError(overlap_message(sim, worst, who, detail, drifted))

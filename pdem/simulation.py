@@ -45,19 +45,12 @@ from .domain import PeriodicBox
 from .errors import GeometryError, InputError, InstabilityError, PdemError
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
-from .neighbor import _kernels as nk
-from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank, any_ranks
+from .neighbor.list import SKIN_MAX, SKIN_MIN, SKIN_STEPS, NeighbourList  # noqa: F401 - re-exported
+from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank
 from .parallel.exact import exact_sum, global_count
+from .parallel.work import WorkModel
 from .plugins import load_contact_law
 from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, dof_mask
-
-#: the automatic skin (no ``run.skin``): room for this many steps of the fastest grain, between these
-#: fractions of the mean diameter (Simulation._choose_skin)
-SKIN_STEPS, SKIN_MIN, SKIN_MAX = 25, 0.1, 0.4
-# DEM-P pair loop: follow the storage instead of the ids when a loop in id order would jump by more
-# than SCHEDULE_JUMPS rows per pair; sort the storage again when the pairs' mean storage distance
-# exceeds twice (+ SPREAD_SLACK rows) its value after the last sort
-SCHEDULE_JUMPS, SPREAD_SLACK = 16.0, 64.0
 
 __all__ = ["Simulation"]
 
@@ -114,18 +107,11 @@ class Simulation:
         #: with no dt: the step as this multiple of the law's stability estimate (None: the law's choice)
         self.dt_fraction: float | None = None
         self.force_dt = False
-        self.skin: float | None = None
-        # the skin of the lists built from now on when a method narrows it (set_list_reach); None: skin
-        self._skin_override: float | None = None
         self.max_overlap = 0.25
         self.time = 0.0
         self.step_count = 0
-        self.n_rebuilds = 0
-        self.n_storage_sorts = 0  # DEM-P: spatial sorts of the storage (_order_storage)
-        self._spread_ref = -1.0  # mean storage distance of the pairs after the last sort (< 0: sort due)
         self._next_id = 0
         self._prepared = False
-        self._force_rebuild = False
         # a step's kernel flags left for the next collective (step(defer_check=True)); None: none
         self._pending_flags: int | None = None
         self._defer_check = False
@@ -140,7 +126,8 @@ class Simulation:
         self.stiffness = _fresh_stiffness()
         self.integrator = None  # made by the law at preparation (velocity Verlet, DEM-C stepper, …)
         self.envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
-        self._force_time = 0.0
+        self.neighbours = NeighbourList(self)  # the list, its reach, storage order and rebuild
+        self.work = WorkModel(self)  # this rank's work, for the load balance
 
     # ------------------------------------------------------------------ setup
     def set_law(self, law: str | ContactLaw, **params: Any) -> None:
@@ -485,7 +472,7 @@ class Simulation:
         wall.active = active
         self.contact_store.reset_wall(self._wall_list.index(wall))
         wall.record_load(0)
-        self._force_rebuild = True
+        self.neighbours.force_rebuild = True
         self.contact_store.walls_changed = True
 
     def set_wall_motion(self, name: str, motion: Motion) -> None:
@@ -534,7 +521,7 @@ class Simulation:
         computed). ``x_build`` moves with it, so the rebuild test does not see the jump; the walls
         drop it from their candidates (a wall moved by its load would otherwise meet it)."""
         p = self.particles
-        w = float(self._ghost_width)
+        w = float(self.neighbours.ghost_width)
         p.x[idx, 0] += 1000.0 * w + 3.0 * w * p.id[idx].astype(np.float64)
         p.x_build[idx] = p.x[idx]
         self._n_parked += idx.size
@@ -542,7 +529,7 @@ class Simulation:
         gone[idx] = True
         self.contact_store.drop_wall_candidates(gone)
 
-    def _compact_removed(self) -> None:
+    def compact_removed(self) -> None:
         """Drop REMOVED particles from the storage (at a rebuild, before migration)."""
         p = self.particles
         n = p.n_owned
@@ -585,36 +572,21 @@ class Simulation:
                 raise InputError("no time step given and none can be estimated without particles; set dt")
             self.dt = dt
         self._check_dt(self._dt)
-        # no skin given: a penalty run without periodic images chooses it at every rebuild from the
-        # fastest grain (_choose_skin); a given skin, DEM-C and periodic boxes keep one
-        # a later preparation (particles or walls added) chooses again, unless the skin was set since
-        auto = self.skin is None or self.skin == getattr(self, "_skin_chosen", None)
-        self._auto_skin = auto and self.law.kind == "penalty" and self.box is None
-        if auto:
-            d_mean = 2.0 * exact_sum(self.comm, p.r[:n]) / max(global_count(self.comm, n), 1)
-            self.skin = self._skin_chosen = SKIN_MIN * d_mean
-            self._skin_range = (SKIN_MIN * d_mean, SKIN_MAX * d_mean)
-        if not (self.skin >= 0 and math.isfinite(self.skin)):
-            raise InputError(f"skin = {self.skin!r} is invalid; give a non-negative distance in metres")
+        nl = self.neighbours
         r_max = all_max(self.comm, float(p.r[:n].max()) if n else 0.0)
-        if self.law.kind == "complementarity":
+        if self.law.list_needs.envelope:  # the method's collision envelope (DEM-C)
             r_min = all_min(self.comm, float(p.r[:n].min()) if n else math.inf)
             self.envelope_base = self.law.envelope(
                 np.array([r_min]) if math.isfinite(r_min) else np.zeros(0)
             )
             self.envelope = self.envelope_base
-            # the list's reach may be wider than this step's envelope (the stepper keeps it ≥)
-            self._list_envelope = max(getattr(self, "_list_envelope", 0.0), self.envelope_base)
         else:
-            self.envelope = self._list_envelope = 0.0
+            self.envelope = 0.0
         # the list holds every pair within skin + envelope at the build; it is rebuilt when particles
         # may have moved more than the skin, so every pair within the envelope is always listed
-        self._skin_override = None
-        self._list_skin = self.skin + self._list_envelope
-        self._ghost_width_base = 2.0 * r_max
-        self._ghost_width = self._ghost_width_base + self._list_skin
+        nl.configure(r_max, n)
         if self.box is not None:
-            self.box.check_width(self._ghost_width)
+            self.box.check_width(nl.ghost_width)
             self._check_walls_periodic()
             self.box.snap_positions(p.x[:n])  # particles added before set_periodic
             self.box.wrap(p.x[:n])
@@ -622,7 +594,7 @@ class Simulation:
             self._decompose()
             n = p.n_owned
         elif self._decomp is not None:  # a later preparation: the skins the subdomains leave room for
-            self._fit_skin_range()
+            nl.fit_skin_range()
         self._g = np.asarray(self.gravity, dtype=float)
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):
             raise InputError(f"gravity = {self.gravity!r} must be three finite numbers [m/s²]")
@@ -632,7 +604,7 @@ class Simulation:
             self._started = True
         store.walls_changed = True
         self._prepared = True
-        self._rebuild()
+        nl.rebuild()
         self._check_initial_overlaps()
         if self.integrator is None:
             self.integrator = self.law.make_integrator(self)
@@ -646,24 +618,14 @@ class Simulation:
         p = self.particles
         n = p.n_owned
         self._decomp = Decomposition(
-            self.comm, p.x[:n], self.decomposition_dims, min_width=self._ghost_width, box=self.box
+            self.comm, p.x[:n], self.decomposition_dims, min_width=self.neighbours.ghost_width, box=self.box
         )
-        self._decomp.check_ghost_width(self._ghost_width)
-        self._fit_skin_range()
+        self._decomp.check_ghost_width(self.neighbours.ghost_width)
+        self.neighbours.fit_skin_range()
         keep = self._decomp.owned_mask(p.x[:n])
         self.particles.permute(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
         p.n_owned = int(keep.sum())
         self._n_expected = global_count(self.comm, p.n_owned)
-
-    def _fit_skin_range(self) -> None:
-        """The automatic skin: the widest the subdomains leave room for, kept through rebalances."""
-        if not self._auto_skin:
-            return
-        lo, hi = self._skin_range
-        room = self._decomp.narrowest() - self._ghost_width_base - self._list_envelope
-        hi = max(lo, min(hi, room))
-        self._skin_range = (lo, hi)
-        self._decomp.widen(self._ghost_width_base + hi + self._list_envelope)
 
     def _check_walls_periodic(self) -> None:
         """Walls are not periodic: along a periodic axis a wall must look the same from every image
@@ -671,7 +633,7 @@ class Simulation:
         box faces (so that no particle near a face can touch it)."""
         from .boundaries.shapes import Cylinder, Plane
 
-        box, w = self.box, self._ghost_width
+        box, w = self.box, self.neighbours.ghost_width
         for wall in self._wall_list:
             for d in np.flatnonzero(box.periodic):
                 ax = "xyz"[d]
@@ -890,216 +852,19 @@ class Simulation:
         The next step rebuilds the neighbour list first.
         """
         self.particles.permute(perm)
-        self._force_rebuild = True
+        self.neighbours.force_rebuild = True
 
     def request_rebuild(self) -> None:
         """Rebuild the neighbour list (and exchange ghosts) at the start of the next step, e.g. after
         particles were moved or changed by hand."""
-        self._force_rebuild = True
-
-    def _choose_skin(self) -> None:
-        """The automatic skin (no ``run.skin``, penalty laws): room for SKIN_STEPS steps of the
-        fastest grain, 2 × SKIN_STEPS × v_max × dt, within ``_skin_range`` (0.1–0.4 of the mean
-        diameter). The same on every rank (v_max is an exact maximum); results do not depend on it,
-        only how often the list is rebuilt and how long it is. Measured (docs/deck.md): the hopper
-        as fast as with the best fixed skin, a static bed as fast as with the smallest."""
-        p = self.particles
-        n = p.n_owned
-        v2 = float(np.max(np.einsum("ij,ij->i", p.v[:n], p.v[:n]))) if n else 0.0
-        v_max = math.sqrt(all_max(self.comm, v2))
-        lo, hi = self._skin_range
-        skin = min(max(2.0 * SKIN_STEPS * v_max * self._dt, lo), hi)
-        self.skin = self._skin_chosen = skin
-        self._list_skin = skin + self._list_envelope
-        self._ghost_width = self._ghost_width_base + self._list_skin
-
-    @property
-    def _scheduled_pairs(self) -> bool:
-        """Whether the pair loop follows the storage (DEM-P) rather than the ids (DEM-C)."""
-        return self.law.kind != "complementarity"
-
-    def _cell_grid(self, x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-        """(lo, 1/cell, dims) of the cell grid over positions ``x``: cells of the largest pair reach
-        (2 r_max + list skin), widened by 1.26× until there are at most 4 n + 1000 of them."""
-        lo, hi = nk.bounds(x, x.shape[0])
-        lo -= 1e-12
-        hi += 1e-12
-        cell = 2.0 * float(r.max()) + self._list_skin
-        ext = np.maximum(hi - lo, cell)
-        while True:
-            dims = np.maximum((ext / cell).astype(np.int64), 1)
-            if int(np.prod(dims)) <= 4 * x.shape[0] + 1000:
-                break
-            cell *= 1.26
-        return lo, 1.0 / cell, dims
-
-    def _order_storage(self) -> None:
-        """Storage order of the owned particles (results do not depend on it; only memory locality
-        does). DEM-P sorts them by cells in space, at the first rebuild and whenever pairs have
-        drifted apart in storage (the mean storage distance of the listed pairs more than doubled
-        since the last sort); its pair loop follows the storage (:meth:`ContactStore.set_pairs`).
-        DEM-C's loops run in id order, so its storage is kept in id order (migration appends
-        received particles)."""
-        p = self.particles
-        n = p.n_owned
-        if self._scheduled_pairs:
-            pi, pj = self.contact_store.pi, self.contact_store.pj
-            due = self._spread_ref < 0.0 or (
-                pi.size and nk.partner_spread(pi, pj) > 2.0 * self._spread_ref + SPREAD_SLACK
-            )
-            if due and n > 1:
-                lo, inv_cell, dims = self._cell_grid(p.x[:n], p.r[:n])
-                _, items = nk.bin_particles(p.x[:n], n, lo, inv_cell, dims)
-                p.permute(items)
-                self._spread_ref = -1.0  # measured on the next list
-                self.n_storage_sorts += 1
-            return
-        ids = p.id[:n]
-        if ids.size > 1 and np.any(ids[1:] < ids[:-1]):
-            p.permute(np.argsort(ids, kind="stable"))
-
-    def _rebuild(self) -> None:
-        p = self.particles
-        if getattr(self, "_auto_skin", False):
-            self._choose_skin()
-        self._compact_removed()
-        if self.box is not None:
-            p.n_ghost = 0
-            self.box.wrap(p.x[: p.n_owned])  # exact, so it does not matter at which rebuild it happens
-        if self._decomp is not None:
-            from .parallel.exchange import borders, migrate
-
-            parallel = self.comm.size > 1
-            # rebalance when the ranks' work since the last rebuild (their force time) is uneven; the
-            # per-particle weights the cut planes follow are modelled only then (before migration:
-            # their indices refer to the last force evaluation). Modelling them at every rebuild had
-            # cost ~0.7 ms per rebuild on the DEM-C hopper, which rebuilds at every step
-            due = False
-            if parallel and self.balance_threshold:
-                due = self._decomp.imbalance(self._rank_work()) > self.balance_threshold
-                if due:
-                    self._work_weights()
-            self._force_time = 0.0
-            migrate(self)
-            n_own = p.n_owned
-            if due:
-                self._decomp.rebalance(p.x[:n_own], self._work_weights_now())
-                migrate(self)
-            self._check_particle_count()
-            self._order_storage()
-            borders(self, self._ghost_width)
-        else:
-            self._order_storage()
-        n = p.n
-        x = p.x
-        r = p.r
-        store = self.contact_store
-        if n:
-            lo, inv_cell, dims = self._cell_grid(x, r)
-            while True:
-                pi, pj, count = nk.build_pairs(
-                    x, r, p.id, p.n_owned, n, self._list_skin, lo, inv_cell, dims, store.pair_capacity
-                )
-                if count <= store.pair_capacity:
-                    break
-                store.pair_capacity = int(count * 1.3) + 64
-            pi = pi[:count].copy()
-            pj = pj[:count].copy()
-        else:
-            pi = pj = np.zeros(0, dtype=np.int64)
-        keys = nk.pair_keys(pi, pj, p.id)
-        if keys.size > 1 and np.any(keys[1:] < keys[:-1]):
-            # a particle stored more than once (its periodic images) interleaves its pairs with those
-            # of its copies; a stable sort by key restores (id_lo, id_hi) order. Each owned particle
-            # meets each partner once (L >= 2 cutoffs), so its contributions stay in partner-id order
-            order = np.argsort(keys, kind="stable")
-            pi, pj, keys = pi[order], pj[order], keys[order]
-        schedule = -1
-        if self._scheduled_pairs and nk.row_jumps(pi) > SCHEDULE_JUMPS:
-            schedule = n  # the list in id order would jump through the storage: follow the storage
-        store.set_pairs(pi, pj, keys, schedule)
-        if self._scheduled_pairs and self._spread_ref < 0.0:
-            self._spread_ref = nk.partner_spread(store.pi, store.pj)  # the first list after a sort
-        p.x_build[:] = x
-        # wall candidates: particles within the skin of each row of each (active) wall, concatenated
-        from .boundaries._geometry import wall_gaps
-        from .boundaries._mesh import triangle_candidates
-
-        cands = []
-        no = p.n_owned
-        if no:
-            box_lo, box_hi = nk.bounds(x, no)
-        else:
-            box_lo = box_hi = np.full(3, np.nan)
-        for wall in self._wall_list:
-            if no and wall.active and wall.n_rows > 1:
-                cands += triangle_candidates(wall.rows, x[:no], r[:no], self._list_skin)
-            elif no and wall.active:
-                gap = wall_gaps(int(wall.kinds[0]), wall.params, x[:no], r[:no])
-                cands.append(np.flatnonzero(gap < self._list_skin).astype(np.int64))
-            else:
-                cands += [np.zeros(0, dtype=np.int64)] * wall.n_rows
-            wall.mark_built(box_lo, box_hi)
-        if store.walls_changed:
-            store.pack_walls()
-        store.set_wall_candidates(cands, p.id)
-        self.n_rebuilds += 1
-
-    # cost model of a step, fitted to per-rank kernel times on the 20k column collapse (units of ~5 ns):
-    # a particle 2 (integration, bookkeeping: ~11 ns), a neighbour-list pair 2 (~12 ns), a touching
-    # contact 10 more (~51 ns); pair costs are split between the pair's two ends
-    _W_PARTICLE, _W_PAIR_END, _W_TOUCH_END = 2, 1, 5
+        self.neighbours.force_rebuild = True
 
     def model_work(self) -> np.ndarray:
-        """Estimated work of the last force evaluation per owned particle (cost-model units)."""
-        p = self.particles
-        n = p.n_owned
-        w = np.full(n, self._W_PARTICLE, dtype=np.int64)
-        cs = self.contact_store
-        if cs.pi.size and cs.force.shape[0] == cs.pi.size and n:
-            touching = np.any(cs.force != 0.0, axis=1)
-            for ends, inc in (
-                (np.concatenate([cs.pi, cs.pj]), self._W_PAIR_END),
-                (np.concatenate([cs.pi[touching], cs.pj[touching]]), self._W_TOUCH_END),
-            ):
-                ends = ends[ends < n]
-                w += inc * np.bincount(ends, minlength=n)  # integers: as np.add.at, ~10x faster
-        return w
+        """Estimated work of the last force evaluation per owned particle (cost-model units;
+        :class:`pdem.parallel.work.WorkModel`)."""
+        return self.work.particle_work()
 
-    def _rank_work(self) -> float:
-        """This rank's work since the last rebuild: its measured force time, or (none measured yet)
-        the modelled work of its particles."""
-        measured = getattr(self, "_force_time", 0.0)
-        return measured if measured > 0.0 else float(self.model_work().sum())
-
-    def _work_weights(self) -> None:
-        """Note the work of the last force evaluation per owned particle (by id, which survives the
-        migration that follows), scaled to this rank's measured force time since the last rebuild
-        (balance on time)."""
-        p = self.particles
-        n = p.n_owned
-        self._weight_ids = p.id[:n].copy()
-        w = self.model_work()
-        measured = getattr(self, "_force_time", 0.0)
-        total = float(w.sum())
-        if measured > 0.0 and total > 0.0:
-            w = np.maximum(np.rint(w * (1e7 * measured / total)), 1).astype(np.int64)
-        self._weights = w
-
-    def _work_weights_now(self) -> np.ndarray:
-        """Weights of the particles owned after migration (those received use the base weight)."""
-        p = self.particles
-        n = p.n_owned
-        w = np.full(n, self._W_PARTICLE, dtype=np.int64)
-        if self._weight_ids.size:
-            order = np.argsort(self._weight_ids)
-            sorted_ids = self._weight_ids[order]
-            pos = np.searchsorted(sorted_ids, p.id[:n])
-            ok = (pos < sorted_ids.size) & (sorted_ids[np.minimum(pos, sorted_ids.size - 1)] == p.id[:n])
-            w[ok] = self._weights[order[pos[ok]]]
-        return w
-
-    def _check_particle_count(self) -> None:
+    def check_particle_count(self) -> None:
         """No particle may be lost between ranks: owned counts must add up (collective)."""
         from .errors import LostParticleError
 
@@ -1121,28 +886,17 @@ class Simulation:
         )
 
     def _needs_rebuild(self) -> bool:
-        p = self.particles
-        disp = math.sqrt(nk.max_displacement2(p.x, p.x_build, p.n_owned))
-        walls = self._wall_list
-        moving = self.contact_store.moving
-        wall_disp = max((walls[k].displacement_since_build() for k in moving), default=0.0)
-        skin = self.skin if self._skin_override is None else self._skin_override
-        need = self._force_rebuild or 2.0 * disp > skin or disp + wall_disp > skin
-        # a non-finite position (max_displacement2 gives inf for it) cannot be binned: stop here, as a
-        # non-finite state, instead of rebuilding the list without the particle
-        lost = not math.isfinite(disp)
-        pending = self._pending_flags
+        """The list's rebuild test; the last step's deferred flags ride on its reduction
+        (step(defer_check=True)): one collective a step. A non-finite position cannot be binned: it
+        stops the run as a non-finite state instead of a rebuild without the particle."""
+        pending, self._pending_flags = self._pending_flags, None
+        need, lost, unstable = self.neighbours.needs_rebuild(pending)
         if pending is None:
-            need, lost = any_ranks(self.comm, need, lost)
             if lost:
                 _diag.raise_for_flags(self, FLAG_NONFINITE)
-            return need
-        # the last step's flags ride on this reduction (step(defer_check=True)): one collective a step
-        self._pending_flags = None
-        need, unstable = any_ranks(self.comm, need, pending != 0 or lost)
-        if unstable:
+        elif unstable:
             flags = pending | (FLAG_NONFINITE if lost else 0)
-            _diag.raise_for_flags(self, flags, drifted=self.law.kind != "complementarity")
+            _diag.raise_for_flags(self, flags, drifted=self.integrator.drifts_before_check)
         return need
 
     # ------------------------------------------------------------------ the integrator's API
@@ -1156,7 +910,7 @@ class Simulation:
         flags = self._contact_forces()
         # the load balancer weighs ranks by this time: contacts only (a boundary hook may wait in a
         # collective call, which would make the emptier rank look busier and drain it further)
-        self._force_time += _time.perf_counter() - t0
+        self.work.add_time(_time.perf_counter() - t0)
         self._load_stiffness = None
         self._run_hooks("apply_forces")
         return flags
@@ -1246,7 +1000,7 @@ class Simulation:
 
     def add_work_time(self, seconds: float) -> None:
         """Account time spent on contacts (the load balancer weighs ranks by it)."""
-        self._force_time += seconds
+        self.work.add_time(seconds)
 
     # ------------------------------------------------------------------ the time step
     def step(self, defer_check: bool = False) -> None:
@@ -1339,22 +1093,17 @@ class Simulation:
         if self._needs_rebuild():
             if before_rebuild is not None:
                 before_rebuild()
-            self._force_rebuild = False
-            self._rebuild()
-        elif self._decomp is not None:
-            from .parallel.exchange import forward
-
-            forward(self)
+            self.neighbours.force_rebuild = False
+            self.neighbours.rebuild()
+        else:
+            self.neighbours.forward_ghosts()
 
     def forward_ghosts(self, positions: bool = True) -> None:
         """Send the ghosts' current x, v, ω to the ranks (and periodic images) that hold them;
         without ``positions`` only v, ω (a third less to send), for a caller that has moved no
         particle since the last forward (``update_neighbours`` forwards positions, or rebuilds), e.g.
         a solver's sweeps within a step."""
-        if self._decomp is not None:
-            from .parallel.exchange import forward
-
-            forward(self, positions=positions)
+        self.neighbours.forward_ghosts(positions)
 
     def set_list_reach(self, envelope: float, force: bool = True, skin: float | None = None) -> None:
         """Make the neighbour list reach ``skin + envelope`` (DEM-C's collision envelope); a wider
@@ -1362,22 +1111,31 @@ class Simulation:
         the skin of the lists built from now on, which the rebuild test then uses (e.g. 0 when the
         method knows the next step must rebuild anyway; the list then holds exactly the pairs within
         ``envelope``); ``None`` keeps the current one; :attr:`skin` restores the simulation's."""
-        if skin is not None:
-            if not (skin >= 0.0 and math.isfinite(skin)):
-                raise InputError(f"set_list_reach: skin = {skin!r} is invalid; give a non-negative distance")
-            self._skin_override = None if skin == self.skin else float(skin)
-        self._list_envelope = envelope
-        self._list_skin = (self.skin if self._skin_override is None else self._skin_override) + envelope
-        self._ghost_width = self._ghost_width_base + self._list_skin
-        if self._decomp is not None:
-            self._decomp.widen(self._ghost_width)
-        if force:
-            self._force_rebuild = True
+        self.neighbours.set_reach(envelope, force, skin)
 
     @property
     def list_envelope(self) -> float:
         """The envelope the neighbour list reaches beyond touching plus skin [m]."""
-        return self._list_envelope
+        return self.neighbours.envelope
+
+    @property
+    def skin(self) -> float | None:
+        """The neighbour list's skin [m] (None until chosen: :class:`pdem.neighbor.list.NeighbourList`)."""
+        return self.neighbours.skin
+
+    @skin.setter
+    def skin(self, value: float | None) -> None:
+        self.neighbours.skin = value
+
+    @property
+    def n_rebuilds(self) -> int:
+        """Neighbour-list rebuilds so far."""
+        return self.neighbours.n_rebuilds
+
+    @property
+    def n_storage_sorts(self) -> int:
+        """Spatial sorts of the storage so far (a list with ``order = "storage"``)."""
+        return self.neighbours.n_storage_sorts
 
     def run(
         self,
@@ -1463,8 +1221,8 @@ class Simulation:
         d = p.x[pj] - p.x[pi]
         dist = np.linalg.norm(d, axis=1)
         touching = np.any(cs.force != 0, axis=1)
-        if self.law.kind != "complementarity":
-            # DEM-P: a force with a gap is stale (the pair parted after the evaluation); rigid grains
+        if not self.law.rigid:
+            # a penalty force with a gap is stale (the pair parted after the evaluation); rigid grains
             # (DEM-C) carry impulses at a zero or slightly positive gap: the impulse decides
             touching &= p.r[pi] + p.r[pj] - dist > 0
         touching &= (p.motion[pi] != REMOVED) & (p.motion[pj] != REMOVED)

@@ -1,4 +1,4 @@
-"""DEM-P's pair loop follows the storage, not the ids (issue 14: speed independent of input order).
+"""DEM-P's pair loop follows the storage, not the ids (speed independent of input order).
 
 The storage is sorted in space and the pair list put in ``schedule_pairs`` order. Every particle must
 still receive its pair terms in partner-id order, so results are the bits of the loop in id order.
@@ -13,7 +13,7 @@ import pytest
 from physics_helpers import E_MOD, NU, RHO
 
 import pdem
-import pdem.simulation as simulation_module
+import pdem.neighbor.list as neighbour_list
 from pdem.boundaries.shapes import box_planes
 from pdem.neighbor import _kernels as nk
 
@@ -94,8 +94,8 @@ def test_scheduled_loop_gives_the_id_order_loop_bits(monkeypatch):
     for mode in ("scheduled", "id order"):
         with monkeypatch.context() as m:
             if mode == "id order":  # the loop of before: storage and pair list in id order
-                m.setattr(simulation_module, "SCHEDULE_JUMPS", np.inf)
-                m.setattr(simulation_module.Simulation, "_scheduled_pairs", property(lambda self: False))
+                m.setattr(neighbour_list, "SCHEDULE_JUMPS", np.inf)
+                m.setattr(neighbour_list.NeighbourList, "follows_storage", property(lambda self: False))
             sim = _scene(x, r)
             sim.run(steps=1500)
             cs = sim.contact_store

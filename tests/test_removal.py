@@ -68,7 +68,7 @@ def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
 
 def _old_removal(sim, idx):
     """The behaviour before parking: a rebuild at the start of the next step."""
-    sim._force_rebuild = True
+    sim.request_rebuild()
 
 
 def _run(law, floor, steps, old_way, monkeypatch):

@@ -326,7 +326,7 @@ class Sensors(Boundary):
         d = p.x[pj] - p.x[pi]
         dist = np.sqrt(np.sum(d * d, axis=1))
         fn = np.sum(cs.force[sel] * d, axis=1) / dist
-        if sim.law.kind != "complementarity":  # DEM-P: a force with a gap is stale (the pair parted)
+        if not sim.law.rigid:  # a penalty force with a gap is stale (the pair parted)
             fn = np.where(p.r[pi] + p.r[pj] - dist > 0.0, fn, 0.0)
         for end in (mark[pi], mark[pj]):
             ok = end >= 0

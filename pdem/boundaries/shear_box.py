@@ -217,7 +217,7 @@ class ShearBox(Boundary):
 
         control = p.control
         if control == "auto":
-            control = "force" if sim.law.kind == "complementarity" else "velocity"
+            control = "force" if sim.law.rigid else "velocity"
         self.control = control
         self.gain = p.gain if p.gain is not None else p.max_speed / p.normal_stress
         zp = z0 + (p.plate_height if p.plate_height is not None else h1 + g + h2)

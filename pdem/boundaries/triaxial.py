@@ -301,7 +301,7 @@ class TriaxialCell(Boundary):
             return
         control = p.control
         if control == "auto":
-            control = "force" if sim.law.kind == "complementarity" else "velocity"
+            control = "force" if sim.law.rigid else "velocity"
         self.force_control = control == "force"
         self._seated = bool(resumed.get("seated", False)) if resumed is not None else False
         if stage == p.consolidation_stage:

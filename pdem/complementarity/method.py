@@ -60,7 +60,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from ..api import ContactLaw, InputError, Integrator, LawParams, MaterialTable
+from ..api import ContactLaw, InputError, Integrator, LawParams, ListNeeds, MaterialTable
 from ..parallel.comm import all_max, any_rank
 from ..parallel.exact import dot_partials_columns, exact_reduce
 from . import _kernels as ck
@@ -171,9 +171,20 @@ class Complementarity(ContactLaw):
 
     name = "complementarity"
     kind = "complementarity"
+    # sweeps in id order, a fixed skin, the collision envelope in the list's reach
+    list_needs = ListNeeds(order="id", auto_skin=False, envelope=True)
+    rigid = True
     history_size = 8  # last step's impulses (γ_n, γ_t, ρ, σ) for the warm start
     n_coef = 4
     Params = ComplementarityParams
+
+    def instability_advice(self, sim) -> str:
+        return (
+            f"complementarity solver '{self.params.solver}' with max_iterations = "
+            f"{self.params.max_iterations}: the contact problem was not solved well enough; reduce dt, "
+            "raise contact.complementarity.max_iterations or lower contact.complementarity.tolerance, "
+            "or check the initial overlaps and prescribed velocities"
+        )
 
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         keys = ("friction", "restitution", "rolling_friction", "spinning_friction")
@@ -210,6 +221,7 @@ class Stepper(Integrator):
     the simulation's public integrator API only (:mod:`pdem.integrate.base`)."""
 
     name = "complementarity"
+    drifts_before_check = False  # its deferred check comes before any drift of the next step
 
     @property
     def p(self) -> ComplementarityParams:
@@ -797,9 +809,9 @@ class Stepper(Integrator):
         iteration), else every row of the problem. N = D M⁻¹ Dᵀ (rolling rows included), B the
         rows' scaling (3/trace of the contact's block, B_r for rolling rows).
 
-        A diagnostic, for choosing ``relaxation`` on a scene (docs/dem_c.md, *Session 26*): call it
-        on every rank after a step. Partition-independent up to rounding (exact global sums, each
-        contact counted once); the state is left as it was."""
+        A diagnostic, for choosing ``relaxation`` on a scene (docs/dem_c.md, *The hopper at each
+        method's best settings*): call it on every rank after a step. Partition-independent up to
+        rounding (exact global sums, each contact counted once); the state is left as it was."""
         sim = self.sim
         p = sim.particles
         comm = sim.comm

@@ -7,6 +7,10 @@ declares, as class data:
 * ``name`` and ``kind`` (``"penalty"``; a method with its own time step, like complementarity,
   returns its :class:`~pdem.integrate.base.Integrator` from ``make_integrator``);
 * ``history_size`` — floats of history per contact (0 for memoryless laws);
+* ``list_needs`` — what the method needs of the neighbour list (:class:`ListNeeds`: the storage or
+  the id order, an automatic skin, a collision envelope); the default suits a penalty law;
+* ``rigid`` — rigid grains (False for penalty laws): contact forces are the method's impulses over
+  the step, which may act at a zero gap, and servo boundaries control force rather than velocity;
 * ``Params`` — a pydantic model of its parameters (validated before anything runs);
 * ``pair_kernel`` / ``wall_kernel`` — the generic loops of :mod:`pdem.contact._kernels`
   specialised with the law's ``@njit`` force function.
@@ -42,6 +46,7 @@ twin of its force function (``force_numpy``), used by contract tests.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -50,7 +55,22 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from ..errors import InputError
 from ..materials import MaterialTable
 
-__all__ = ["ContactLaw", "LawParams"]
+__all__ = ["ContactLaw", "LawParams", "ListNeeds"]
+
+
+@dataclass(frozen=True)
+class ListNeeds:
+    """What a contact method needs of the neighbour list (:mod:`pdem.neighbor.list`), as data.
+
+    ``order``: ``"storage"`` — the storage is sorted by cells in space and the pair loop may follow
+    it (sums stay in partner-id order per grain); ``"id"`` — storage and pair loops in id order (a
+    method whose sweeps run in id order). ``auto_skin``: with no skin given, the skin may follow the
+    fastest grain at every rebuild. ``envelope``: the method has a collision envelope
+    (``law.envelope(radii)``) that the list reaches beyond touching plus skin."""
+
+    order: str = "storage"
+    auto_skin: bool = True
+    envelope: bool = False
 
 
 class LawParams(BaseModel):
@@ -68,6 +88,8 @@ class ContactLaw:
     name: ClassVar[str] = "abstract"
     kind: ClassVar[str] = "penalty"
     history_size: ClassVar[int] = 0
+    list_needs: ClassVar[ListNeeds] = ListNeeds()
+    rigid: ClassVar[bool] = False
     n_coef: ClassVar[int] = 1
     Params: ClassVar[type[LawParams]] = LawParams
     pair_kernel: ClassVar[Any] = None
@@ -102,6 +124,12 @@ class ContactLaw:
 
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         raise NotImplementedError
+
+    def instability_advice(self, sim: Any) -> str | None:
+        """Optional: for a method that solves for its contacts, what to change when a step left
+        overlaps or non-finite values (the solver's settings); None (penalty laws): pdem's own
+        diagnosis of the overlap (static or dynamic) is given instead."""
+        return None
 
     def critical_dt(
         self, materials: MaterialTable, radii: np.ndarray, mat_index: np.ndarray, masses: np.ndarray

@@ -22,7 +22,7 @@ hooks run around it (``Simulation.step``); ``apply_forces`` hooks run inside ``c
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 __all__ = ["Integrator"]
 
@@ -31,6 +31,10 @@ class Integrator:
     """Base class of time integrators (see the module docstring)."""
 
     name = "integrator"
+    #: a step whose check is deferred (``Simulation.step(defer_check=True)``) is checked by the next
+    #: step's rebuild test, after that step's drift (velocity Verlet): the overlap quoted is the
+    #: one found then
+    drifts_before_check: ClassVar[bool] = True
 
     def __init__(self, sim: Any) -> None:
         self.sim = sim
