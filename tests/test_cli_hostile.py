@@ -1,4 +1,4 @@
-"""The pdem command against hostile input (issue 9): bad output targets, file permissions, --steps,
+"""The pdem command against hostile input: bad output targets, file permissions, --steps,
 run.decomposition on the wrong rank count, absurd step counts, huge titles, integer count columns in
 the series, and `pdem schema --output` over an existing file.
 

@@ -1,4 +1,4 @@
-"""The pdem command under MPI (issue 9, item 7): the progress line counts every rank's particles.
+"""The pdem command under MPI: the progress line counts every rank's particles.
 
 The count is a collective, so every rank joins it at the same steps; rank 0 decides when a line is
 due and broadcasts the decision. Printed with a 10 ms interval here so that many lines are decided

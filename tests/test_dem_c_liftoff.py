@@ -1,4 +1,4 @@
-"""DEM-C without artificial lift-off: sliding contacts stay closed (project issue 14).
+"""DEM-C without artificial lift-off: sliding contacts stay closed.
 
 The relaxed cone complementarity problem of Anitescu–Tasora (physics reference §3) gives a sliding
 contact a separating normal velocity μ|u_t|: a sphere sliding at 5 m/s on a floor with μ = 0.5 left

@@ -1,4 +1,4 @@
-"""DEM-C restitution, rolling and spinning friction against closed forms (project issue 14).
+"""DEM-C restitution, rolling and spinning friction against closed forms.
 
 * Newton's impact law: a sphere dropped from H on a floor rebounds to e² H (first apex), for
   e = 0.3–0.9 with each solver; below the restitution threshold contacts are perfectly inelastic, so

@@ -1,4 +1,4 @@
-"""Semantically hostile decks through the real CLI (issue 9, "Done when").
+"""Semantically hostile decks through the real CLI.
 
 Each case is a small, valid scene (64 spheres on a simple cubic lattice above a floor) broken in one
 way a user, a typo or a tester might: absurd or non-finite values, negative sizes, contradictory

@@ -1,4 +1,4 @@
-"""Resume from any checkpoint of the hopper (issue 9, items 1 and 5), through the real CLI.
+"""Resume from any checkpoint of the hopper, through the real CLI.
 
 A shortened hopper (300 beads, 0.03 s of fill, discharge until 0.3 g has left: ~6,600 steps, ~2 s) is
 run once without interruption. Then the same run is interrupted in every way a user meets and

@@ -1,4 +1,4 @@
-"""Errors found when a run starts leave nothing behind (issue 9, item 4), and `pdem check` finds them.
+"""Errors found when a run starts leave nothing behind, and `pdem check` finds them.
 
 Each bad deck is refused by `pdem check` (exit 2, nothing written) and by a run (exit 2) without
 creating the output directory, without touching an existing one (empty, or with an old run that

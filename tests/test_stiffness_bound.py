@@ -564,7 +564,7 @@ def test_checkpoint_state_before_any_bound_is_finite(law):
 
 
 def test_touching_pairs_kernel_matches_the_vectorised_geometry():
-    """network_bound's pair filter (a numba loop since session 23) gives the contacts, overlaps,
+    """network_bound's pair filter (a numba loop) gives the contacts, overlaps,
     normals and normal velocities of a vectorised reference with the force loops' arithmetic
     (|d|² = dx² + dy² + dz², left to right), bit for bit and in the pair order given, on a random
     cloud with massless grains and a shuffled pair order."""

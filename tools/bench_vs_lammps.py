@@ -18,9 +18,9 @@
 With ``--ranks 1 2`` both codes also run on 2 ranks (MPI; LAMMPS splits the box in y, pdem balances
 its cut planes on particle counts) and each code's speed-up over its own serial run is reported.
 
-With ``--shuffle`` both codes read the packing's rows in random order (the input-order test of
-issue 14): pdem runs as read (ids by row), with its file source's ``order = "spatial"`` (ids by
-cells), and on the sorted copy, and the three times are reported with LAMMPS's.
+With ``--shuffle`` both codes read the packing's rows in random order (the input-order test): pdem
+runs as read (ids by row), with its file source's ``order = "spatial"`` (ids by cells), and on the
+sorted copy, and the three times are reported with LAMMPS's.
 
 The last line is ``ratio pdem/lammps = X.XX`` (pdem throughput over LAMMPS throughput at the first
 rank count, > 1 means pdem is faster). Exit code 1 if the physical check fails.

@@ -13,7 +13,7 @@ every row of the problem::
 
 Rows ``step, contacts, loaded, lambda_loaded, omega_bound_loaded, lambda_all, omega_bound_all`` on
 stdout (rank 0) and in ``--csv``; the last lines give the smallest bound seen. docs/dem_c.md,
-*Session 26*, has the hopper's.
+*The hopper at each method's best settings*, has the hopper's.
 """
 
 from __future__ import annotations

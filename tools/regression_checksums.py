@@ -21,7 +21,7 @@ Fingerprints are stored per platform (:func:`platform_signature`: CPU, numpy's S
 numba versions): the same code gives other bits on another CPU (numpy's reductions in set-up code
 sum in an order that follows its SIMD dispatch), so each platform has its own entry.
 tests/test_regression_checksums.py compares a checkout with the stored values, which were made on
-the main branch before the engine-seams refactor (issue 10).
+the main branch before the engine-seams refactor (stored at commit f0d80e7).
 """
 
 from __future__ import annotations

@@ -79,7 +79,7 @@ HERTZ_COLLISION = 2.868
 """t_c = 2.868 (m*²/(R* E*² v))^(1/5): duration of an elastic Hertz impact (physics reference §2)."""
 
 # ---------------------------------------------------------------------------------------------
-# cost model: measured on this machine
+# cost model: measured on a 2-core x86-64 VM (docs/dem_c.md, "Kernel costs")
 # ---------------------------------------------------------------------------------------------
 
 NS_PER_CONTACT_DEM_P = 45.0

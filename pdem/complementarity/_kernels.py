@@ -1060,7 +1060,7 @@ def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u
 # APGD's iterates, like Jacobi's, are held in columns: array[k, c] is component k of contact c
 # (``G``: 4 rows, or 8 with rolling rows), so that each pass streams through whole rows and the
 # elementwise ones vectorize (the same arithmetic per contact as the row layout it replaced, bit
-# for bit: session 25, tests/test_dem_c_kernels.py). The corrected cone's ũ differs from u in its
+# for bit at commit 6cc2c53, tests/test_dem_c_kernels.py). The corrected cone's ũ differs from u in its
 # normal row only: it is kept as u in columns (``U``) plus the corrected normal row (``UN``, ``U[0]``
 # itself for the relaxed cone).
 

@@ -17,7 +17,7 @@ import os
 #:   rendezvous handshake). pdem's ghost forwards, sent at every step, are 10–100 KiB, and the
 #:   handshake made them cost twice what a copy through MPICH's shared-memory queue does: on the
 #:   18k column's 2 ranks 57–70 against 30–36 µs a forward, loop time 28.8 against 24.7 s (medians
-#:   of 3 alternating pairs, 25,000 steps; docs/dem_c.md, *Session 24*). CMA is kept for messages from 1 MiB.
+#:   of 3 alternating pairs, 25,000 steps; measured at commit a6785a5). CMA is kept for messages from 1 MiB.
 MPICH_DEFAULTS = {"MPIR_CVAR_CH4_IPC_CMA_P2P_THRESHOLD": str(1 << 20)}
 
 for _name, _value in MPICH_DEFAULTS.items():
