@@ -14,7 +14,7 @@ Python API (SI units throughout)::
     p = sim.get_particles()        # arrays ordered by particle id
     sim.walls["floor"].force       # load on the floor [N]
 
-The DEM-P time step (velocity Verlet, architecture §3)::
+The DEM-P time step (velocity Verlet, ARCHITECTURE.md)::
 
     initial_integrate   v += a dt/2; x += v dt; ω half step
     move walls
@@ -847,9 +847,9 @@ class Simulation:
         must follow before the next force evaluation.
 
         Results do not depend on the storage order: every sum is ordered by particle ids and all
-        history is keyed by ids (this is what MPI migration relies on). Memory locality comes from
-        spatially coherent ids, which pdem's sources produce, because the pair loop runs in id order.
-        The next step rebuilds the neighbour list first.
+        history is keyed by ids (this is what MPI migration relies on). The neighbour list orders
+        the storage itself at its rebuilds (:class:`pdem.neighbor.list.NeighbourList`), which the
+        next step makes first.
         """
         self.particles.permute(perm)
         self.neighbours.force_rebuild = True

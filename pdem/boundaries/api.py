@@ -52,8 +52,9 @@ triaxial's σ₁ at the end of consolidation) is taken from that stage's rows, w
 
 The hooks run inside ``Simulation.step`` (under a deck's runner and under ``Simulation.run`` alike),
 in the order the boundaries were added, only while the boundary is active; a hook a class does not
-override costs nothing. Boundaries never touch MPI or numba directly; the walls they create are
-evaluated by the generic wall loop with the simulation's contact law.
+override costs nothing. The walls a boundary creates are evaluated by the generic wall loop with
+the simulation's contact law; a boundary may use MPI (collectives that every rank calls alike) and
+numba kernels of its own, through :mod:`pdem.api`.
 """
 
 from __future__ import annotations

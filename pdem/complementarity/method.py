@@ -43,7 +43,8 @@ Solvers (``solver``):
 The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (with the corrected u_n when
 ``cone = "corrected"``: then it measures Coulomb's law); iterations stop when it is below
 ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
-(``Simulation.solver_log``); steps that hit the cap unconverged are counted.
+(``Stepper.log``, which the deck runner drains into ``solver_<stage>.csv``); steps that hit the cap
+unconverged are counted.
 
 Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions
 slower than the restitution threshold are perfectly inelastic, with ``cone = "relaxed"`` sliding contacts

@@ -1,4 +1,4 @@
-"""The generic contact loops: the only neighbour loops in pdem.
+"""The generic contact loops: the pair and wall force loops every penalty law runs.
 
 They are written once and specialised for each contact law by the law's own cached wrappers
 (see :mod:`pdem.contact.law`). A law is a small ``@njit`` function

@@ -7,9 +7,9 @@
 * :func:`borders` (after migration): copies of particles within the ghost width of a face are sent
   to the neighbour behind it; ghosts received along x are forwarded along y and z, which covers edges
   and corners. The send lists are kept.
-* :func:`forward` (every other step): the same lists carry the ghosts' current x, v, ω (or v, ω
-  only, between DEM-C's solver sweeps), with buffers and persistent requests set up once per
-  list (:class:`_ForwardPlan`).
+* :func:`forward` (every step without a rebuild): the same lists carry the ghosts' current x, v, ω
+  (or v, ω only, between DEM-C's solver sweeps), with buffers and the message plan set up once per
+  list (:class:`_ForwardPlan`; the requests are posted at every call).
 
 Contacts between an owned particle and a ghost are computed on both ranks, identically, and each
 rank applies the result to its own particle only ("newton off" across ranks).
@@ -107,7 +107,8 @@ def _remove(sim, mask: np.ndarray) -> None:
     fill the leavers' rows, which end up behind the owned ones. Only those rows move (a stable
     compaction had reordered every field of every particle, ~0.7 ms on 10,000 particles at each
     migration with departures). Storage order never changes results; DEM-P re-sorts it in space
-    when its pairs drift apart, DEM-C sorts it by id (``Simulation._order_storage``)."""
+    when its pairs drift apart, DEM-C sorts it by id
+    (:meth:`pdem.neighbor.list.NeighbourList.order_storage`)."""
     p = sim.particles
     n = p.n_owned
     k = int(mask.sum())
