@@ -47,8 +47,13 @@ SUBCOMMANDS = ("check", "advise", "resume", "plugins", "schema", "study")
 def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="pdem",
-        description="Run a pdem deck (TOML). Other commands: pdem check DECK | pdem resume CHECKPOINT "
-        "[--set KEY=VALUE] (continues the run in its own output directory) | pdem plugins | pdem schema. "
+        description="Run a pdem deck (TOML). Other commands (each has --help): "
+        "pdem check DECK (validate without running) | "
+        "pdem resume CHECKPOINT [--set KEY=VALUE] (continue a run in its own output directory) | "
+        "pdem advise DECK (step margins, sample size, the cheaper method, --set changes) | "
+        "pdem study SPEC (a grid of runs: error against wall time, stability maps) | "
+        "pdem plugins (installed laws, boundaries, writers, sources) | "
+        "pdem schema (the decks' JSON Schema). "
         "Exit codes: 0 ok, 2 invalid input, 3 numerical failure, 1 other.",
     )
     p.add_argument("deck", type=Path, help="the deck file (TOML); see docs/deck.md")

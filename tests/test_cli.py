@@ -289,3 +289,14 @@ def test_resume_needs_only_the_checkpoint(tmp_path, capsys):
     code, _, err = run_cli(["resume", ckpt, "--quiet", "--steps", "40"], capsys)
     assert code == 0, err
     assert int(read_checkpoint(part / "checkpoints" / "latest.h5")[0]["scalars/step"]) == 40
+
+
+def test_help_lists_every_command(capsys):
+    from pdem.cli import SUBCOMMANDS
+
+    with pytest.raises(SystemExit) as info:
+        main(["--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    missing = [c for c in SUBCOMMANDS if f"pdem {c}" not in " ".join(out.split())]
+    assert not missing, missing
