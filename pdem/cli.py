@@ -529,6 +529,11 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(exc.exit_code, f"pdem: error: {exc}")
     except KeyboardInterrupt:
         return _fail(1, "pdem: interrupted")
+    except BrokenPipeError:  # the reader of stdout went away (pdem plugins | head): not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 0
     except Exception as exc:  # a bug: keep the traceback, but never leave other ranks hanging
         if _world_size() > 1:
             import traceback
