@@ -89,7 +89,7 @@ def _bytes(n: float) -> str:
 
 
 def _count(n: float) -> str:
-    return f"{n:,.0f}" if n < 1e9 else f"{n:.3g}"
+    return f"{n:,.0f}" if n < 1e9 else f"{float(n):.3g}" if n < 1e300 else "more than 1e300"
 
 
 def _num(v: Any) -> float | None:
@@ -159,7 +159,10 @@ def _mean_r3(sizes: Any) -> float | None:
 
 
 def _steps(length: float, step: float) -> float:
-    return math.floor(length / step + 1e-9) if length >= 0 else -1.0
+    if length < 0:
+        return -1.0
+    ratio = length / step + 1e-9
+    return math.floor(ratio) if math.isfinite(ratio) else math.inf
 
 
 def _lattice_count(src: dict) -> tuple[float, str] | None:
@@ -200,8 +203,11 @@ def _lattice_count(src: dict) -> tuple[float, str] | None:
 
 
 def _file_rows(path: Path) -> tuple[float, str] | None:
-    if not path.is_file():
-        return None  # the schema reports a missing file
+    try:
+        if not path.is_file():
+            return None  # the schema reports a missing file
+    except OSError:  # a name too long, a loop of links: the schema reports what the path is
+        return None
     if path.suffix.lower() in (".h5", ".hdf5"):
         try:
             import h5py

@@ -16,6 +16,12 @@ Validation runs in full before anything else and reports every problem at once i
    largest radius and extent.
 
 A problem under a path that a ``--set`` override wrote is marked ``(from --set …)``.
+
+Before any of that, the deck's shape is bounded (docs/deck.md, "Limits"): a deck file of at most
+:data:`MAX_DECK_BYTES`, that is a regular file (not a directory, a device or a named pipe); no
+dotted key or nesting of tables and arrays deeper than :data:`~pdem.deck.schema.MAX_DEPTH` levels,
+no integer outside TOML's 64-bit range. Those are refused with one problem before the deck is copied
+or validated, which recurse.
 """
 
 from __future__ import annotations
@@ -34,12 +40,25 @@ from pydantic import BaseModel, ValidationError
 
 from .. import plugins
 from ..errors import PdemError, PluginError
+from ..textutil import clip, file_problem, quote
 from . import toml_writer
 from .capacity import check_capacity
 from .overrides import Override, apply_overrides
-from .problems import Loc, make_deck_error, show, sort_problems, translate
+from .problems import (
+    Loc,
+    integer_digits_message,
+    make_deck_error,
+    shape_problems,
+    show,
+    sort_problems,
+    toml_nesting_problem,
+    toml_text_problem,
+    translate,
+)
 from .schema import (
     KNOWN_WRITERS,
+    MAX_DEPTH,
+    MAX_MAGNITUDE,
     BoundaryEntry,
     ContactSection,
     Deck,
@@ -52,6 +71,8 @@ from .schema import (
 __all__ = ["ResolvedDeck", "load_deck", "validate_deck", "deck_json_schema", "installed_writers"]
 
 DEFAULT_LAW = "hertz_mindlin"
+#: largest deck file read [bytes]; a real deck is a few kB
+MAX_DECK_BYTES = 64 * 1024 * 1024
 _PLUGIN_LABEL = {
     "contact_laws": "contact law",
     "boundaries": "boundary type",
@@ -140,17 +161,56 @@ def load_deck(
     formats to accept (default: ``hdf5``, ``vtk`` and the installed ``pdem.writers`` entry points).
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise make_deck_error([((), f"deck file '{p}' does not exist")], str(p)) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise make_deck_error([((), f"cannot read deck file '{p}': {exc}")], str(p)) from None
+    text = _read_deck_text(p)
+    problem = toml_text_problem(text)
+    if problem is not None:
+        raise make_deck_error([((), f"invalid deck {problem}")], str(p))
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise make_deck_error([((), _toml_message(exc))], str(p)) from None
+    except RecursionError:
+        where = toml_nesting_problem(text) or f"nested more than {MAX_DEPTH} levels deep"
+        raise make_deck_error([((), f"invalid deck {where}")], str(p)) from None
+    except (ValueError, MemoryError) as exc:  # e.g. an integer of more than 4,300 digits
+        why = integer_digits_message(exc) if isinstance(exc, ValueError) else None
+        raise make_deck_error([((), f"invalid TOML: {why or clip(str(exc))}")], str(p)) from None
     return validate_deck(data, path=p, overrides=overrides, writers=writers)
+
+
+def _read_deck_text(p: Path) -> str:
+    """The deck file's text: a regular file of at most :data:`MAX_DECK_BYTES`, UTF-8 (a BOM is
+    dropped). Only the path is looked at before reading, so a FIFO or /dev/zero is refused, not
+    read."""
+    problem = file_problem(p)
+    if problem is not None:
+        raise make_deck_error([((), f"deck file {quote(str(p))} {problem}; give a deck file (TOML)")], str(p))
+    try:
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_DECK_BYTES + 1)
+    except OSError as exc:
+        message = f"cannot read deck file {quote(str(p))}: {exc.strerror or exc}"
+        raise make_deck_error([((), message)], str(p)) from None
+    if len(raw) > MAX_DECK_BYTES:
+        raise make_deck_error(
+            [
+                (
+                    (),
+                    f"deck file {quote(str(p))} is larger than {MAX_DECK_BYTES // 2**20} MB, the most pdem "
+                    "reads (a deck is a few kB; particles belong in a packing file: source = 'file')",
+                )
+            ],
+            str(p),
+        )
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        message = (
+            f"deck file {quote(str(p))} is not UTF-8 text (byte {exc.start:,}, line {line:,}); is it a "
+            "deck? Save it as UTF-8"
+        )
+        raise make_deck_error([((), message)], str(p)) from None
 
 
 def _toml_message(exc: tomllib.TOMLDecodeError) -> str:
@@ -185,16 +245,37 @@ def validate_deck(
     directory for a deck without a file.
     """
     p = Path(path) if path is not None else None
+    source = str(p) if p is not None else None
     if not isinstance(data, dict):
-        raise make_deck_error(
-            [((), f"a deck is a table of sections; got {type(data).__name__}")],
-            str(p) if p is not None else None,
-        )
+        raise make_deck_error([((), f"a deck is a table of sections; got {type(data).__name__}")], source)
+    shape = shape_problems(data)
+    if shape:  # before anything recurses into it
+        raise make_deck_error(shape, source)
     base = Path(base_dir) if base_dir is not None else (p.parent if p is not None else Path.cwd())
     base = base.resolve()
     data = copy.deepcopy(data)
     overrides = tuple(overrides)
     applied, problems = apply_overrides(data, overrides)
+    shape = shape_problems(data)
+    if shape:  # an override made the deck too deep (a long key path, a deeply nested value)
+        raise make_deck_error(_mark_overrides(shape, applied), source)
+    try:
+        return _validate(data, p, base, overrides, applied, problems, writers)
+    except RecursionError:  # a safety net: the shape checks above should make this impossible
+        raise make_deck_error(
+            [((), f"the deck is nested too deeply to validate; keep it within {MAX_DEPTH} levels")], source
+        ) from None
+
+
+def _validate(
+    data: dict,
+    p: Path | None,
+    base: Path,
+    overrides: tuple[str, ...],
+    applied: list[Override],
+    problems: list[tuple[Loc, str]],
+    writers: Collection[str] | None,
+) -> ResolvedDeck:
     allowed = tuple(writers) if writers is not None else tuple(installed_writers())
     context = {"base_dir": str(base), "writers": allowed}
 
@@ -203,8 +284,6 @@ def validate_deck(
         deck = Deck.model_validate(data, context=context)
     except ValidationError as exc:
         problems += translate(exc, Deck)
-
-    problems += check_capacity(data, base)
 
     law_class, law_params, law_problems = _validate_law(data)
     problems += law_problems
@@ -215,6 +294,7 @@ def validate_deck(
     boundary_classes, boundaries, bnd_problems = _validate_boundaries(data)
     problems += bnd_problems
     problems += _validate_per_rank_writers(data)
+    problems += _capacity(data, base, problems)
 
     if problems:
         problems = _mark_overrides(_dedupe(problems), applied)
@@ -250,6 +330,24 @@ def validate_deck(
 # -------------------------------------------------------------------------------------------------
 
 
+def _capacity(data: dict, base: Path, problems: list[tuple[Loc, str]]) -> list[tuple[Loc, str]]:
+    """:func:`~pdem.deck.capacity.check_capacity`, which reads the raw deck: on values the schema
+    refuses anyway (a radius of 1e-300, a path too long for the file system) it may fail; then its
+    estimate is left out when other problems are reported, and is a problem itself otherwise."""
+    try:
+        return check_capacity(data, base)
+    except (ArithmeticError, OSError, ValueError, TypeError, RuntimeError) as exc:
+        if problems:
+            return []
+        return [
+            (
+                ("particles",),
+                f"cannot estimate how many particles the sources make ({type(exc).__name__}: "
+                f"{clip(str(exc))}); check the sizes, regions and packing files of [[particles]]",
+            )
+        ]
+
+
 def _plain(params: BaseModel) -> dict[str, Any]:
     """A plugin's validated parameters as plain TOML-able data (unset optional keys left out)."""
     return params.model_dump(mode="json", exclude_none=True)
@@ -279,26 +377,48 @@ def _load_plugin(group: str, name: str) -> tuple[Any, str | None]:
             own = [n for n in BUILTIN_SOURCES if n in installed]
             listing = ", ".join(f"'{n}'" for n in own + [n for n in installed if n not in own])
             return None, (
-                f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; must be one of "
+                f"unknown {label} {quote(name)}{did_you_mean(name, installed, True)}; must be one of "
                 f"{listing or '(none)'} (the installed entry points of group pdem.sources). "
                 "Install the package that provides it (pip install …) or fix the name"
             )
         listing = ", ".join(f"'{n}'" for n in installed) or "(none)"
         return None, (
-            f"unknown {label} '{name}'{did_you_mean(name, installed, True)}; installed: {listing}. "
+            f"unknown {label} {quote(name)}{did_you_mean(name, installed, True)}; installed: {listing}. "
             "Install the package that provides it (pip install …) or fix the name"
         )
 
 
 def _non_finite(value: Any, loc: Loc) -> list[tuple[Loc, str]]:
-    """Plugin models may accept inf/nan; a deck never does."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return [(loc, f"must be a finite number; got {show(value)}")]
-    if isinstance(value, dict):
-        return [p for k, v in value.items() for p in _non_finite(v, loc + (k,))]
-    if isinstance(value, list):
-        return [p for k, v in enumerate(value) for p in _non_finite(v, loc + (k,))]
-    return []
+    """Plugin models may accept inf/nan, or numbers too large for any product or square of them to
+    stay finite; a deck never does (the first few such numbers of a table are reported)."""
+    return _bad_numbers(value, loc)[0]
+
+
+def _bad_numbers(value: Any, loc: Loc) -> tuple[list[tuple[Loc, str]], bool]:
+    """(problems, whether a number is too large): non-finite numbers, and numbers larger in
+    magnitude than MAX_MAGNITUDE, the first few. Too large a number is refused before the plugin's
+    validators compute with it (they would overflow)."""
+    out: list[tuple[Loc, str]] = []
+    too_large = False
+    stack: list[tuple[Any, Loc]] = [(value, loc)]
+    while stack and len(out) < 5:
+        item, where = stack.pop()
+        if isinstance(item, float) and not math.isfinite(item):
+            out.append((where, f"must be a finite number; got {show(item)}"))
+        elif isinstance(item, int | float) and not isinstance(item, bool) and abs(item) > MAX_MAGNITUDE:
+            too_large = True
+            out.append(
+                (
+                    where,
+                    f"{show(item)} is larger in magnitude than {MAX_MAGNITUDE:.0e}, the most pdem accepts "
+                    "in a plugin's table: squares and products of such numbers overflow double precision",
+                )
+            )
+        elif isinstance(item, dict):
+            stack += [(v, where + (k,)) for k, v in reversed(list(item.items()))]
+        elif isinstance(item, list):
+            stack += [(v, where + (k,)) for k, v in reversed(list(enumerate(item)))]
+    return out, too_large
 
 
 def _params_model(cls: Any, loc: Loc, what: str) -> tuple[type[BaseModel] | None, list[tuple[Loc, str]]]:
@@ -527,7 +647,10 @@ def _validate_sources(
         problems += bad
         if model is None:
             continue
-        nonfinite = _non_finite(table, loc)
+        nonfinite, too_large = _bad_numbers(table, loc)
+        if too_large:  # refused before the plugin's validators compute with such numbers
+            problems += nonfinite
+            continue
         try:  # like the deck's own models: Python mode, strictness from the Strict-annotated types
             p = model.model_validate(copy.deepcopy(table), context=context)
         except ValidationError as exc:
@@ -549,7 +672,7 @@ def _validate_sources(
                 (
                     ("particles", k),
                     f"particle source '{p.source}' failed to report its size or extent: "
-                    f"{type(exc).__name__}: {exc}",
+                    f"{type(exc).__name__}: {clip(str(exc))}",
                 )
             )
     problems += periodic_source_checks(data, extents)
@@ -578,13 +701,15 @@ def _validate_boundaries(data: dict) -> tuple[dict[str, type], dict[str, BaseMod
         values = dict(table)
         if "type" not in model.model_fields:
             values.pop("type")
-        nonfinite = _non_finite(values, loc)
+        nonfinite, too_large = _bad_numbers(values, loc)
+        if too_large:  # refused before the plugin's validators compute with such numbers
+            problems += nonfinite
+            continue
         try:
             p = model.model_validate_json(_to_json(values), strict=True)
         except ValidationError as exc:
-            problems += nonfinite + translate(
-                exc, model, loc, extra_keys=() if "type" in model.model_fields else ("type",)
-            )
+            extra = () if "type" in model.model_fields else ("type",)
+            problems += nonfinite + translate(exc, model, loc, extra_keys=extra)
             continue
         if nonfinite:
             problems += nonfinite
@@ -620,18 +745,14 @@ def _check_quantities(data: dict, classes: dict[str, type]) -> list[tuple[Loc, s
 
 
 def _dedupe(problems: list[tuple[Loc, str]]) -> list[tuple[Loc, str]]:
-    out: list[tuple[Loc, str]] = []
-    for item in problems:
-        if item not in out:
-            out.append(item)
-    return out
+    return list(dict.fromkeys(problems))
 
 
 def _mark_overrides(problems: list[tuple[Loc, str]], applied: list[Override]) -> list[tuple[Loc, str]]:
     out = []
     for loc, msg in problems:
         src = [o.text for o in applied if tuple(loc[: len(o.loc)]) == o.loc]
-        out.append((loc, f"{msg} (from --set {src[-1]})" if src else msg))
+        out.append((loc, f"{msg} (from --set {clip(src[-1], 100)})" if src else msg))
     return out
 
 

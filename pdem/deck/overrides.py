@@ -14,7 +14,8 @@
 
 Keys are not checked here: the validation that follows reports an unknown key (with the closest valid
 key) at its path, and :mod:`pdem.deck.load` marks every problem under an overridden path with the
-override that caused it.
+override that caused it. Messages quote at most about 200 characters of an override; a value nested
+too deeply for the TOML parser is refused like a deck's (docs/deck.md, "Limits").
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import re
 import tomllib
 from dataclasses import dataclass
 from typing import Any
+
+from ..textutil import clip, quote
 
 __all__ = ["Override", "OverrideError", "parse_override", "apply_overrides"]
 
@@ -48,6 +51,10 @@ class Override:
     value: Any
 
 
+def _malformed(text: str) -> OverrideError:
+    return OverrideError(f"malformed override {quote(text)}: expected key.path=value, e.g. run.dt=1e-5")
+
+
 def _parse_key(text: str) -> tuple[list[str], str]:
     """Split ``key.path=value`` into key segments and the value text."""
     segments: list[str] = []
@@ -55,7 +62,7 @@ def _parse_key(text: str) -> tuple[list[str], str]:
     while True:
         m = _SEGMENT.match(text, pos)
         if not m or m.end() == pos:
-            raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+            raise _malformed(text)
         quoted, bare = m.group(1), m.group(2)
         segments.append(bare if bare is not None else _unescape(quoted, text))
         pos = m.end()
@@ -64,36 +71,51 @@ def _parse_key(text: str) -> tuple[list[str], str]:
             continue
         if pos < len(text) and text[pos] == "=":
             return segments, text[pos + 1 :]
-        raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+        raise _malformed(text)
 
 
 def _unescape(quoted: str, text: str) -> str:
     try:
         return tomllib.loads(f'k = "{quoted}"')["k"]
-    except tomllib.TOMLDecodeError:
-        raise OverrideError(f"malformed override '{text}': bad quoted key \"{quoted}\"") from None
+    except (tomllib.TOMLDecodeError, ValueError):
+        raise OverrideError(f"malformed override {quote(text)}: bad quoted key {quote(quoted, 80)}") from None
 
 
 def parse_value(raw: str, text: str = "") -> Any:
     """A TOML value (or a bare word as a string, see the module docstring)."""
+    from .problems import integer_digits_message, toml_nesting_problem, toml_text_problem
+
     raw = raw.strip()
     if not raw:
-        raise OverrideError(f"malformed override '{text}': no value after '='; e.g. run.dt=1e-5")
+        raise OverrideError(f"malformed override {quote(text)}: no value after '='; e.g. run.dt=1e-5")
+    problem = toml_text_problem(raw)
+    if problem is not None:
+        raise OverrideError(f"override {quote(text)}: the value has {problem.split(': ', 1)[-1]}")
     try:
         return tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError as exc:
         if _BARE_WORD.match(raw):
             return raw
         raise OverrideError(
-            f"override '{text}': the value {raw} is not a TOML value ({exc}); quote strings, "
+            f"override {quote(text)}: the value {clip(raw)} is not a TOML value ({exc}); quote strings, "
             f'e.g. contact.law="hertz_mindlin"'
         ) from None
+    except RecursionError:
+        found = toml_nesting_problem(raw)
+        why = found.split(": ", 1)[-1] if found else "arrays or tables nested too deeply"
+        raise OverrideError(f"override {quote(text)}: the value has {why}") from None
+    except (ValueError, MemoryError) as exc:  # e.g. an integer of more than 4,300 digits
+        digits = integer_digits_message(exc) if isinstance(exc, ValueError) else None
+        if digits is not None:
+            raise OverrideError(f"override {quote(text)}: the value is {digits}") from None
+        why = clip(str(exc))
+        raise OverrideError(f"override {quote(text)}: the value is not a usable TOML value ({why})") from None
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``"run.dt=1e-5"`` → ``(["run", "dt"], 1e-05)``; raises :class:`OverrideError`."""
     if "=" not in text:
-        raise OverrideError(f"malformed override '{text}': expected key.path=value, e.g. run.dt=1e-5")
+        raise _malformed(text)
     segments, raw = _parse_key(text)
     return segments, parse_value(raw, text)
 
@@ -107,7 +129,7 @@ def _kind(v: Any) -> str:
 
 
 def _index(node: list, seg: str, loc: tuple, text: str) -> int:
-    where = ".".join(str(p) for p in loc)
+    where = clip(".".join(str(p) for p in loc))
     if re.fullmatch(r"\d+", seg):
         k = int(seg)
         tables = all(isinstance(e, dict) for e in node)
@@ -116,7 +138,7 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
             return k
         if k >= len(node):
             raise OverrideError(
-                f"override '{text}': {where} has {len(node)} entr"
+                f"override {quote(text)}: {where} has {len(node)} entr"
                 f"{'y' if len(node) == 1 else 'ies'}; index {k} is out of range"
                 + (
                     f" (index {len(node)} adds an entry: --set {where}.{len(node)}.KEY=VALUE)"
@@ -131,11 +153,12 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
         if isinstance(e, dict) and e.get("name") == seg:
             return k
     known = [n for n in names if isinstance(n, str)]
-    close = difflib.get_close_matches(seg, known, n=1)
-    hint = f"; did you mean '{close[0]}'?" if close else ""
-    listing = ", ".join(f"'{n}'" for n in known) or "(none have a name)"
+    close = difflib.get_close_matches(seg, known, n=1) if len(seg) <= 100 and len(known) <= 1000 else []
+    hint = f"; did you mean {quote(close[0], 80)}?" if close else ""
+    listing = ", ".join(quote(n, 80) for n in known[:20]) or "(none have a name)"
+    listing += f", … ({len(known):,} in all)" if len(known) > 20 else ""
     raise OverrideError(
-        f"override '{text}': no entry of {where} is named '{seg}'{hint}; give an index "
+        f"override {quote(text)}: no entry of {where} is named {quote(seg, 80)}{hint}; give an index "
         f"(0..{len(node) - 1}) or one of {listing}",
         loc + (seg,),
     )
@@ -153,9 +176,11 @@ def apply_one(data: dict, text: str) -> Override:
         elif isinstance(node, dict):
             key = seg
         else:
-            where = ".".join(str(p) for p in loc)
+            where = clip(".".join(str(p) for p in loc))
             raise OverrideError(
-                f"override '{text}': {where} is a {_kind(node)}, not a table; it has no key '{seg}'", loc
+                f"override {quote(text)}: {where} is a {_kind(node)}, not a table; it has no key "
+                f"{quote(seg, 80)}",
+                loc,
             )
         loc += (key,)
         if last:

@@ -21,9 +21,22 @@ from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
 from ..errors import DeckError
-from .schema import RULE_ERROR, did_you_mean
+from ..textutil import QUOTE_LIMIT, clip, clip_middle, quote
+from .schema import MAX_DEPTH, MAX_ENTRIES, RULE_ERROR, did_you_mean
 
-__all__ = ["Loc", "format_path", "show", "translate", "make_deck_error", "SECTION_ORDER"]
+__all__ = [
+    "Loc",
+    "format_path",
+    "show",
+    "translate",
+    "make_deck_error",
+    "SECTION_ORDER",
+    "MAX_LISTED_PROBLEMS",
+    "shape_problems",
+    "toml_nesting_problem",
+    "toml_text_problem",
+    "integer_digits_message",
+]
 
 Loc = tuple[str | int, ...]
 
@@ -43,6 +56,12 @@ SECTION_ORDER = (
 )
 
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
+#: most problems a DeckError lists (the count of the others follows)
+MAX_LISTED_PROBLEMS = 100
+#: most errors of one pydantic validation turned into problems (the rest are counted)
+MAX_TRANSLATED = 1000
+#: integers a deck may hold: TOML's 64-bit range
+_INT_RANGE = (-(2**63), 2**63 - 1)
 
 
 def format_path(loc: Loc) -> str:
@@ -57,20 +76,37 @@ def format_path(loc: Loc) -> str:
 
 
 def show(value: Any, limit: int = 80) -> str:
-    """A value as it would be written in TOML (strings in single quotes), shortened to ``limit``."""
+    """A value as it would be written in TOML (strings in single quotes), shortened to ``limit``
+    (control characters escaped; a long array or table is not written out beyond ``limit``)."""
     if isinstance(value, bool):
         text = "true" if value else "false"
     elif isinstance(value, str):
-        text = f"'{value}'"
+        text = "'" + clip(value[: limit + 1], limit + 1) + "'"
     elif isinstance(value, float):
         text = repr(value) if math.isfinite(value) else str(value)
+    elif isinstance(value, int) and value.bit_length() > 64:
+        text = f"an integer of about {value.bit_length() * 0.30103:.0f} digits"
     elif isinstance(value, list | tuple):
-        text = "[" + ", ".join(show(v, limit) for v in value) + "]"
+        text = "[" + ", ".join(_items((show(v, limit) for v in value), limit)) + "]"
     elif isinstance(value, dict):
-        text = "{" + ", ".join(f"{k} = {show(v, limit)}" for k, v in value.items()) + "}"
+        items = (f"{clip(str(k), limit)} = {show(v, limit)}" for k, v in value.items())
+        text = "{" + ", ".join(_items(items, limit)) + "}"
     else:
-        text = str(value)
+        text = clip(str(value), limit + 1)
     return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _items(texts: Any, limit: int) -> list[str]:
+    """The first of ``texts`` up to about ``limit`` characters in all (a 10⁶-entry array is not
+    written out to show 80 characters of it)."""
+    out: list[str] = []
+    size = 0
+    for t in texts:
+        out.append(t)
+        size += len(t) + 2
+        if size > limit:
+            break
+    return out
 
 
 def _kind(value: Any) -> str:
@@ -259,9 +295,9 @@ def _one(err: dict, root: Any, prefix: Loc, extra_keys: tuple[str, ...]) -> tupl
         key = str(parts[-1])
         parent = tuple(prefix) + tuple(parts[:-1])
         valid = _valid_keys(walk.parent) + (list(extra_keys) if len(parts) == 1 else [])
-        where = f"in {format_path(parent)}" if parent else "at the top level"
+        where = f"in {_path_text(parent)}" if parent else "at the top level"
         hint = did_you_mean(key, valid) or (f"; allowed keys: {', '.join(valid)}" if valid else "")
-        msg = f"unknown key '{key}' {where}{hint}"
+        msg = f"unknown key {quote(key, 80)} {where}{hint}"
     elif kind == "missing":
         size = _fixed_tuple_len(walk.parent) if parts and isinstance(parts[-1], int) else None
         if size is not None:
@@ -312,7 +348,7 @@ def _one(err: dict, root: Any, prefix: Loc, extra_keys: tuple[str, ...]) -> tupl
             msg = f"must be one of {allowed}; got {show(tag)}{hint}"
         elif kind == "union_tag_invalid":
             tag = ctx.get("tag", "?")
-            msg = f"must be one of {allowed}; got '{tag}'{did_you_mean(str(tag), tags)}"
+            msg = f"must be one of {allowed}; got {quote(str(tag), 80)}{did_you_mean(str(tag), tags)}"
         else:
             msg = f"required key '{disc}' is missing (one of {allowed})"
     elif kind in ("value_error", "assertion_error"):
@@ -335,12 +371,14 @@ def translate(
     ``extra_keys`` are valid keys of the root table that the model itself does not know (``law`` in
     ``[contact]``), offered as suggestions for unknown keys.
     """
-    out: list[tuple[Loc, str]] = []
-    for err in exc.errors(include_url=False):
-        item = _one(err, root, prefix, extra_keys)
-        if item not in out:
-            out.append(item)
-    return out
+    out: dict[tuple[Loc, str], None] = {}
+    errors = exc.errors(include_url=False)
+    for err in errors[:MAX_TRANSLATED]:
+        out[_one(err, root, prefix, extra_keys)] = None
+    if len(errors) > MAX_TRANSLATED:
+        rest = len(errors) - MAX_TRANSLATED
+        out[(tuple(prefix), f"{rest:,} more problems of the same validation, not listed")] = None
+    return list(out)
 
 
 def sort_problems(problems: list[tuple[Loc, str]], data: Any) -> list[tuple[Loc, str]]:
@@ -362,14 +400,202 @@ def sort_problems(problems: list[tuple[Loc, str]], data: Any) -> list[tuple[Loc,
     return sorted(problems, key=key)
 
 
+def _path_text(loc: Loc | str) -> str:
+    """A location as shown in a message: at most about :data:`QUOTE_LIMIT` characters (a key may be
+    megabytes long, a path thousands of levels deep)."""
+    if isinstance(loc, str):
+        return clip(loc)
+    if len(loc) > 12:  # the first levels and the last two
+        head, tail = format_path(loc[:8]), format_path(loc[-2:])
+        return clip(f"{clip(head)}.…({len(loc) - 10:,} levels)….{clip(tail, 60)}", 2 * QUOTE_LIMIT)
+    return clip(format_path(tuple(clip(p, 80) if isinstance(p, str) else p for p in loc)), 2 * QUOTE_LIMIT)
+
+
 def make_deck_error(problems: list[tuple[Loc, str]], source: str | None = None) -> DeckError:
     """One DeckError listing every problem, one per line; ``.problems`` = [(path, message), ...].
-    A location is a key path, or a path already formatted (a string, e.g. another error's)."""
-    pairs = [(loc if isinstance(loc, str) else format_path(loc), msg) for loc, msg in problems]
-    where = f"deck '{source}'" if source else "deck"
-    count = f"{len(pairs)} problem{'s' if len(pairs) != 1 else ''}"
+    A location is a key path, or a path already formatted (a string, e.g. another error's).
+
+    Bounded whatever the deck holds: paths and messages are clipped (:mod:`pdem.textutil`), and at
+    most :data:`MAX_LISTED_PROBLEMS` problems are listed, then how many more there are."""
+    pairs = [(_path_text(loc), clip_middle(msg)) for loc, msg in problems]
+    where = f"deck {quote(source)}" if source else "deck"
+    count = f"{len(pairs):,} problem{'s' if len(pairs) != 1 else ''}"
     lines = [f"{where} is invalid ({count}):"]
-    lines += [f"  {path}: {msg}" if path else f"  {msg}" for path, msg in pairs]
+    lines += [f"  {path}: {msg}" if path else f"  {msg}" for path, msg in pairs[:MAX_LISTED_PROBLEMS]]
+    if len(pairs) > MAX_LISTED_PROBLEMS:
+        lines.append(f"  … and {len(pairs) - MAX_LISTED_PROBLEMS:,} more problems (fix these first)")
     err = DeckError("\n".join(lines))
     err.problems = pairs  # type: ignore[attr-defined]
     return err
+
+
+# -------------------------------------------------------------------------------------------------
+# the shape of a deck: nesting depth and integer range, checked before anything walks it recursively
+# -------------------------------------------------------------------------------------------------
+
+
+def shape_problems(data: Any, prefix: Loc = ()) -> list[tuple[Loc, str]]:
+    """Problems of a parsed deck's shape, found without recursion: nesting deeper than
+    :data:`~pdem.deck.schema.MAX_DEPTH` levels (the deepest path is named) and integers outside
+    TOML's 64-bit range (the first few). Both must be refused before the deck is copied or validated,
+    which recurse (a 500-level deck exhausts Python's stack)."""
+    problems: list[tuple[Loc, str]] = []
+    entries: list[tuple[int, str | int]] = []  # (parent entry, key): to rebuild the deepest path
+    deepest, deepest_entry = 0, -1
+    stack: list[tuple[Any, int, int]] = [(data, 0, -1)]
+    big_ints = 0
+    seen: set[int] = set()  # containers already walked (a dict built in Python may hold itself)
+    large = 0
+    while stack:
+        node, depth, entry = stack.pop()
+        if depth > deepest:  # the deepest value: its key path's length
+            deepest, deepest_entry = depth, entry
+        if isinstance(node, dict | list | tuple):
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+        if isinstance(node, dict):
+            items: Any = node.items()
+        elif isinstance(node, list | tuple):
+            items = enumerate(node)
+        else:
+            lo, hi = _INT_RANGE
+            if isinstance(node, int) and not isinstance(node, bool) and not lo <= node <= hi:
+                big_ints += 1
+                if big_ints <= 5:
+                    problems.append(
+                        (
+                            prefix + _rebuild(entries, entry),
+                            f"{show(node)} is outside the 64-bit range of TOML integers "
+                            "(-9223372036854775808 to 9223372036854775807); give a smaller number",
+                        )
+                    )
+            continue
+        if len(node) > MAX_ENTRIES:
+            large += 1
+            if large <= 5:
+                what = "table has" if isinstance(node, dict) else "array has"
+                problems.append(
+                    (
+                        prefix + _rebuild(entries, entry),
+                        f"this {what} {len(node):,} entries, more than the {MAX_ENTRIES:,} a deck may hold "
+                        "in one; particles belong in a packing file (source = 'file')",
+                    )
+                )
+            continue
+        for key, value in items:
+            entries.append((entry, key))
+            stack.append((value, depth + 1, len(entries) - 1))
+    if deepest > MAX_DEPTH:
+        path = prefix + _rebuild(entries, deepest_entry)
+        problems.insert(
+            0,
+            (
+                path,
+                f"nested {deepest + len(prefix):,} levels deep (tables and arrays within each other), "
+                f"more than the {MAX_DEPTH} a deck may have (a pdem deck needs about 6); flatten it, or "
+                "check that this is the deck you meant",
+            ),
+        )
+    return problems
+
+
+def integer_digits_message(exc: ValueError) -> str | None:
+    """Python's refusal to read an integer of more than 4,300 digits, as a deck message (else None)."""
+    if "integer string conversion" not in str(exc):
+        return None
+    return (
+        "an integer of more than 4,300 digits, outside the 64-bit range of TOML integers; give a "
+        "smaller number"
+    )
+
+
+def _rebuild(entries: list[tuple[int, str | int]], entry: int) -> Loc:
+    path: list[str | int] = []
+    while entry >= 0:
+        entry, key = entries[entry]
+        path.append(key)
+    return tuple(reversed(path))
+
+
+_TOML_STRING_OR_COMMENT = re.compile(
+    "|".join(
+        (
+            r'"""(?:[^"\\]|\\.|"(?!""))*(?:"""|\Z)',  # multi-line basic string
+            r"'''.*?(?:'''|\Z)",  # multi-line literal string
+            r'"(?:[^"\\\n]|\\.)*"?',  # basic string
+            r"'[^'\n]*'?",  # literal string
+            r"(?P<comment>#[^\n]*)",
+        )
+    ),
+    re.S,
+)
+_BRACKET = re.compile(r"[\[\]{}]")
+
+
+def _blank(m: re.Match) -> str:
+    """A string as a bare word of the same length (a quoted key is a key), a comment as spaces; new
+    lines kept, so that positions stay those of the text."""
+    fill = " " if m.group("comment") is not None else "x"
+    text = m.group()
+    if "\n" not in text:
+        return fill * len(text)
+    return "\n".join(fill * len(part) for part in text.split("\n"))
+
+
+def _dotted_chain(limit: int) -> re.Pattern:
+    """More than ``limit`` dots between words: a dotted key of more than ``limit + 1`` parts (tried
+    only at the start of a word, possessively: linear in the text)."""
+    word = r"[A-Za-z0-9_+\-]"
+    return re.compile(rf"(?<![A-Za-z0-9_+\-.])(?:{word}++[ \t]*+\.[ \t]*+){{{limit + 1}}}")
+
+
+def toml_text_problem(text: str, limit: int = MAX_DEPTH) -> str | None:
+    """What must be refused in TOML ``text`` before it is parsed at all: a dotted key of more than
+    ``limit`` parts (the parser's memory grows with the square of its length). Fast: only lines
+    with that many dots are looked at, and a hit is confirmed by :func:`toml_nesting_problem` (the
+    dots may be in a string)."""
+    if text.count(".") <= limit:
+        return None
+    chain = _dotted_chain(limit)
+    for line in text.split("\n"):
+        if line.count(".") > limit and chain.search(line):
+            return toml_nesting_problem(text, limit)
+    return None
+
+
+def toml_nesting_problem(text: str, limit: int = MAX_DEPTH) -> str | None:
+    """A message if TOML ``text`` nests arrays / inline tables more than ``limit`` deep, or has a
+    dotted key of more than ``limit`` parts, naming the line and column; else None.
+
+    Python's TOML parser recurses on nested arrays (10,000 levels exhaust the stack: this names
+    where, once it has failed) and takes memory quadratic in a dotted key's length (100,000 parts
+    exhaust the machine's: :func:`toml_text_problem` refuses them before parsing). Strings and
+    comments are skipped; linear in the text."""
+    if text.count("[") + text.count("{") <= limit and text.count(".") <= limit:
+        return None
+    code = _TOML_STRING_OR_COMMENT.sub(_blank, text)
+
+    def where(pos: int) -> str:
+        line = code.count("\n", 0, pos) + 1
+        return f"at line {line:,}, column {pos - (code.rfind(chr(10), 0, pos) + 1) + 1:,}"
+
+    depth = 0
+    for m in _BRACKET.finditer(code):
+        if m.group() in "[{":
+            depth += 1
+            if depth > limit:
+                return (
+                    f"{where(m.start())}: arrays or inline tables nested more than {limit} deep (a pdem "
+                    "deck needs about 6); flatten it, or check that this is the deck you meant"
+                )
+        else:
+            depth = max(depth - 1, 0)
+    chain = _dotted_chain(limit).search(code)
+    if chain is not None:
+        return (
+            f"{where(chain.start())}: a dotted key of more than {limit} parts "
+            f"({quote(text[chain.start() : chain.end()], 60)}; a pdem deck needs about 6); shorten it, or "
+            "check that this is the deck you meant"
+        )
+    return None

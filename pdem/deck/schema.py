@@ -49,6 +49,7 @@ from pydantic_core.core_schema import ErrorType
 from ..contact.stability import STIFFNESS_LIMIT
 from ..errors import PdemError
 from ..materials import Material
+from ..textutil import quote
 
 __all__ = [
     "Deck",
@@ -79,6 +80,21 @@ __all__ = [
     "RULE_ERROR",
     "MAX_TITLE_LENGTH",
     "MAX_STAGE_STEPS",
+    "MAX_DEPTH",
+    "MAX_ENTRIES",
+    "MAX_NAME_LENGTH",
+    "MAX_STAGES",
+    "MAX_BOUNDARIES",
+    "MAX_MATERIALS",
+    "MAX_SOURCES",
+    "MAX_THERMO_COLUMNS",
+    "MAX_SNAPSHOTS_PER_STAGE",
+    "MAX_SERIES_ROWS_PER_STAGE",
+    "MAX_CHECKPOINTS_PER_STAGE",
+    "MAX_MAGNITUDE",
+    "RADIUS_RANGE",
+    "DENSITY_RANGE",
+    "radius_problem",
     "periodic_source_checks",
 ]
 
@@ -101,6 +117,43 @@ MAX_TITLE_LENGTH = 1000
 #: run cannot finish (1e10 steps of even a tiny scene take days), so the dt or the time is a mistake
 MAX_STAGE_STEPS = 10**10
 
+# Limits on what a deck may ask for (docs/deck.md, "Limits"). A real deck is far inside every one of
+# them; beyond them a deck is a mistake or hostile, and would exhaust the stack, the disk or double
+# precision rather than run.
+#: deepest nesting of tables and arrays (key path length); a real deck needs about 6
+MAX_DEPTH = 64
+#: most entries of one array or table
+MAX_ENTRIES = 100_000
+#: longest stage, boundary or material name [characters]: stage and boundary names are parts of
+#: output file names (series_<stage>.csv, solver_<stage>.csv, <boundary>.<stage>.csv), which the
+#: file system limits to 255 bytes
+MAX_NAME_LENGTH = 64
+#: most [[stages]]: each stage writes its own series file(s) and a checkpoint when it ends
+MAX_STAGES = 1000
+#: most [boundaries.NAME]: a boundary's records are one file per stage
+MAX_BOUNDARIES = 256
+#: most [materials.NAME] (the contact tables hold one entry per pair of materials)
+MAX_MATERIALS = 256
+#: most [[particles]] tables
+MAX_SOURCES = 1000
+#: most columns in output.thermo
+MAX_THERMO_COLUMNS = 100
+#: most snapshots, series rows and periodic checkpoints one stage may write, when its length is
+#: known from the deck (a stage that ends only by steps and/or time, at a dt given in the deck)
+MAX_SNAPSHOTS_PER_STAGE = 100_000
+MAX_SERIES_ROWS_PER_STAGE = 10_000_000
+MAX_CHECKPOINTS_PER_STAGE = 10_000
+#: largest magnitude of a coordinate or vector component (positions, velocities, gravity, …) and of
+#: any number in a plugin's table: beyond it squares and products of lengths, speeds and masses
+#: overflow double precision (1.8e308)
+MAX_MAGNITUDE = 1e100
+#: sphere radii [m] (sources' sizes and packing files): below, a grain's mass and moment of inertia
+#: (ρ r⁵) underflow; above, they overflow; atoms and planets are outside it
+RADIUS_RANGE = (1e-10, 1e10)
+#: material densities [kg/m³]: aerogel-in-air is about 1, osmium 22,590; even mass-scaled
+#: quasi-static runs stay far inside
+DENSITY_RANGE = (1e-6, 1e20)
+
 _KNOWN_ERROR_TYPES = frozenset(ErrorType.__args__)  # type: ignore[attr-defined]
 
 Loc = tuple[str | int, ...]
@@ -113,7 +166,11 @@ Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Str = Annotated[str, Strict()]
 Count = Annotated[int, Strict(), Field(ge=1)]
-Vec3 = Annotated[tuple[Float, Float, Float], Field(description="three numbers (x, y, z)")]
+_Component = Annotated[float, Strict(), Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
+Vec3 = Annotated[
+    tuple[_Component, _Component, _Component],
+    Field(description=f"three numbers (x, y, z), each of magnitude at most {MAX_MAGNITUDE:.0e}"),
+]
 
 
 # -------------------------------------------------------------------------------------------------
@@ -138,6 +195,8 @@ def did_you_mean(word: str, choices: list[str] | tuple[str, ...], inline: bool =
     """``"; did you mean 'x'?"`` (or `` " (did you mean 'x'?)"`` when ``inline``) for the closest of
     ``choices`` (difflib), or ``""``."""
     names = [str(c) for c in choices]
+    if len(str(word)) > 100 or len(names) > 1000:  # no sensible suggestion; difflib would be slow
+        return ""
     close = difflib.get_close_matches(str(word), names, n=1, cutoff=0.6)
     if not close and len(str(word)) >= 3:  # a truncated key: 'clamp' for 'clamp_normal'
         close = [c for c in names if c.startswith(str(word))][:2]
@@ -147,8 +206,63 @@ def did_you_mean(word: str, choices: list[str] | tuple[str, ...], inline: bool =
     return f" (did you mean '{close[0]}'?)" if inline else f"; did you mean '{close[0]}'?"
 
 
-def _listing(names: list[str] | tuple[str, ...]) -> str:
-    return ", ".join(f"'{n}'" for n in names) if names else "(none)"
+def _listing(names: list[str] | tuple[str, ...], most: int = 20) -> str:
+    """``'a', 'b', 'c'``: at most ``most`` names (each quoted briefly), then how many there are."""
+    if not names:
+        return "(none)"
+    shown = ", ".join(quote(str(n), 80) for n in list(names)[:most])
+    return shown if len(names) <= most else f"{shown}, … ({len(names):,} in all)"
+
+
+def _repeated(names: list[str]) -> list[str]:
+    """The names that occur more than once, sorted (linear: a list may be long)."""
+    seen: set[str] = set()
+    twice: set[str] = set()
+    for n in names:
+        (twice if n in seen else seen).add(n)
+    return sorted(twice)
+
+
+def _q(value: Any) -> str:
+    """A value from the deck in single quotes, at most ~200 characters of it."""
+    return quote(value if isinstance(value, str) else str(value))
+
+
+def radius_problem(value: Any, what: str = "radius") -> str | None:
+    """A message if ``value``, a sphere radius [m], is a number > 0 outside :data:`RADIUS_RANGE`;
+    else None (a value that is not a positive number is the schema's to report)."""
+    lo, hi = RADIUS_RANGE
+    if not _is_num(value) or value <= 0 or lo <= value <= hi:
+        return None
+    return (
+        f"{what} {value!r} m is outside [{lo:.0e}, {hi:.0e}] m, the sphere radii pdem accepts: a grain's "
+        "mass and moment of inertia (ρ r⁵) would leave double precision; give the radius in metres"
+    )
+
+
+def _magnitude_rules(data: dict, keys: tuple[str, ...]) -> Problems:
+    """A problem for each of ``keys`` holding a number larger in magnitude than :data:`MAX_MAGNITUDE`."""
+    return [
+        (
+            (key,),
+            f"{key} = {data[key]!r} is larger in magnitude than {MAX_MAGNITUDE:.0e}, the most pdem accepts: "
+            "the contact forces computed from it would overflow double precision",
+        )
+        for key in keys
+        if _is_num(data.get(key)) and abs(data[key]) > MAX_MAGNITUDE
+    ]
+
+
+def _radius_rules(data: dict, keys: tuple[str, ...]) -> Problems:
+    out: Problems = []
+    for key in keys:
+        value = data.get(key)
+        if isinstance(value, list):
+            bad = [((key, j), m) for j, v in enumerate(value) if (m := radius_problem(v)) is not None]
+            out += bad[:5]  # the first few of a long table are enough
+        elif (m := radius_problem(value, key)) is not None:
+            out.append(((key,), m))
+    return out
 
 
 def _ctx(info: ValidationInfo | None) -> dict:
@@ -270,8 +384,8 @@ class RunSection(_DeckModel):
         ge=1,
         le=2**31 - 1,
         description="most particles the deck's sources may create together (estimated when the deck is "
-        "validated, at about 1 kB of memory per particle); default: this machine's memory / 1 kB, at most "
-        "2^31 - 1 (particle ids)",
+        "validated, at about 1 kB of memory per particle); default: the validating host's memory / 1 kB, "
+        "at most 2^31 - 1 (particle ids)",
     )
     balance_threshold: Float | None = Field(
         1.05,
@@ -324,7 +438,7 @@ class DomainSection(_DeckModel):
         out: Problems = []
         axes = data.get("periodic")
         names = [a for a in axes if isinstance(a, str)] if isinstance(axes, list) else []
-        dup = sorted({a for a in names if names.count(a) > 1})
+        dup = _repeated(names)
         if dup:
             out.append((("periodic",), f"axis {_listing(dup)} listed more than once"))
         if names:
@@ -422,13 +536,25 @@ class MaterialSpec(_DeckModel):
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
+        out = _magnitude_rules(data, ("youngs_modulus", *CONTACT_VALUES))
         if data.get("rigid") is True:
-            return [
+            return out + [
                 ((k,), f"a rigid material has no {k}; remove it (E* comes from the grain alone)")
                 for k in ("density", "youngs_modulus", "poisson_ratio")
                 if _given(data, k)
             ]
-        return []
+        rho = data.get("density")
+        lo, hi = DENSITY_RANGE
+        if _is_num(rho) and rho > 0 and not lo <= rho <= hi:
+            out += [
+                (
+                    ("density",),
+                    f"density {rho!r} kg/m³ is outside [{lo:.0e}, {hi:.0e}] kg/m³, the densities pdem "
+                    "accepts (aerogel is about 1, osmium 22,590): the grains' masses would leave double "
+                    "precision; give the density in kg/m³",
+                )
+            ]
+        return out
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):
@@ -453,7 +579,7 @@ class _ContactValues(_DeckModel):
     def rules(cls, data: dict, context: dict) -> Problems:
         if not any(_given(data, k) for k in CONTACT_VALUES):
             return [((), f"give at least one of {', '.join(CONTACT_VALUES)}")]
-        return []
+        return _magnitude_rules(data, CONTACT_VALUES)
 
     def values(self) -> dict[str, float]:
         """The values that are set."""
@@ -524,6 +650,10 @@ class SingleSizes(_DeckModel):
     type: Literal["single"] = Field(description="distribution kind")
     radius: Float = Field(gt=0, description="sphere radius [m]")
 
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        return _radius_rules(data, ("radius",))
+
     def build(self):
         from ..sources import Single
 
@@ -542,7 +672,7 @@ class UniformSizes(_DeckModel):
         lo, hi = data.get("r_min"), data.get("r_max")
         if _is_num(lo) and _is_num(hi) and lo > hi:
             return [(("r_max",), f"r_max = {hi} is smaller than r_min = {lo}; give r_min <= r_max")]
-        return []
+        return _radius_rules(data, ("r_min", "r_max"))
 
     def build(self):
         from ..sources import Uniform
@@ -565,6 +695,9 @@ class NormalSizes(_DeckModel):
     def rules(cls, data: dict, context: dict) -> Problems:
         keys = ("mean", "std", "r_min", "r_max")
         vals = {k: data.get(k) for k in keys}
+        out = _radius_rules(data, ("mean", "r_min", "r_max"))
+        if out:
+            return out
         if not (_is_num(vals["mean"]) and _is_num(vals["std"]) and vals["mean"] > 0 and vals["std"] >= 0):
             return []
         if any(v is not None and not (_is_num(v) and v > 0) for v in (vals["r_min"], vals["r_max"])):
@@ -595,6 +728,9 @@ class TableSizes(_DeckModel):
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
         radii, fracs = data.get("radii"), data.get("mass_fractions")
+        out = _radius_rules(data, ("radii",))
+        if out:
+            return out
         if not (isinstance(radii, list) and isinstance(fracs, list) and radii and fracs):
             return []
         if not all(_is_num(v) and v > 0 for v in radii) or not all(_is_num(v) and v >= 0 for v in fracs):
@@ -803,7 +939,9 @@ class Stage(_DeckModel):
 
     name: Str = Field(
         pattern=NAME_PATTERN,
-        description="unique name: a letter or '_' first, then letters, digits, '_' or '-'",
+        description=f"unique name: a letter or '_' first, then letters, digits, '_' or '-'; at most "
+        f"{MAX_NAME_LENGTH} characters (it is part of output file names)",
+        json_schema_extra={"maxLength": MAX_NAME_LENGTH},  # checked by a rule, with its reason
     )
     dt: Float | None = Field(None, gt=0, description="time step of this stage [s]; default run.dt")
     end: StageEnd = Field(description="end conditions (table [stages.end]); the stage ends when ANY holds")
@@ -910,30 +1048,43 @@ class OutputSection(_DeckModel):
                     out.append(
                         (
                             ("formats", k),
-                            f"unknown output format '{fmt}'{hint}; "
+                            f"unknown output format {_q(fmt)}{hint}; "
                             f"available writers: {_listing(sorted(allowed))}",
                         )
                     )
                 elif isinstance(fmt, str) and fmt in seen:
-                    out.append((("formats", k), f"format '{fmt}' is listed twice"))
+                    out.append((("formats", k), f"format {_q(fmt)} is listed twice"))
                 if isinstance(fmt, str):
                     seen.add(fmt)
         fields = data.get("fields")
         if isinstance(fields, list):
-            dup = sorted({f for f in fields if isinstance(f, str) and fields.count(f) > 1})
+            dup = _repeated([f for f in fields if isinstance(f, str)])
             if dup:
                 out.append((("fields",), f"field(s) listed more than once: {_listing(dup)}"))
         thermo = data.get("thermo")
         if isinstance(thermo, list):
-            for k, key in enumerate(thermo):
-                if isinstance(key, str) and key not in THERMO_KEYS and "." not in key:
-                    out.append(
-                        (
-                            ("thermo", k),
-                            f"unknown thermo column '{key}'{did_you_mean(key, THERMO_KEYS, True)}; give one "
-                            f"of {_listing(list(THERMO_KEYS))} or a measured quantity '<boundary>.<key>'",
-                        )
+            if len(thermo) > MAX_THERMO_COLUMNS:
+                out.append(
+                    (
+                        ("thermo",),
+                        f"{len(thermo):,} thermo columns, more than the {MAX_THERMO_COLUMNS} a thermo line "
+                        "may have; keep the ones to watch (summary.json and the series CSVs hold the rest)",
                     )
+                )
+            else:
+                dup = _repeated([c for c in thermo if isinstance(c, str)])
+                if dup:
+                    out.append((("thermo",), f"column(s) listed more than once: {_listing(dup)}"))
+                for k, key in enumerate(thermo):
+                    if isinstance(key, str) and key not in THERMO_KEYS and "." not in key:
+                        out.append(
+                            (
+                                ("thermo", k),
+                                f"unknown thermo column {_q(key)}{did_you_mean(key, THERMO_KEYS, True)}; "
+                                f"give one of {_listing(list(THERMO_KEYS))} or a measured quantity "
+                                "'<boundary>.<key>'",
+                            )
+                        )
             if not _given(data, "thermo_every"):
                 out.append((("thermo",), "thermo lists the columns of thermo lines; give thermo_every too"))
         return out
@@ -1007,12 +1158,17 @@ class Deck(_DeckModel):
     boundaries: dict[Str, BoundaryEntry] = Field(
         default_factory=dict, description="boundaries by name (tables [boundaries.NAME]), by plugin `type`"
     )
-    stages: list[Stage] = Field(min_length=1, description="the stages of the run, in order (at least one)")
+    stages: list[Stage] = Field(
+        min_length=1,
+        description=f"the stages of the run, in order (at least one, at most {MAX_STAGES:,})",
+        json_schema_extra={"maxItems": MAX_STAGES},  # checked by a rule, with its reason
+    )
     output: OutputSection = Field(default_factory=OutputSection, description="output directory and cadence")
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
-        return _cross_checks(data) + _stage_length_checks(data)
+        checks = (_count_checks, _cross_checks, _stage_length_checks, _output_volume_checks)
+        return [p for check in checks for p in check(data)]
 
     def stage_names(self) -> list[str]:
         return [s.name for s in self.stages]
@@ -1134,6 +1290,145 @@ def _stage_length_checks(data: dict) -> Problems:
     return out
 
 
+def _name_length_message(kind: str, name: str) -> str:
+    used = {
+        "stage": "it is part of output file names (series_<stage>.csv, solver_<stage>.csv, "
+        "<boundary>.<stage>.csv), which file systems limit to 255 bytes",
+        "boundary": "it is part of output file names (<boundary>.<stage>.csv), which file systems limit to "
+        "255 bytes, and of every column it measures",
+        "material": "it is repeated in messages and output metadata",
+    }[kind]
+    return (
+        f"{kind} name {quote(name, 80)} is {len(name):,} characters long, more than the {MAX_NAME_LENGTH} "
+        f"allowed: {used}; give a shorter name"
+    )
+
+
+_COUNT_LIMITS = (
+    (
+        "stages",
+        MAX_STAGES,
+        "stages",
+        "each stage writes its own series file and a checkpoint when it ends; merge consecutive stages "
+        "(a stage ends when any of its end conditions holds) or run the rest from a checkpoint "
+        "(pdem resume CHECKPOINT --set stages.N.…)",
+    ),
+    (
+        "boundaries",
+        MAX_BOUNDARIES,
+        "boundaries",
+        "a boundary's records are one file per stage; group walls in one boundary (a mesh, a box)",
+    ),
+    ("materials", MAX_MATERIALS, "materials", "the contact tables hold one entry per pair of materials"),
+    ("particles", MAX_SOURCES, "[[particles]] tables", "merge sources, e.g. into one packing file"),
+)
+
+
+def _count_checks(data: dict) -> Problems:
+    """At most :data:`MAX_STAGES` stages, :data:`MAX_BOUNDARIES` boundaries, … (docs/deck.md, Limits)."""
+    out: Problems = []
+    for key, limit, what, why in _COUNT_LIMITS:
+        value = data.get(key)
+        if isinstance(value, list | dict) and len(value) > limit:
+            out.append(
+                (
+                    (key,),
+                    f"{len(value):,} {what}, more than the {limit:,} a deck may have: {why}",
+                )
+            )
+    materials = data.get("materials")
+    for name in materials if isinstance(materials, dict) else ():
+        if len(name) > MAX_NAME_LENGTH:
+            out.append((("materials", name), _name_length_message("material", name)))
+        elif not name.isprintable():
+            out.append(
+                (
+                    ("materials", name),
+                    f"material name {_q(name)} holds control characters (a new line, a tab, …); give a "
+                    "name of printable characters",
+                )
+            )
+    return out
+
+
+def _number(value: Any) -> float | None:
+    return float(value) if _is_num(value) and value > 0 else None
+
+
+def _large(n: float) -> str:
+    return f"{n:,.0f}" if n < 1e15 else f"{n:.3g}"
+
+
+#: (cadence by steps, by time, limit, what is written, what to raise)
+_OUTPUT_VOLUME = (
+    ("every_steps", "every_time", MAX_SNAPSHOTS_PER_STAGE, "snapshots"),
+    ("series_every_steps", "series_every_time", MAX_SERIES_ROWS_PER_STAGE, "series rows"),
+    ("checkpoint_every_steps", None, MAX_CHECKPOINTS_PER_STAGE, "checkpoints"),
+)
+
+
+def _output_volume_checks(data: dict) -> Problems:
+    """A stage whose length the deck fixes (it ends only by ``steps`` and/or ``time``, at a dt given
+    in the deck for ``time``) may write at most :data:`MAX_SNAPSHOTS_PER_STAGE` snapshots,
+    :data:`MAX_SERIES_ROWS_PER_STAGE` series rows and :data:`MAX_CHECKPOINTS_PER_STAGE` periodic
+    checkpoints. A stage that may end earlier (``kinetic_energy_below``, ``quantity``) is not
+    checked: its length is not known before the run."""
+    stages = data.get("stages")
+    run = data.get("run") if isinstance(data.get("run"), dict) else {}
+    output = data.get("output") if isinstance(data.get("output"), dict) else {}
+    out: Problems = []
+    for k, stage in enumerate(stages if isinstance(stages, list) else []):
+        end = stage.get("end") if isinstance(stage, dict) else None
+        if not isinstance(end, dict) or _given(end, "kinetic_energy_below") or _given(end, "quantity"):
+            continue
+        dt = _number(stage.get("dt")) if _given(stage, "dt") else _number(run.get("dt"))
+        steps = end.get("steps")
+        steps = steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None
+        time = _number(end.get("time"))
+        by_steps = [float(n) for n in (steps, time / dt if time and dt else None) if n is not None]
+        n_steps = min(by_steps) if by_steps else None
+        length = time if time is not None else (steps * dt if steps and dt else None)
+        if n_steps is None and length is None:
+            continue
+        own = stage.get("output") if isinstance(stage.get("output"), dict) else {}
+        name = stage.get("name") if isinstance(stage.get("name"), str) else str(k)
+        for by_step_key, by_time_key, limit, what in _OUTPUT_VOLUME:
+            keys = [key for key in (by_step_key, by_time_key) if key is not None]
+            source = own if any(_given(own, key) for key in keys) else output
+            where: Loc = ("stages", k, "output") if source is own else ("output",)
+            every_steps = _number(source.get(by_step_key))
+            every_time = _number(source.get(by_time_key)) if by_time_key else None
+            if every_steps is None and every_time is None and by_step_key != "checkpoint_every_steps":
+                defaults = {"every_steps": OutputSection.DEFAULT_EVERY_STEPS,
+                            "series_every_steps": OutputSection.DEFAULT_SERIES_EVERY_STEPS}  # fmt: skip
+                every_steps, where = float(defaults[by_step_key]), ()
+            if every_steps is not None and n_steps is not None:
+                count, key, value = n_steps / every_steps, by_step_key, every_steps
+                span = f"{_large(n_steps)} steps"
+            elif every_time is not None and length is not None:
+                count, key, value = length / every_time, by_time_key, every_time
+                span = f"{length:.6g} s"
+            else:
+                continue
+            if count <= limit:
+                continue
+            shown = f"{int(value):,}" if key.endswith("steps") else f"{value!r} s"
+            if where:
+                loc: Loc = (*where, key)
+                remedy = "raise " + ".".join(str(p) for p in loc)
+            else:  # the default cadence
+                loc = ("stages", k, "end")
+                remedy = f"give a coarser output.{by_step_key} (default {int(every_steps):,})"
+            out.append(
+                (
+                    loc,
+                    f"stage {_q(name)} would write about {_large(count)} {what} ({key} = {shown} over "
+                    f"{span}), more than the {limit:,} a stage may write; {remedy}",
+                )
+            )
+    return out
+
+
 def _show_num(value: float) -> str:
     """A number as TOML would write it (``repr`` of a float)."""
     return repr(float(value)) if isinstance(value, float) else str(value)
@@ -1154,9 +1449,11 @@ def _cross_checks(data: dict) -> Problems:
         first: dict[str, int] = {}
         for k, name in enumerate(names):
             if isinstance(name, str):
+                if len(name) > MAX_NAME_LENGTH:
+                    out.append((("stages", k, "name"), _name_length_message("stage", name)))
                 if name in first:
-                    msg = f"duplicate stage name '{name}' (also stages.{first[name]}.name); give unique names"
-                    out.append((("stages", k, "name"), msg))
+                    msg = f"duplicate stage name {_q(name)} (also stages.{first[name]}.name)"
+                    out.append((("stages", k, "name"), msg + "; give unique names"))
                 else:
                     first[name] = k
         if names and all(isinstance(n, str) for n in names):
@@ -1165,12 +1462,12 @@ def _cross_checks(data: dict) -> Problems:
     def check_material(loc: Loc, value: Any) -> None:
         if mat_names is not None and isinstance(value, str) and value not in mat_names:
             hint = did_you_mean(value, mat_names, True)
-            out.append((loc, f"unknown material '{value}'{hint}; defined materials: {_listing(mat_names)}"))
+            out.append((loc, f"unknown material {_q(value)}{hint}; defined materials: {_listing(mat_names)}"))
 
     def check_stage(loc: Loc, value: Any) -> None:
         if stage_names is not None and isinstance(value, str) and value not in stage_names:
             hint = did_you_mean(value, stage_names, True)
-            out.append((loc, f"unknown stage '{value}'{hint}; defined stages: {_listing(stage_names)}"))
+            out.append((loc, f"unknown stage {_q(value)}{hint}; defined stages: {_listing(stage_names)}"))
 
     def check_names(loc: Loc, table: dict) -> None:
         """A plugin's table: keys naming a material, and keys naming a stage or a list of stages."""
@@ -1204,17 +1501,19 @@ def _cross_checks(data: dict) -> Problems:
                         out.append(
                             (
                                 ("material_pairs", k, "materials"),
-                                f"pair {mats} is already given in material_pairs.{seen[key]}",
+                                f"pair {_listing(mats)} is already given in material_pairs.{seen[key]}",
                             )
                         )
                     seen.setdefault(key, k)
 
     for name, table in bnd.items():
-        if not _NAME_RE.match(name):
+        if len(name) > MAX_NAME_LENGTH:
+            out.append((("boundaries", name), _name_length_message("boundary", name)))
+        elif not _NAME_RE.match(name):
             out.append(
                 (
                     ("boundaries", name),
-                    f"boundary name '{name}' must start with a letter or '_' and "
+                    f"boundary name {_q(name)} must start with a letter or '_' and "
                     "contain only letters, digits, '_' or '-'",
                 )
             )
@@ -1230,7 +1529,7 @@ def _cross_checks(data: dict) -> Problems:
                 out.append(
                     (
                         ("output", "thermo", k),
-                        f"thermo column '{key}' names boundary '{head}', which is not defined"
+                        f"thermo column {_q(key)} names boundary {_q(head)}, which is not defined"
                         f"{did_you_mean(head, list(bnd), True)}; defined boundaries: {_listing(list(bnd))}",
                     )
                 )
@@ -1248,7 +1547,7 @@ def _cross_checks(data: dict) -> Problems:
                     out.append(
                         (
                             ("stages", k, "end", "quantity"),
-                            f"quantity '{quantity}' names boundary '{head}', which is not defined"
+                            f"quantity {_q(quantity)} names boundary {_q(head)}, which is not defined"
                             f"{did_you_mean(head, list(bnd), True)}; defined boundaries: "
                             f"{_listing(list(bnd))}",
                         )

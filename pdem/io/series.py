@@ -30,6 +30,7 @@ from typing import IO
 import numpy as np
 
 from ..errors import OutputError
+from ..textutil import clip
 
 __all__ = ["SeriesWriter", "is_count_column", "read_series", "truncate_series", "series_rows"]
 
@@ -98,25 +99,30 @@ class SeriesWriter:
         self.path = Path(path)
         cols = [columns] if isinstance(columns, str) else list(columns)
         if not cols or any(not isinstance(c, str) or not c for c in cols):
-            raise OutputError(f"series '{self.path}': columns must be non-empty strings, got {columns!r}")
+            raise OutputError(
+                f"series '{self._shown}': columns must be non-empty strings, got {clip(repr(columns))}"
+            )
         dup = sorted({c for c in cols if cols.count(c) > 1})
         if dup:
-            raise OutputError(f"series '{self.path}': duplicate column(s) {', '.join(dup)}; give each once")
-        if append and self.path.exists():
+            raise OutputError(
+                f"series '{self._shown}': duplicate column(s) {clip(', '.join(dup))}; give each once"
+            )
+        exists = self._exists()
+        if append and exists:
             cols = self._widen(cols)
         self.columns: tuple[str, ...] = tuple(cols)
         self._index = {c: i for i, c in enumerate(cols)}
         self.n_rows = 0
-        if append and self.path.exists():
+        if append and exists:
             try:
                 self._fh: IO[str] | None = open(self.path, "a", newline="", encoding="utf-8")
             except OSError as exc:
-                raise OutputError(f"series '{self.path}': cannot append to it: {exc}") from exc
+                raise OutputError(f"series '{self._shown}': cannot append to it: {exc}") from exc
             self._csv = csv.writer(self._fh, lineterminator="\n")
             return
-        if self.path.exists() and not overwrite:
+        if exists and not overwrite:
             raise OutputError(
-                f"series '{self.path}' already exists; remove it, choose another path or pass "
+                f"series '{self._shown}' already exists; remove it, choose another path or pass "
                 f"overwrite=True (--overwrite) to replace it"
             )
         try:
@@ -124,17 +130,33 @@ class SeriesWriter:
             self._fh = open(self.path, "w", newline="", encoding="utf-8")
         except OSError as exc:
             raise OutputError(
-                f"series '{self.path}': cannot create it: {exc}; check the path and permissions"
+                f"series '{self._shown}': cannot create it: {exc}; check the path and permissions"
             ) from exc
         self._csv = csv.writer(self._fh, lineterminator="\n")
         self._row(list(self.columns))
+
+    @property
+    def _shown(self) -> str:
+        """The path as named in messages (at most ~200 characters)."""
+        return clip(str(self.path))
+
+    def _exists(self) -> bool:
+        """Whether the file exists; a path the file system refuses (a name longer than 255 bytes, a
+        symbolic-link loop) is an OutputError naming it."""
+        try:
+            return self.path.exists()
+        except OSError as exc:
+            raise OutputError(
+                f"series '{self._shown}': the file system refuses this path ({exc.strerror or exc}); a file "
+                "name is at most 255 bytes: use shorter stage and boundary names"
+            ) from None
 
     def _widen(self, cols: list[str]) -> list[str]:
         """Append mode: the existing header, plus ``cols`` it lacks (the file is rewritten with the
         wider header and empty cells in its rows, atomically)."""
         header, body = _read_rows(self.path)
         if not header:
-            raise OutputError(f"series '{self.path}' has no header row; it was not written by SeriesWriter")
+            raise OutputError(f"series '{self._shown}' has no header row; it was not written by SeriesWriter")
         extra = [c for c in cols if c not in header]
         if extra:
             from .base import atomic_write_text
@@ -151,17 +173,19 @@ class SeriesWriter:
             self._csv.writerow(cells)
             self._fh.flush()
         except OSError as exc:
-            raise OutputError(f"series '{self.path}': write failed: {exc}; check free disk space") from exc
+            raise OutputError(f"series '{self._shown}': write failed: {exc}; check free disk space") from exc
 
     def append(self, values: dict[str, object]) -> None:
         """Write one row; ``values`` maps column names to numbers or strings (missing → empty cell)."""
         if self._fh is None:
-            raise OutputError(f"series '{self.path}' is closed; create a new SeriesWriter to write more rows")
+            raise OutputError(
+                f"series '{self._shown}' is closed; create a new SeriesWriter to write more rows"
+            )
         unknown = [k for k in values if k not in self._index]
         if unknown:
             raise OutputError(
-                f"series '{self.path}': unknown column(s) {', '.join(map(repr, unknown))}; "
-                f"the columns are {', '.join(self.columns)}"
+                f"series '{self._shown}': unknown column(s) {clip(', '.join(map(repr, unknown)))}; "
+                f"the columns are {clip(', '.join(self.columns), 1000)}"
             )
         cells = [""] * len(self.columns)
         for k, v in values.items():

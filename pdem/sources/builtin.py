@@ -9,6 +9,7 @@ keys, defaults, rules and messages of the deck's ``[[particles]]`` tables (docs/
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -30,8 +31,10 @@ from ..deck.schema import (
     SizeSpec,
     Str,
     Vec3,
+    radius_problem,
 )
 from ..materials import Material
+from ..textutil import quote
 from .api import Source, SourceOutput, SourceParams
 
 __all__ = [
@@ -135,6 +138,9 @@ class LatticeParams(SourceParams):
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
         out: Problems = []
+        too_small_or_large = radius_problem(data.get("radius"))
+        if too_small_or_large is not None:
+            return [(("radius",), too_small_or_large)]
         lattice = data.get("lattice")
         if lattice == "hex2d":
             out += [
@@ -210,21 +216,28 @@ class FileParams(SourceParams):
         p = Path(value).expanduser()
         if not p.is_absolute():
             p = Path(base if base is not None else ".") / p
-        return str(p.resolve())
+        try:
+            return str(p.resolve())
+        except (OSError, RuntimeError, ValueError):  # a symlink loop, …: the rule below reports it
+            return os.path.abspath(p)
 
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
+        from .files import packing_file_problem
+
         value = data.get("path")
         if isinstance(value, str) and value:
             base = Path(context.get("base_dir", "."))
             p = Path(value).expanduser()
             full = p if p.is_absolute() else base / p
-            if not full.is_file():
+            problem = packing_file_problem(full)
+            if problem is not None:
+                looked = "" if p.is_absolute() else f" (looked for {quote(str(full))})"
                 return [
                     (
                         ("path",),
-                        f"file '{value}' does not exist (looked for {full}); paths are relative "
-                        "to the deck's directory",
+                        f"file {quote(value)} {problem}{looked}; give a packing file (text or HDF5); "
+                        "paths are relative to the deck's directory",
                     )
                 ]
         elif isinstance(value, str):

@@ -9,6 +9,12 @@ replace ``diameter``.
 HDF5 format: root datasets ``x`` or ``position`` (n,3), ``diameter`` or ``radius`` (n,), optional
 ``velocity`` (n,3). Plural spellings (``positions``, ``radii``, ``diameters``, ``velocities``) are
 accepted too.
+
+Limits (docs/deck.md, "Limits"): the file must be a regular file (a directory, a device or a named
+pipe is refused without reading it); a text line is at most :data:`MAX_LINE_LENGTH` characters of
+UTF-8 text; radii lie in :data:`~pdem.deck.schema.RADIUS_RANGE`, coordinates and velocity
+components within :data:`~pdem.deck.schema.MAX_MAGNITUDE`. Errors quote at most about 80 characters
+of a line, so a file that is not a packing file (a system file, a binary) is named, not printed.
 """
 
 from __future__ import annotations
@@ -21,12 +27,33 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pdem.errors import InputError
+from pdem.textutil import clip, file_problem, quote
 
-__all__ = ["read_spheres", "write_spheres_text"]
+__all__ = ["read_spheres", "write_spheres_text", "packing_file_problem", "MAX_LINE_LENGTH"]
 
 _SPLIT = re.compile(r"[,\s]+")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 _KNOWN_COLUMNS = ("x", "y", "z", "diameter", "radius", "vx", "vy", "vz")
+#: longest line of a text packing file [characters]; a row of 7 numbers is at most ~200
+MAX_LINE_LENGTH = 10_000
+#: characters of a line quoted in an error
+_SHOWN = 80
+
+
+def _name(p: Path) -> str:
+    """The file as named in a message (at most ~200 characters)."""
+    return clip(str(p))
+
+
+def _tok(token: str) -> str:
+    return quote(token, _SHOWN)
+
+
+def packing_file_problem(path: str | os.PathLike[str]) -> str | None:
+    """None if ``path`` is a regular, readable file; else why it cannot be a packing file (the end
+    of a sentence: ``"is a named pipe (FIFO), not a regular file"``). Looks at the path only."""
+    return file_problem(path)
 
 
 def read_spheres(path: str | os.PathLike[str]) -> dict[str, NDArray[np.float64] | None]:
@@ -37,13 +64,15 @@ def read_spheres(path: str | os.PathLike[str]) -> dict[str, NDArray[np.float64] 
     a malformed line, a non-positive diameter, non-finite values or missing datasets.
     """
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"sphere file {str(p)!r} does not exist or is not a file; check the path")
+    problem = packing_file_problem(p)
+    if problem is not None:
+        raise InputError(f"sphere file {quote(str(p))} {problem}; give a packing file (text or HDF5)")
     if p.suffix.lower() in _HDF5_SUFFIXES:
         out = _read_hdf5(p)
+        linenos = None
     else:
-        out = _read_text(p)
-    _validate(p, out)
+        out, linenos = _read_text(p)
+    _validate(p, out, linenos)
     return out
 
 
@@ -55,72 +84,117 @@ def _is_number(token: str) -> bool:
     return True
 
 
-def _header_columns(p: Path, lineno: int, tokens: list[str]) -> dict[str, int]:
+def _not_packing(p: Path, lineno: int, line: str) -> InputError:
+    return InputError(
+        f"{_name(p)} is not a packing file: line {lineno} ({quote(line, _SHOWN)}) is neither a row of "
+        "numbers 'x y z diameter [vx vy vz]' nor a header naming those columns; check the path"
+    )
+
+
+def _header_columns(p: Path, lineno: int, tokens: list[str], line: str) -> dict[str, int]:
     names = [t.lower() for t in tokens]
+    if not any(t in _KNOWN_COLUMNS for t in names) or len(names) > 2 * len(_KNOWN_COLUMNS):
+        raise _not_packing(p, lineno, line)
     for t in names:
         if t not in _KNOWN_COLUMNS:
             raise InputError(
-                f"{p}: line {lineno}: unknown column {t!r} in header; expected the columns "
+                f"{_name(p)}: line {lineno}: unknown column {_tok(t)} in header; expected the columns "
                 "'x y z diameter' (or radius), optionally followed by 'vx vy vz'"
             )
+    header = quote(" ".join(tokens), _SHOWN)
     if len(set(names)) != len(names):
-        raise InputError(f"{p}: line {lineno}: header {' '.join(tokens)!r} repeats a column name")
+        raise InputError(f"{_name(p)}: line {lineno}: header {header} repeats a column name")
     cols = {t: i for i, t in enumerate(names)}
     missing = [c for c in ("x", "y", "z") if c not in cols]
     if missing or ("diameter" in cols) == ("radius" in cols):
         raise InputError(
-            f"{p}: line {lineno}: header {' '.join(tokens)!r} must name x, y, z and exactly one of "
+            f"{_name(p)}: line {lineno}: header {header} must name x, y, z and exactly one of "
             "diameter or radius"
         )
     nv = sum(c in cols for c in ("vx", "vy", "vz"))
     if nv not in (0, 3):
-        raise InputError(f"{p}: line {lineno}: header names {nv} of vx vy vz; give all three or none")
+        raise InputError(f"{_name(p)}: line {lineno}: header names {nv} of vx vy vz; give all three or none")
     return cols
 
 
-def _read_text(p: Path) -> dict[str, NDArray[np.float64] | None]:
+def _lines(p: Path):
+    """``(line number, text)`` of a text packing file, refusing binary data (NUL bytes, not UTF-8,
+    an HDF5 file under another suffix) and lines longer than :data:`MAX_LINE_LENGTH` without
+    reading them whole."""
+    with p.open("rb") as fh:
+        lineno = 0
+        while True:
+            raw = fh.readline(MAX_LINE_LENGTH + 2)
+            if not raw:
+                return
+            lineno += 1
+            if lineno == 1 and raw.startswith(_HDF5_SIGNATURE):
+                raise InputError(
+                    f"{_name(p)} is an HDF5 file; name it with the suffix .h5 or .hdf5 to read it as one"
+                )
+            if len(raw.rstrip(b"\r\n")) > MAX_LINE_LENGTH:
+                raise InputError(
+                    f"{_name(p)}: line {lineno} is longer than {MAX_LINE_LENGTH:,} characters, which no "
+                    "row 'x y z diameter [vx vy vz]' is: is this a packing file?"
+                )
+            try:
+                text = raw.decode("utf-8")
+            except UnicodeDecodeError:
+                text = "\x00"
+            if "\x00" in text:
+                raise InputError(
+                    f"{_name(p)} is not a text packing file: line {lineno} holds binary data; give a text "
+                    "file of rows 'x y z diameter [vx vy vz]', or an HDF5 file named .h5 or .hdf5"
+                )
+            yield lineno, text
+
+
+def _read_text(p: Path) -> tuple[dict[str, NDArray[np.float64] | None], list[int]]:
     cols: dict[str, int] | None = None
     ncol: int | None = None
     rows: list[list[float]] = []
     linenos: list[int] = []
-    with p.open("r", encoding="utf-8", errors="replace") as fh:
-        for lineno, raw in enumerate(fh, start=1):
-            line = raw.split("#", 1)[0].strip().strip(",")
-            if not line:
-                continue
-            tokens = [t for t in _SPLIT.split(line) if t]
-            if cols is None and not rows and not all(_is_number(t) for t in tokens):
-                cols = _header_columns(p, lineno, tokens)
-                ncol = len(tokens)
-                continue
-            if ncol is None:
-                if len(tokens) not in (4, 7):
-                    raise InputError(
-                        f"{p}: line {lineno}: expected 4 columns 'x y z diameter' or 7 columns "
-                        f"'x y z diameter vx vy vz', found {len(tokens)}"
-                    )
-                ncol = len(tokens)
-            elif len(tokens) != ncol:
+    for lineno, raw in _lines(p):
+        line = raw.split("#", 1)[0].strip().strip(",")
+        if not line:
+            continue
+        tokens = [t for t in _SPLIT.split(line) if t]
+        if cols is None and not rows and not all(_is_number(t) for t in tokens):
+            cols = _header_columns(p, lineno, tokens, line)
+            ncol = len(tokens)
+            continue
+        if ncol is None:
+            if len(tokens) not in (4, 7):
+                if not rows and not all(_is_number(t) for t in tokens):
+                    raise _not_packing(p, lineno, line)
                 raise InputError(
-                    f"{p}: line {lineno}: expected {ncol} columns like the "
-                    f"{'header' if cols is not None else 'first data line'}, found {len(tokens)}"
+                    f"{_name(p)}: line {lineno}: expected 4 columns 'x y z diameter' or 7 columns "
+                    f"'x y z diameter vx vy vz', found {len(tokens)}"
                 )
-            try:
-                rows.append([float(t) for t in tokens])
-                linenos.append(lineno)
-            except ValueError:
-                bad = next(t for t in tokens if not _is_number(t))
-                raise InputError(
-                    f"{p}: line {lineno}: cannot read {bad!r} as a number; expected numeric "
-                    "columns x y z diameter [vx vy vz]"
-                ) from None
+            ncol = len(tokens)
+        elif len(tokens) != ncol:
+            raise InputError(
+                f"{_name(p)}: line {lineno}: expected {ncol} columns like the "
+                f"{'header' if cols is not None else 'first data line'}, found {len(tokens)}"
+            )
+        try:
+            rows.append([float(t) for t in tokens])
+            linenos.append(lineno)
+        except ValueError:
+            bad = next(t for t in tokens if not _is_number(t))
+            raise InputError(
+                f"{_name(p)}: line {lineno}: cannot read {_tok(bad)} as a number; expected numeric "
+                "columns x y z diameter [vx vy vz]"
+            ) from None
     if not rows:
-        raise InputError(f"{p}: no sphere rows found; expected lines 'x y z diameter [vx vy vz]'")
+        raise InputError(f"{_name(p)}: no sphere rows found; expected lines 'x y z diameter [vx vy vz]'")
     data = np.asarray(rows, dtype=np.float64)
     bad_rows = ~np.all(np.isfinite(data), axis=1)
     if np.any(bad_rows):
         i = int(np.argmax(bad_rows))
-        raise InputError(f"{p}: line {linenos[i]}: non-finite value in {data[i].tolist()}; fix the file")
+        raise InputError(
+            f"{_name(p)}: line {linenos[i]}: non-finite value in {data[i].tolist()}; fix the file"
+        )
     if cols is None:
         cols = {"x": 0, "y": 1, "z": 2, "diameter": 3}
         if ncol == 7:
@@ -134,25 +208,25 @@ def _read_text(p: Path) -> dict[str, NDArray[np.float64] | None]:
         i = int(np.argmax(radii <= 0.0))
         what = "diameter" if "diameter" in cols else "radius"
         raise InputError(
-            f"{p}: line {linenos[i]}: {what} {float(data[i, cols[what]])!r} is not > 0; expected a positive "
-            f"sphere {what} in metres"
+            f"{_name(p)}: line {linenos[i]}: {what} {float(data[i, cols[what]])!r} is not > 0; expected a "
+            f"positive sphere {what} in metres"
         )
     velocities = None
     if "vx" in cols:
         velocities = np.ascontiguousarray(data[:, [cols["vx"], cols["vy"], cols["vz"]]])
-    return {"positions": positions, "radii": np.ascontiguousarray(radii), "velocities": velocities}
+    return {"positions": positions, "radii": np.ascontiguousarray(radii), "velocities": velocities}, linenos
 
 
 def _dataset(f, p: Path, names: tuple[str, ...]) -> NDArray[np.float64] | None:
     found = [n for n in names if n in f]
     if len(found) > 1:
-        raise InputError(f"{p}: datasets {found} all present; keep only one of {list(names)}")
+        raise InputError(f"{_name(p)}: datasets {found} all present; keep only one of {list(names)}")
     if not found:
         return None
     try:
         return np.asarray(f[found[0]][()], dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"{p}: dataset {found[0]!r} is not numeric ({exc})") from None
+        raise InputError(f"{_name(p)}: dataset {_tok(found[0])} is not numeric ({clip(str(exc))})") from None
 
 
 def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
@@ -161,30 +235,31 @@ def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
     try:
         fh = h5py.File(p, "r")
     except OSError as exc:
-        raise InputError(f"{p}: cannot open as HDF5 ({exc}); is it really an HDF5 file?") from None
+        why = clip(str(exc))
+        raise InputError(f"{_name(p)}: cannot open as HDF5 ({why}); is it really an HDF5 file?") from None
     with fh as f:
         pos = _dataset(f, p, ("x", "position", "positions"))
         diam = _dataset(f, p, ("diameter", "diameters"))
         rad = _dataset(f, p, ("radius", "radii"))
         vel = _dataset(f, p, ("velocity", "velocities"))
     if pos is None:
-        raise InputError(f"{p}: no dataset 'x' or 'position' of shape (n, 3) holding sphere centres")
+        raise InputError(f"{_name(p)}: no dataset 'x' or 'position' of shape (n, 3) holding sphere centres")
     if diam is None and rad is None:
-        raise InputError(f"{p}: no dataset 'diameter' or 'radius' of shape (n,)")
+        raise InputError(f"{_name(p)}: no dataset 'diameter' or 'radius' of shape (n,)")
     if diam is not None and rad is not None:
-        raise InputError(f"{p}: both 'diameter' and 'radius' datasets present; keep only one")
+        raise InputError(f"{_name(p)}: both 'diameter' and 'radius' datasets present; keep only one")
     radii = 0.5 * diam if diam is not None else rad
     assert radii is not None
     if pos.ndim != 2 or pos.shape[1] != 3:
-        raise InputError(f"{p}: position dataset has shape {pos.shape}, expected (n, 3)")
+        raise InputError(f"{_name(p)}: position dataset has shape {pos.shape}, expected (n, 3)")
     n = pos.shape[0]
     if radii.shape != (n,):
         raise InputError(
-            f"{p}: {'diameter' if diam is not None else 'radius'} dataset has shape {radii.shape}, "
+            f"{_name(p)}: {'diameter' if diam is not None else 'radius'} dataset has shape {radii.shape}, "
             f"expected ({n},) to match the positions"
         )
     if vel is not None and vel.shape != (n, 3):
-        raise InputError(f"{p}: velocity dataset has shape {vel.shape}, expected ({n}, 3)")
+        raise InputError(f"{_name(p)}: velocity dataset has shape {vel.shape}, expected ({n}, 3)")
     return {
         "positions": np.ascontiguousarray(pos),
         "radii": np.ascontiguousarray(radii),
@@ -192,19 +267,47 @@ def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
     }
 
 
-def _validate(p: Path, out: dict[str, NDArray[np.float64] | None]) -> None:
+def _validate(p: Path, out: dict[str, NDArray[np.float64] | None], linenos: list[int] | None = None) -> None:
+    """Finite values, positive radii within RADIUS_RANGE, coordinates and velocities within
+    MAX_MAGNITUDE; an error names the sphere's line (text) or index (HDF5)."""
+    from ..deck.schema import MAX_MAGNITUDE, RADIUS_RANGE
+
+    def where(i: int) -> str:
+        return f"line {linenos[i]}" if linenos is not None else f"sphere {i} (0-based)"
+
     for key in ("positions", "radii", "velocities"):
         arr = out[key]
         if arr is not None and not np.all(np.isfinite(arr)):
             i = int(np.argmax(~np.all(np.isfinite(arr.reshape(arr.shape[0], -1)), axis=1)))
-            raise InputError(f"{p}: sphere {i} (0-based) has a non-finite {key}; fix the file")
+            raise InputError(f"{_name(p)}: {where(i)}: a non-finite value in the {key}; fix the file")
     radii = out["radii"]
     assert radii is not None
     if np.any(radii <= 0.0):
         i = int(np.argmax(radii <= 0.0))
         raise InputError(
-            f"{p}: sphere {i} (0-based) has diameter {float(2.0 * radii[i])!r}; diameters must be > 0"
+            f"{_name(p)}: {where(i)} has diameter {float(2.0 * radii[i])!r}; diameters must be > 0"
         )
+    lo, hi = RADIUS_RANGE
+    outside = (radii < lo) | (radii > hi)
+    if np.any(outside):
+        i = int(np.argmax(outside))
+        raise InputError(
+            f"{_name(p)}: {where(i)}: radius {float(radii[i])!r} m is outside [{lo:.0e}, {hi:.0e}] m, the "
+            "sphere radii pdem accepts (a grain's mass and moment of inertia would leave double "
+            "precision); the columns are SI: metres"
+        )
+    for key, what in (("positions", "coordinate"), ("velocities", "velocity component")):
+        arr = out[key]
+        if arr is None or arr.size == 0:
+            continue
+        large = np.any(np.abs(arr) > MAX_MAGNITUDE, axis=1)
+        if np.any(large):
+            i = int(np.argmax(large))
+            raise InputError(
+                f"{_name(p)}: {where(i)}: a {what} of {float(np.max(np.abs(arr[i])))!r} is larger in "
+                f"magnitude than {MAX_MAGNITUDE:.0e}, the most pdem accepts (its squares overflow double "
+                "precision); fix the file"
+            )
 
 
 def write_spheres_text(
