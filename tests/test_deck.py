@@ -603,6 +603,18 @@ def test_committed_schema_file_is_valid_json():
     assert set(schema["properties"]) == set(Deck.model_fields)
 
 
+def test_committed_schema_file_is_up_to_date():
+    """docs/deck.schema.json is what tools/write_deck_schema.py makes from the schema now."""
+    import importlib.util
+
+    path = ROOT / "tools" / "write_deck_schema.py"
+    spec = importlib.util.spec_from_file_location("write_deck_schema", path)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    committed = (ROOT / "docs" / "deck.schema.json").read_text(encoding="utf-8")
+    assert committed == tool.render(), "docs/deck.schema.json is stale: run python tools/write_deck_schema.py"
+
+
 def test_docs_example_is_valid(tmp_path):
     """The complete example in docs/deck.md validates."""
     doc = (ROOT / "docs" / "deck.md").read_text(encoding="utf-8")

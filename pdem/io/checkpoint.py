@@ -237,16 +237,19 @@ def _bad(path: Path, problems: list[str]) -> BadCheckpointError:
 def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read a checkpoint back: (state arrays by key, metadata attributes), after checking it (see the
     module doc); raises :class:`BadCheckpointError` naming every problem found."""
+    from ..textutil import file_problem, quote
+
     path = Path(path)
-    if not path.is_file():
+    problem = file_problem(path)  # from stat alone: a FIFO or /dev/zero is never read
+    if problem is not None:
         if path.is_dir():
             example = path / "checkpoints" / "latest.h5" if (path / "checkpoints").is_dir() else None
             raise BadCheckpointError(
-                f"checkpoint {path} is a directory; give a checkpoint file written by pdem, e.g. "
-                f"{example or 'OUTPUT/checkpoints/latest.h5'}"
+                f"checkpoint {quote(str(path))} is a directory; give a checkpoint file written by pdem, "
+                f"e.g. {example or 'OUTPUT/checkpoints/latest.h5'}"
             )
         raise BadCheckpointError(
-            f"checkpoint {path} does not exist; give a checkpoint file written by pdem "
+            f"checkpoint {quote(str(path))} {problem}; give a checkpoint file written by pdem "
             "(e.g. OUTPUT/checkpoints/latest.h5)"
         )
     state: dict[str, np.ndarray] = {}

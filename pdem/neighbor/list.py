@@ -177,7 +177,7 @@ class NeighbourList:
         cell = 2.0 * float(r.max()) + self.reach
         ext = np.maximum(hi - lo, cell)
         while True:
-            dims = np.maximum((ext / cell).astype(np.int64), 1)
+            dims = np.maximum(np.minimum(ext / cell, 2.0**20).astype(np.int64), 1)  # far-apart grains
             if int(np.prod(dims)) <= 4 * x.shape[0] + 1000:
                 break
             cell *= 1.26
