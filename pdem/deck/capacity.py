@@ -62,7 +62,7 @@ Loc = tuple[str | int, ...]
 
 
 def machine_memory() -> int | None:
-    """Physical memory of this machine [bytes], or None if the system does not say."""
+    """Physical memory of the machine running pdem [bytes], or None if the system does not say."""
     try:
         pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
@@ -78,7 +78,7 @@ def default_max_particles() -> tuple[int, str]:
     if mem is None:
         return 50_000_000, "the default of 5e7 (this system does not report its memory)"
     n = min(ID_LIMIT, mem // BYTES_PER_PARTICLE)
-    return n, f"this machine's memory {_bytes(mem)} / {BYTES_PER_PARTICLE:,} bytes per particle"
+    return n, f"this computer's memory {_bytes(mem)} / {BYTES_PER_PARTICLE:,} bytes per particle"
 
 
 def _bytes(n: float) -> str:
