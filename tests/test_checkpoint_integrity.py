@@ -21,6 +21,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from decks import TINY_LATTICE_TWO_STAGES
 
 from pdem.cli import main
 from pdem.deck.load import validate_deck
@@ -38,40 +39,7 @@ from determinism import compare  # noqa: E402
 
 # 64 spheres on a simple cubic lattice above a floor; two stages of 20 steps (~0.3 s once the kernels
 # are cached)
-TINY = """\
-title = "tiny lattice"
-[run]
-gravity = [0.0, 0.0, -9.81]
-dt = 2e-6
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5e7
-poisson_ratio = 0.3
-restitution = 0.5
-friction = 0.5
-[[particles]]
-source = "lattice"
-lattice = "sc"
-material = "glass"
-radius = 0.5e-3
-region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
-[boundaries.floor]
-type = "plane"
-material = "glass"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-[[stages]]
-name = "drop"
-[stages.end]
-steps = 20
-[[stages]]
-name = "rest"
-[stages.end]
-steps = 20
-[output]
-every_steps = 10
-series_every_steps = 10
-"""
+TINY = TINY_LATTICE_TWO_STAGES
 STOP = 30  # the run is stopped here: checkpoints at step 20 (end of "drop") and 30
 EARLIER = "step_0000000020.h5"
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from decks import TINY_LATTICE
 
 from pdem.cli import main
 from pdem.io.series import read_series
@@ -27,36 +28,7 @@ from pdem.io.series import read_series
 ROOT = Path(__file__).resolve().parent.parent
 
 # 64 spheres on a simple cubic lattice above a floor, 20 steps: ~0.2 s once the kernels are cached
-TINY = """\
-title = "tiny lattice"
-[run]
-gravity = [0.0, 0.0, -9.81]
-dt = 2e-6
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5e7
-poisson_ratio = 0.3
-restitution = 0.5
-friction = 0.5
-[[particles]]
-source = "lattice"
-lattice = "sc"
-material = "glass"
-radius = 0.5e-3
-region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
-[boundaries.floor]
-type = "plane"
-material = "glass"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-[[stages]]
-name = "drop"
-[stages.end]
-steps = 20
-[output]
-every_steps = 10
-series_every_steps = 10
-"""
+TINY = TINY_LATTICE
 
 # the same scene ending by time instead of steps (the step count follows from dt)
 TIMED = TINY.replace("steps = 20\n", "time = 4e-5\n")

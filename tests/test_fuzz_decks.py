@@ -22,43 +22,11 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from decks import TINY_LATTICE_TWO_STAGES
 
 from pdem.cli import main
 
-BASE = """\
-title = "fuzz base"
-[run]
-gravity = [0.0, 0.0, -9.81]
-dt = 2e-6
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5e7
-poisson_ratio = 0.3
-restitution = 0.5
-friction = 0.5
-[[particles]]
-source = "lattice"
-lattice = "sc"
-material = "glass"
-radius = 0.5e-3
-region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
-[boundaries.floor]
-type = "plane"
-material = "glass"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-[[stages]]
-name = "drop"
-[stages.end]
-steps = 20
-[[stages]]
-name = "rest"
-[stages.end]
-steps = 20
-[output]
-every_steps = 10
-series_every_steps = 10
-"""
+BASE = TINY_LATTICE_TWO_STAGES.replace("tiny lattice", "fuzz base")
 
 FILE_SOURCE = '[[particles]]\nsource = "file"\nmaterial = "glass"\npath = "pack.txt"\n'
 LATER_FILE_SOURCE = FILE_SOURCE + 'stage = "rest"\n'

@@ -17,6 +17,7 @@ import warnings
 from pathlib import Path
 
 import pytest
+from decks import TINY_LATTICE
 
 from pdem.cli import main
 from pdem.deck import validate_deck
@@ -26,36 +27,7 @@ from pdem.io.series import SeriesWriter
 from pdem.sources.files import read_spheres
 
 # 64 spheres on a simple cubic lattice above a floor, 20 steps
-TINY = """\
-title = "tiny lattice"
-[run]
-gravity = [0.0, 0.0, -9.81]
-dt = 2e-6
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5e7
-poisson_ratio = 0.3
-restitution = 0.5
-friction = 0.5
-[[particles]]
-source = "lattice"
-lattice = "sc"
-material = "glass"
-radius = 0.5e-3
-region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
-[boundaries.floor]
-type = "plane"
-material = "glass"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-[[stages]]
-name = "drop"
-[stages.end]
-steps = 20
-[output]
-every_steps = 10
-series_every_steps = 10
-"""
+TINY = TINY_LATTICE
 
 FILE_SOURCE = '[[particles]]\nsource = "file"\nmaterial = "glass"\npath = "{path}"\n'
 

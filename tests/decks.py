@@ -1,0 +1,38 @@
+"""Small decks the tests share."""
+
+# 64 spheres on a simple cubic lattice above a floor, 20 steps (~0.2 s once the kernels are cached)
+TINY_LATTICE = """\
+title = "tiny lattice"
+[run]
+gravity = [0.0, 0.0, -9.81]
+dt = 2e-6
+[materials.glass]
+density = 2500.0
+youngs_modulus = 5e7
+poisson_ratio = 0.3
+restitution = 0.5
+friction = 0.5
+[[particles]]
+source = "lattice"
+lattice = "sc"
+material = "glass"
+radius = 0.5e-3
+region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
+[boundaries.floor]
+type = "plane"
+material = "glass"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+[[stages]]
+name = "drop"
+[stages.end]
+steps = 20
+[output]
+every_steps = 10
+series_every_steps = 10
+"""
+
+# the same with a second stage of 20 steps
+TINY_LATTICE_TWO_STAGES = TINY_LATTICE.replace(
+    "[output]", '[[stages]]\nname = "rest"\n[stages.end]\nsteps = 20\n[output]'
+)
