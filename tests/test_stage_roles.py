@@ -6,6 +6,7 @@ rows of its own stage."""
 from __future__ import annotations
 
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ import pdem
 from pdem.boundaries.api import STAGE_COLUMN, BoundaryParams, merge_series, stage_rows
 from pdem.boundaries.triaxial import TriaxialCell, TriaxialParams
 from pdem.deck import stage_roles as sr
-from pdem.deck.load import load_deck
+from pdem.deck.load import load_deck, validate_deck
 from pdem.deck.resume import ResumePoint, resume_changes, resume_deck
 from pdem.errors import DeckError, InputError
 
@@ -59,8 +60,15 @@ steps = 10
 
 
 def _resumed(deck: Path, point: ResumePoint, *sets: str, tmp_path: Path):
-    """(checkpoint's deck, continuation's deck) by pdem's own resume path, from a checkpoint's
-    metadata (the resolved deck) without running anything."""
+    """(checkpoint's deck, continuation's deck), validated as a resume validates them but without
+    its refusals, which :func:`_resume_path` goes through."""
+    old = load_deck(deck)
+    new = validate_deck(tomllib.loads(old.resolved_toml()), path=deck, base_dir=deck.parent, overrides=sets)
+    return old, new
+
+
+def _resume_path(deck: Path, point: ResumePoint, *sets: str, tmp_path: Path):
+    """pdem's own resume path (resume_deck) from a checkpoint's metadata, without running anything."""
     old = load_deck(deck)
     meta = {"deck": old.resolved_toml(), "deck_path": str(deck)}
     return resume_deck(meta, tuple(sets), point, tmp_path / "latest.h5")
@@ -92,6 +100,12 @@ def test_a_stage_added_to_a_finished_triaxial_is_refused_naming_the_keys(tmp_pat
         sr.check_new_stages(old, new, "resumed")
     assert isinstance(info.value, InputError) and info.value.exit_code == 2
     assert "boundaries.cell" in str(info.value)
+    # pdem's resume path refuses it, and takes either remedy
+    with pytest.raises(DeckError) as info:
+        _resume_path(TRIAXIAL, FINISHED, *MORE, tmp_path=tmp_path)
+    assert "boundaries.cell" in str(info.value) and "later_shear_stages" in str(info.value)
+    for key in ("later_shear_stages", "off_stages"):
+        _resume_path(TRIAXIAL, FINISHED, *MORE, f'boundaries.cell.{key}=["more"]', tmp_path=tmp_path)
 
 
 @pytest.mark.parametrize("key", ["later_shear_stages", "off_stages"])
@@ -363,9 +377,12 @@ def test_a_finished_triaxial_resumed_with_a_later_shear_stage(tmp_path):
     point = ResumePoint.from_checkpoint(state, meta)
     assert point.stage_index == 3
     add = ("stages.3.name=more", "stages.3.end.steps=100")
-    old, new = resume_deck(meta, add, point, ck)
-    assert [loc for loc, _ in sr.switch_off_problems(old, new)] == [("boundaries", "cell")]
+    with pytest.raises(DeckError):  # refused by pdem's resume path
+        resume_deck(meta, add, point, ck)
     data = tomllib.loads(meta["deck"])
+    old = validate_deck(data, path=Path(meta["deck_path"]), base_dir=TRIAXIAL.parent)
+    new = validate_deck(data, path=Path(meta["deck_path"]), base_dir=TRIAXIAL.parent, overrides=add)
+    assert [loc for loc, _ in sr.switch_off_problems(old, new)] == [("boundaries", "cell")]
     new = validate_deck(data, path=Path(meta["deck_path"]), base_dir=TRIAXIAL.parent,
                         overrides=(*add, 'boundaries.cell.later_shear_stages=["more"]'))  # fmt: skip
     assert sr.switch_off_problems(old, new) == []
