@@ -36,3 +36,16 @@ series_every_steps = 10
 TINY_LATTICE_TWO_STAGES = TINY_LATTICE.replace(
     "[output]", '[[stages]]\nname = "rest"\n[stages.end]\nsteps = 20\n[output]'
 )
+
+# inputs/hopper.toml shortened: 300 beads, 0.03 s of fill, discharge until 0.3 g has left (~6,600
+# steps, ~2 s), snapshots every 0.02 s and a checkpoint every 1,000 steps
+SHORT_HOPPER_SETS = [
+    "particles.0.n=300",
+    "particles.0.region.height=0.008",
+    "stages.fill.end.time=0.03",
+    "stages.fill.end.kinetic_energy_below=1e-12",
+    "output.every_time=0.02",
+    "boundaries.hopper.outflow_depth=0.004",
+    "stages.discharge.end.above=0.0003",
+    "output.checkpoint_every_steps=1000",
+]

@@ -20,6 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from decks import SHORT_HOPPER_SETS
 
 from pdem.cli import main
 from pdem.io.paths import MARKER, lock_holder
@@ -27,16 +28,7 @@ from pdem.io.paths import MARKER, lock_holder
 ROOT = Path(__file__).resolve().parents[1]
 HOPPER = ROOT / "inputs" / "hopper.toml"
 # the short hopper of tests/test_resume.py: ~6,600 steps, a checkpoint every 1,000
-SETS = [
-    "particles.0.n=300",
-    "particles.0.region.height=0.008",
-    "stages.fill.end.time=0.03",
-    "stages.fill.end.kinetic_energy_below=1e-12",
-    "output.every_time=0.02",
-    "boundaries.hopper.outflow_depth=0.004",
-    "stages.discharge.end.above=0.0003",
-    "output.checkpoint_every_steps=1000",
-]
+SETS = list(SHORT_HOPPER_SETS)
 SET_ARGS = [a for s in SETS for a in ("--set", s)]
 IGNORED = {".pdem-lock"}  # the lock file's content names the last process that held it
 

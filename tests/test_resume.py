@@ -31,6 +31,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from decks import SHORT_HOPPER_SETS
 
 from pdem.cli import main
 from pdem.io.checkpoint import read_checkpoint
@@ -43,16 +44,7 @@ from determinism import compare  # noqa: E402
 HOPPER = ROOT / "inputs" / "hopper.toml"
 # tests/test_mpi.py's short hopper, ending when 0.3 g has been discharged (~6,600 steps), with
 # snapshots every 0.02 s and a checkpoint every 1,000 steps
-SETS = [
-    "particles.0.n=300",
-    "particles.0.region.height=0.008",
-    "stages.fill.end.time=0.03",
-    "stages.fill.end.kinetic_energy_below=1e-12",
-    "output.every_time=0.02",
-    "boundaries.hopper.outflow_depth=0.004",
-    "stages.discharge.end.above=0.0003",
-    "output.checkpoint_every_steps=1000",
-]
+SETS = list(SHORT_HOPPER_SETS)
 FILL_STEPS = 1924  # the fill ends at t = 0.03 s
 SET_ARGS = [a for s in SETS for a in ("--set", s)]
 
