@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import pdem
-from pdem.boundaries.shapes import Plane
+from pdem.geometry.shapes import Plane
 from pdem.sources import BoxRegion, Uniform, pluviate
 
 

@@ -6,7 +6,6 @@ SI units throughout. Start with :class:`pdem.Simulation`; see README.md and ARCH
 from __future__ import annotations
 
 from . import errors
-from .boundaries import shapes
 from .errors import (
     DeckError,
     GeometryError,
@@ -16,6 +15,7 @@ from .errors import (
     PdemError,
     PluginError,
 )
+from .geometry import shapes
 from .materials import Material
 from .simulation import Simulation
 

@@ -35,15 +35,17 @@ Writers (``pdem.writers``)
 Particles
     :class:`Field` (``Simulation.register_field``), :func:`dof_mask`, the motion codes ``FREE``,
     ``FIXED``, ``PRESCRIBED``, ``REMOVED``; :class:`ContactStore`.
+Collectives (every rank calls them; one rank's values returned as is)
+    :func:`any_rank`, :func:`all_max`, :func:`all_min`, :func:`all_max_array`,
+    :func:`all_sum_int_array`; a boundary's stage test :func:`listed`.
 Everything
-    :class:`Simulation`, :class:`Material`, :class:`MaterialTable`, the typed errors.
+    :class:`Simulation`, :class:`Material`, :class:`MaterialTable`, :func:`effective_moduli` (E*,
+    G* of a material pair), :func:`damping_ratio` (β of a restitution coefficient), the typed errors.
 """
 
 from __future__ import annotations
 
 from ._jit import njit
-from .boundaries import shapes
-from .boundaries._geometry import KIND_NAMES, surface_velocity, wall_contact
 from .boundaries.api import (
     STAGE_COLUMN,
     Boundary,
@@ -51,23 +53,10 @@ from .boundaries.api import (
     MotionSpec,
     Vec3,
     WallBoundaryParams,
+    listed,
     make_motion,
     merge_series,
     stage_rows,
-)
-from .boundaries.walls import (
-    ConstantVelocity,
-    Controlled,
-    Fixed,
-    Follow,
-    Motion,
-    PositionFunction,
-    Resize,
-    RigidBody,
-    Rotation,
-    VelocityFunction,
-    Wall,
-    rotation_matrix,
 )
 from .contact._kernels import (
     COL_AI,
@@ -118,12 +107,29 @@ from .errors import (
     PdemError,
     PluginError,
 )
+from .geometry import shapes
+from .geometry._kernels import KIND_NAMES, surface_velocity, wall_contact
+from .geometry.walls import (
+    ConstantVelocity,
+    Controlled,
+    Fixed,
+    Follow,
+    Motion,
+    PositionFunction,
+    Resize,
+    RigidBody,
+    Rotation,
+    VelocityFunction,
+    Wall,
+    rotation_matrix,
+)
 from .integrate.base import Integrator
 from .integrate.verlet import VelocityVerlet
 from .io.base import Piece, Writer, atomic_write_text, piece_name, safe_key
 from .io.frame import Frame, WallState
 from .io.wall_mesh import wall_triangles
-from .materials import Material, MaterialTable
+from .materials import Material, MaterialTable, damping_ratio, effective_moduli
+from .parallel.comm import all_max, all_max_array, all_min, all_sum_int_array, any_rank
 from .parallel.exact import exact_accumulator, exact_add, exact_add_many, exact_bins, exact_partials
 from .simulation import Simulation
 from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
@@ -139,14 +145,15 @@ __all__ = [
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ListNeeds", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
-    "STAGE_COLUMN", "merge_series", "stage_rows",
+    "STAGE_COLUMN", "merge_series", "stage_rows", "listed",
+    "any_rank", "all_max", "all_min", "all_max_array", "all_sum_int_array",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
     "Controlled", "Rotation", "Resize", "RigidBody", "Follow", "rotation_matrix",
     "servo_gain", "wall_stiffness",
     "Writer", "Frame", "WallState", "Piece", "atomic_write_text", "piece_name", "safe_key",
     "wall_triangles",
     "Field", "dof_mask", "FREE", "FIXED", "PRESCRIBED", "REMOVED",
-    "Simulation", "Material", "MaterialTable",
+    "Simulation", "Material", "MaterialTable", "damping_ratio", "effective_moduli",
     "PdemError", "InputError", "DeckError", "PluginError", "GeometryError", "NumericalError",
     "InstabilityError", "CheckpointError", "OutputError",
 ]  # fmt: skip

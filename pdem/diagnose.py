@@ -44,7 +44,7 @@ def worst_contact(sim: Any) -> tuple[float, str, tuple | None]:
     it, and where: ``("pair", list row)`` or ``("wall", wall, particle row)`` (None: nothing
     listed). Non-finite geometry (a NaN position) is left out: :func:`non_finite_state` reports
     it as such instead of as an infinite overlap."""
-    from .boundaries._geometry import wall_gaps
+    from .geometry._kernels import wall_gaps
 
     p = sim.particles
     worst, who, where = -math.inf, "nobody", None
@@ -89,7 +89,7 @@ def contact_detail(sim: Any, where: tuple | None) -> dict[str, Any] | None:
     gravity, boundary loads) into the contact, (f_total − f_contact)·n [N]. In a grain at rest
     the other forces balance the contact (load ≈ fn); in an impact nothing does (load ≈ 0).
     Also the pair's material indices, R* and m* for the law's elastic curve."""
-    from .boundaries._geometry import surface_velocity, wall_contact
+    from .geometry._kernels import surface_velocity, wall_contact
 
     if where is None:
         return None

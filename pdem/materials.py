@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 from .errors import InputError
 
-__all__ = ["Material", "MaterialTable", "effective_moduli", "rayleigh_time"]
+__all__ = ["Material", "MaterialTable", "damping_ratio", "effective_moduli", "rayleigh_time"]
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,15 @@ class Material:
     def shear_modulus(self) -> float:
         """G = E / (2(1 + ν)) [Pa]."""
         return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+
+
+def damping_ratio(e: float) -> float:
+    """The viscous damping ratio of a restitution coefficient e (Tsuji et al. 1992, Hertzian form):
+    β = ln e / sqrt(ln² e + π²) (−1 for e = 0, 0 for e = 1)."""
+    if e <= 0.0:
+        return -1.0
+    le = math.log(e)
+    return le / math.sqrt(le * le + math.pi * math.pi)
 
 
 def effective_moduli(a: Material, b: Material) -> tuple[float, float]:

@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 
 from . import diagnose as _diag
-from .boundaries.walls import Controlled, Motion, Wall
 from .contact._kernels import FLAG_NONFINITE
 from .contact.law import ContactLaw
 from .contact.stability import STIFFNESS_LIMIT
 from .contact.store import ContactStore
 from .domain import PeriodicBox
 from .errors import GeometryError, InputError, InstabilityError, PdemError
+from .geometry.walls import Controlled, Motion, Wall
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor.list import SKIN_MAX, SKIN_MIN, SKIN_STEPS, NeighbourList  # noqa: F401 - re-exported
@@ -631,7 +631,7 @@ class Simulation:
         """Walls are not periodic: along a periodic axis a wall must look the same from every image
         of a particle (an infinite plane parallel to the axis), or stay a ghost width away from the
         box faces (so that no particle near a face can touch it)."""
-        from .boundaries.shapes import Cylinder, Plane
+        from .geometry.shapes import Cylinder, Plane
 
         box, w = self.box, self.neighbours.ghost_width
         for wall in self._wall_list:
@@ -1264,7 +1264,7 @@ class Simulation:
         the particle, ``overlap`` [m] (DEM-C: may be slightly negative, a contact in the envelope),
         ``force`` on the wall [N] (on the particle: its negative) and ``torque`` on the wall about its
         reference point [N m]."""
-        from .boundaries._geometry import wall_gaps
+        from .geometry._kernels import wall_gaps
 
         if not self._prepared:
             self._prepare()

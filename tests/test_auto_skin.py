@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 import pdem
-from pdem.boundaries.shapes import Plane
+from pdem.geometry.shapes import Plane
 from pdem.simulation import SKIN_MAX, SKIN_MIN, SKIN_STEPS
 
 

@@ -24,7 +24,7 @@ from physics_helpers import (
 )
 
 import pdem
-from pdem.boundaries.shapes import box_planes
+from pdem.geometry.shapes import box_planes
 
 N = 200
 SIDE = 17e-3

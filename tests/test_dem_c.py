@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries import shapes
 from pdem.complementarity import _kernels as ck
 from pdem.errors import InputError
+from pdem.geometry import shapes
 
 G = 9.81
 R = 1e-3
@@ -443,7 +443,7 @@ series_every_steps = 10
 def test_moving_floor_carries_a_sphere_and_reports_its_weight():
     """A floor rising at constant speed: the sphere on it moves with it (constraint with the wall's
     velocity) and the reported load is the weight, as DEM-P would report it."""
-    from pdem.boundaries.walls import ConstantVelocity
+    from pdem.geometry.walls import ConstantVelocity
 
     vw = 0.05
     sim = make_sim("jacobi", tolerance=1e-10, max_iterations=1000)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries import shapes
-from pdem.boundaries.walls import ConstantVelocity, RigidBody
+from pdem.geometry import shapes
+from pdem.geometry.walls import ConstantVelocity, RigidBody
 
 G = 9.81
 R = 1e-3

@@ -10,8 +10,8 @@ import numpy as np
 from physics_helpers import E_MOD, NU, RHO
 
 import pdem
-from pdem.boundaries import shapes
-from pdem.boundaries.walls import RigidBody
+from pdem.geometry import shapes
+from pdem.geometry.walls import RigidBody
 
 R = 0.5e-3
 SIDE = 5.5e-3

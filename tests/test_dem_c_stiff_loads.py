@@ -22,7 +22,7 @@ import pytest
 
 import pdem
 from pdem.api import Boundary, BoundaryParams, InputError
-from pdem.boundaries import shapes
+from pdem.geometry import shapes
 
 R = 1e-3
 RHO = 2500.0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries.shapes import Rectangle, box_planes
+from pdem.geometry.shapes import Rectangle, box_planes
 from pdem.sources import BoxRegion, Uniform, hcp, random_fill
 
 

@@ -15,8 +15,8 @@ import pytest
 
 import pdem
 from pdem.boundaries.api import Boundary, BoundaryParams
-from pdem.boundaries.shapes import Plane
 from pdem.errors import InputError
+from pdem.geometry.shapes import Plane
 from pdem.state.particles import dof_mask
 
 R = 1e-3

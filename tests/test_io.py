@@ -21,9 +21,9 @@ import meshio
 import numpy as np
 import pytest
 
-from pdem.boundaries._geometry import KIND_CYLINDER, KIND_PLANE, KIND_RECTANGLE, KIND_REVOLVED, N_PARAMS
-from pdem.boundaries.shapes import Annulus, Cylinder, CylinderTube, Disk, Frustum, Plane, Rectangle
 from pdem.errors import OutputError
+from pdem.geometry._kernels import KIND_CYLINDER, KIND_PLANE, KIND_RECTANGLE, KIND_REVOLVED, N_PARAMS
+from pdem.geometry.shapes import Annulus, Cylinder, CylinderTube, Disk, Frustum, Plane, Rectangle
 from pdem.io import (
     PARTICLE_FIELDS,
     Frame,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries import shapes
+from pdem.geometry import shapes
 
 G = 9.81
 R = 1e-3

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries.shapes import Plane
-from pdem.boundaries.walls import ConstantVelocity
+from pdem.geometry.shapes import Plane
+from pdem.geometry.walls import ConstantVelocity
 from pdem.laws.hertz_mindlin import HertzMindlin, force_numpy
 from pdem.materials import Material, MaterialTable
 from pdem.testing.law_contract import check_law_against_twin

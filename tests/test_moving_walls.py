@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import pdem
-from pdem.boundaries import shapes
-from pdem.boundaries._geometry import KIND_TRIANGLE, triangle_contact, wall_contact
 from pdem.boundaries.api import Boundary, BoundaryParams
-from pdem.boundaries.walls import Controlled, Resize, RigidBody, Rotation
+from pdem.geometry import shapes
+from pdem.geometry._kernels import KIND_TRIANGLE, triangle_contact, wall_contact
+from pdem.geometry.walls import Controlled, Resize, RigidBody, Rotation
 
 R = 1e-3
 RHO = 2500.0

@@ -308,7 +308,7 @@ _ADD_SCRIPT = textwrap.dedent(
     """
     import hashlib
     import numpy as np, pdem
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
     from pdem.parallel.comm import default_comm
     comm = default_comm()
     rng = np.random.default_rng(2)
@@ -350,7 +350,7 @@ _UNSTABLE_SCRIPT = textwrap.dedent(
     """
     import sys
     import numpy as np, pdem
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
     from pdem.errors import InstabilityError
     from pdem.parallel.comm import default_comm
     comm = default_comm()

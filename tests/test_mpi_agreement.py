@@ -69,7 +69,7 @@ _PLACE = textwrap.dedent(
     """
     import hashlib, json, sys
     import numpy as np, pdem
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
     from pdem.parallel.comm import default_comm
 
     comm = default_comm()

@@ -8,7 +8,7 @@ import pytest
 from physics_helpers import E_MOD, NU, RHO, brute_force_touching, random_spheres
 
 import pdem
-from pdem.boundaries.shapes import box_planes
+from pdem.geometry.shapes import box_planes
 from pdem.neighbor import _kernels as nk
 
 

@@ -15,8 +15,8 @@ from physics_helpers import e_star, hertz_impact, hertz_stiffness, reduced, sphe
 
 import pdem
 from pdem.boundaries.api import Boundary, BoundaryParams
-from pdem.boundaries.shapes import Plane
-from pdem.boundaries.walls import ConstantVelocity
+from pdem.geometry.shapes import Plane
+from pdem.geometry.walls import ConstantVelocity
 
 R = 1e-3
 NU = 0.3

@@ -14,7 +14,7 @@ from physics_helpers import E_MOD, NU, RHO
 
 import pdem
 import pdem.neighbor.list as neighbour_list
-from pdem.boundaries.shapes import box_planes
+from pdem.geometry.shapes import box_planes
 from pdem.neighbor import _kernels as nk
 
 R = 0.5e-3
@@ -127,7 +127,7 @@ def test_storage_is_sorted_again_when_pairs_drift_apart():
 _MPI_SCRIPT = """
 import hashlib, sys
 import numpy as np, pdem
-from pdem.boundaries.shapes import box_planes
+from pdem.geometry.shapes import box_planes
 from pdem.parallel.comm import default_comm, all_max
 sys.path.insert(0, sys.argv[1])
 import test_pair_schedule as t

@@ -15,7 +15,7 @@ import pytest
 from physics_helpers import E_MOD, NU, RHO
 
 import pdem
-from pdem.boundaries.shapes import Plane, Rectangle
+from pdem.geometry.shapes import Plane, Rectangle
 from pdem.sources import BoxRegion, Uniform, random_fill
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -316,7 +316,7 @@ def test_walls_that_cut_the_periodic_box_are_rejected(shape, message):
 
 
 def test_pipe_along_a_periodic_axis_is_allowed():
-    from pdem.boundaries.shapes import Cylinder
+    from pdem.geometry.shapes import Cylinder
 
     sim = _sim("z")
     # particle 0 crosses the face z = 0 and bounces off the pipe wall

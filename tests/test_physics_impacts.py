@@ -32,7 +32,7 @@ from physics_helpers import (
 )
 
 import pdem
-from pdem.boundaries.shapes import Plane
+from pdem.geometry.shapes import Plane
 
 R = 1e-3  # sphere radius [m]
 V = 1.0  # approach speed [m/s]

@@ -10,7 +10,7 @@ import pytest
 from physics_helpers import E_MOD, NU, RHO, e_star, hertz_stiffness, sphere_mass
 
 import pdem
-from pdem.boundaries.shapes import Plane
+from pdem.geometry.shapes import Plane
 
 R = 1e-3
 G = 9.81

@@ -132,3 +132,84 @@ def test_api_exports_resolve():
 
     missing = [name for name in api.__all__ if not hasattr(api, name)]
     assert not missing
+
+
+def _pdem_imports(path: Path) -> list[tuple[int, str]]:
+    """Every pdem module a file imports (absolute name), with its line: ``from x import y`` gives
+    ``x`` (and ``x.y`` when that is a module)."""
+    module = _module_of(path)
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)] if node.level > 1 else base
+                src = ".".join(base + ([node.module] if node.module else []))
+            else:
+                src = node.module or ""
+            out.append((node.lineno, src))
+            for a in node.names:
+                sub = f"{src}.{a.name}"
+                if (PDEM / Path(*sub.split(".")[1:])).with_suffix(".py").exists():
+                    out.append((node.lineno, sub))
+    return [(n, m) for n, m in out if m == "pdem" or m.startswith("pdem.")]
+
+
+def _boundary_plugin_files() -> list[Path]:
+    """The modules of pdem's built-in boundaries: the entry-point targets of ``pdem.boundaries``
+    and the pdem.boundaries modules they import (their helpers), except the contract itself."""
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    todo = [PDEM / Path(*t.split(":")[0].split(".")[1:]).with_suffix(".py")
+            for t in cfg["project"]["entry-points"]["pdem.boundaries"].values()]
+    seen: set[Path] = set()
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        for _, mod in _pdem_imports(f):
+            if mod.startswith("pdem.boundaries.") and mod != "pdem.boundaries.api":
+                todo.append(PDEM / Path(*mod.split(".")[1:]).with_suffix(".py"))
+    return sorted(seen)
+
+
+def test_builtin_boundaries_import_only_the_public_api():
+    """pdem's own boundaries are written as a user's plugin would be: from pdem they import
+    :mod:`pdem.api` and their own helper modules, nothing else."""
+    files = _boundary_plugin_files()
+    assert PDEM / "boundaries" / "triaxial.py" in files and PDEM / "boundaries" / "builtin.py" in files
+    own = {_module_of(f) for f in files} | {"pdem.api", "pdem.boundaries"}
+    bad = [f"{f.relative_to(ROOT)}:{n}: {m}" for f in files for n, m in _pdem_imports(f) if m not in own]
+    assert not bad, "built-in boundaries importing pdem beyond pdem.api:\n" + "\n".join(bad)
+
+
+# which packages a package may not import: the layers run one way
+#   geometry (wall shapes, motions, contact-geometry kernels) < contact < boundaries
+FORBIDDEN = {
+    "geometry": ("pdem.contact", "pdem.boundaries", "pdem.neighbor", "pdem.simulation",
+                 "pdem.complementarity"),
+    "contact": ("pdem.boundaries", "pdem.simulation", "pdem.runner"),
+    "neighbor": ("pdem.boundaries", "pdem.runner"),
+    "parallel": ("pdem.boundaries", "pdem.contact", "pdem.simulation", "pdem.runner"),
+}
+
+
+def test_layers_run_one_way():
+    bad = []
+    for pkg, forbidden in FORBIDDEN.items():
+        for f in sorted((PDEM / pkg).glob("*.py")):
+            for n, mod in _pdem_imports(f):
+                if any(mod == x or mod.startswith(x + ".") for x in forbidden):
+                    bad.append(f"{f.relative_to(ROOT)}:{n}: {mod}")
+    assert not bad, "imports against the layering:\n" + "\n".join(bad)
+
+
+def test_import_walk_is_not_vacuous(tmp_path, monkeypatch):
+    f = PDEM / "contact" / "_probe_for_test.py"
+    src = "from ..boundaries import api\nfrom pdem.geometry import walls\nimport numpy\n"
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: src if self == f else _orig(self))
+    mods = [m for _, m in _pdem_imports(f)]
+    assert "pdem.boundaries.api" in mods and "pdem.geometry.walls" in mods and "numpy" not in mods

@@ -14,9 +14,9 @@ from physics_helpers import E_MOD, NU, RHO
 
 import pdem
 from pdem.api import REMOVED
-from pdem.boundaries import shapes
 from pdem.boundaries.builtin import OutflowBoundary, OutflowParams
-from pdem.boundaries.walls import RigidBody
+from pdem.geometry import shapes
+from pdem.geometry.walls import RigidBody
 
 R = 0.5e-3
 SIDE = 5.5e-3

@@ -10,7 +10,7 @@ import pytest
 from physics_helpers import E_MOD, NU, RHO, rayleigh_time
 
 import pdem
-from pdem.boundaries.shapes import box_planes
+from pdem.geometry.shapes import box_planes
 
 R = 1e-3
 NSIDE = 6

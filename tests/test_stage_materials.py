@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from pdem import Simulation
-from pdem.boundaries.shapes import Plane
 from pdem.cli import main
 from pdem.errors import InputError
+from pdem.geometry.shapes import Plane
 from pdem.io.checkpoint import read_checkpoint
 
 R, V0, MU, G = 0.005, 1.0, 0.5, 9.81

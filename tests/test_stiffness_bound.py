@@ -531,7 +531,7 @@ def test_flat_bed_bound_does_not_depend_on_ranks(tmp_path):
 
 
 def _two_on_a_floor(law, particles=True):
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
 
     sim = pdem.Simulation(law=law)
     sim.add_material("glass", density=2500, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.5,

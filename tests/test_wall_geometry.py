@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pdem.boundaries._geometry import (
+from pdem.errors import GeometryError
+from pdem.geometry._kernels import (
     KIND_CYLINDER,
     KIND_PLANE,
     KIND_RECTANGLE,
@@ -17,7 +18,7 @@ from pdem.boundaries._geometry import (
     wall_contact,
     wall_contact_numpy,
 )
-from pdem.boundaries.shapes import (
+from pdem.geometry.shapes import (
     Annulus,
     Cylinder,
     CylinderTube,
@@ -28,7 +29,6 @@ from pdem.boundaries.shapes import (
     Revolved,
     box_planes,
 )
-from pdem.errors import GeometryError
 
 # ---------------------------------------------------------------------------------------------
 # helpers

@@ -108,7 +108,7 @@ def pdem_worker(packing: str, steps: int, order: str = "file") -> dict:
     import numpy as np
 
     import pdem
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
     from pdem.parallel.comm import default_comm
     from pdem.sources import read_spheres
 

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 import pdem
-from pdem.boundaries import shapes
 from pdem.errors import InstabilityError
+from pdem.geometry import shapes
 
 R = 1e-3
 MAT = dict(density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.5, friction=0.5)

@@ -79,7 +79,7 @@ def _deck_run(deck: Path, steps: int, sets: list[str]) -> str:
 def bench_column(n: int = 1500, steps: int = 600) -> str:
     """The benchmark scene (tools/bench_vs_lammps.py) on a jittered lattice column."""
     import pdem
-    from pdem.boundaries.shapes import Plane
+    from pdem.geometry.shapes import Plane
 
     rng = np.random.default_rng(7)
     d = 1.1e-3

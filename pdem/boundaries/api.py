@@ -66,7 +66,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .walls import ConstantVelocity, Fixed, Motion, Wall
+from ..geometry.walls import ConstantVelocity, Fixed, Motion, Wall
 
 __all__ = [
     "STAGE_COLUMN", "Boundary", "BoundaryParams", "WallBoundaryParams", "MotionSpec", "Vec3", "listed",
@@ -101,7 +101,7 @@ MotionSpec = Annotated[FixedMotion | ConstantVelocityMotion, Field(discriminator
 
 
 def make_motion(spec: FixedMotion | ConstantVelocityMotion | None) -> Motion:
-    """The :class:`~pdem.boundaries.walls.Motion` a deck's ``motion`` table describes."""
+    """The :class:`~pdem.geometry.walls.Motion` a deck's ``motion`` table describes."""
     if spec is None or isinstance(spec, FixedMotion):
         return Fixed()
     return ConstantVelocity(tuple(spec.velocity))

@@ -13,10 +13,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from pdem.api import njit
-
-from . import shapes
-from .api import Boundary, BoundaryParams, Vec3, WallBoundaryParams
+from pdem.api import Boundary, BoundaryParams, GeometryError, Vec3, WallBoundaryParams, njit, shapes
 
 __all__ = [
     "PlaneBoundary",
@@ -34,8 +31,6 @@ __all__ = [
 
 def _check_shape(shape_cls: Any, params: Any, keys: tuple[str, ...]) -> None:
     """Build the shape once so that geometry errors surface at deck validation, not at run time."""
-    from ..errors import GeometryError
-
     try:
         shape_cls(**{k: getattr(params, k) for k in keys})
     except GeometryError as exc:
@@ -183,8 +178,6 @@ class BoxParams(WallBoundaryParams):
         bad = sorted(set(self.open_faces) - set(_FACES))
         if bad:
             raise ValueError(f"unknown face(s) {bad}; allowed: {list(_FACES)}")
-        from ..errors import GeometryError
-
         try:
             shapes.box_planes(self.lo, self.hi)
         except GeometryError as exc:

@@ -10,7 +10,7 @@ it ``shaft_length`` (0: a bare cone), closed by a flat cap. All of it is one tri
 closed). A mesh rather than a Frustum and a
 CylinderTube wall: a grain at the rim where cone and shaft meet is within reach of both surfaces'
 edges (the same circle), and two analytic walls would load it twice; the mesh wall counts one
-contact per grain (:mod:`pdem.boundaries._mesh`). With 48 segments the flat facets lie within
+contact per grain (:mod:`pdem.geometry._mesh`). With 48 segments the flat facets lie within
 R (1 − cos(π/48)) = 0.2 % of R of the true cone, 0.02 mm for D = 20.3 mm. The **tip force** is the
 load on the cone's facets, the **shaft force** the load on the shaft's and the cap's (rows of the same wall,
 each row's load an exact sum, added in row order, so the split is the same on any number of

@@ -90,6 +90,7 @@ from pydantic import Field, model_validator
 
 from pdem.api import (
     REMOVED,
+    STAGE_COLUMN,
     Boundary,
     BoundaryParams,
     Controlled,
@@ -97,10 +98,11 @@ from pdem.api import (
     InputError,
     RigidBody,
     Vec3,
+    listed,
     servo_gain,
     shapes,
+    stage_rows,
 )
-from pdem.boundaries.api import STAGE_COLUMN, listed, stage_rows
 
 __all__ = ["ShearBox", "ShearBoxParams"]
 

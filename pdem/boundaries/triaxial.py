@@ -78,13 +78,23 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-from ..contact.stability import servo_gain
-from ..errors import InstabilityError
-from ..parallel.comm import all_max, all_max_array, all_sum_int_array
-from . import _membrane as _mb
-from . import shapes
-from .api import Boundary, BoundaryParams, Vec3, listed, stage_rows
-from .walls import Controlled, Follow, RigidBody
+from pdem.api import (
+    Boundary,
+    BoundaryParams,
+    Controlled,
+    Follow,
+    InstabilityError,
+    RigidBody,
+    Vec3,
+    all_max,
+    all_max_array,
+    all_sum_int_array,
+    listed,
+    servo_gain,
+    shapes,
+    stage_rows,
+)
+from pdem.boundaries import triaxial_membrane as _mb
 
 __all__ = ["TriaxialCell", "TriaxialParams"]
 

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from .._jit import njit, njit_nocache
-from ..boundaries._geometry import surface_velocity, wall_contact
+from ..geometry._kernels import surface_velocity, wall_contact
 
 FLAG_OVERLAP = 1
 FLAG_NONFINITE = 2
@@ -334,7 +334,7 @@ def wall_forces(
 ):
     """Contacts of candidate particles with every wall, walls in order (one call per step).
 
-    Wall k has geometry ``kinds[k]``/``params[k]`` (see :mod:`pdem.boundaries._geometry`), translational
+    Wall k has geometry ``kinds[k]``/``params[k]`` (see :mod:`pdem.geometry._kernels`), translational
     and angular velocity ``vel[k]``/``omega[k]``, reference point ``centre[k]`` (about which it turns
     and its torque is reported), material ``wmat[k]``, candidates ``cand[cstart[k]:cstart[k+1]]`` and
     history ``hist[q]`` for candidate row q (sparse: one row per candidate, keyed by wall and particle

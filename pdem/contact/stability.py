@@ -67,7 +67,7 @@ from typing import Any
 import numpy as np
 
 from .._jit import njit
-from ..boundaries._geometry import surface_velocity, wall_contact
+from ..geometry._kernels import surface_velocity, wall_contact
 from ..parallel.comm import all_max
 from ..parallel.exact import exact_sums
 

@@ -194,7 +194,7 @@ class ContactStore:
         if not self.mesh_rows:
             self.cand_step = self.cand
             return
-        from ..boundaries._mesh import filter_mesh_candidates
+        from ..geometry._mesh import filter_mesh_candidates
 
         step = self.cand.copy()
         for a, b in self.mesh_rows:

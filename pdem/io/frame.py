@@ -42,7 +42,7 @@ REQUIRED_FIELDS: tuple[str, ...] = ("id", "x")
 class WallState:
     """One wall at the frame's instant.
 
-    ``kind`` and ``params`` follow :mod:`pdem.boundaries._geometry` (``params`` has 16 floats and is
+    ``kind`` and ``params`` follow :mod:`pdem.geometry._kernels` (``params`` has 16 floats and is
     already translated to the wall's current position). ``force`` [N] and ``torque`` [N m] are the
     load the particles put on the wall (torque about its current reference point).
     """

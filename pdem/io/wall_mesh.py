@@ -1,7 +1,7 @@
 r"""Triangle meshes of walls for visualisation.
 
 :func:`wall_triangles` turns a wall (``kind`` + 16-float ``params``, see
-:mod:`pdem.boundaries._geometry`) into ``(points, triangles)``:
+:mod:`pdem.geometry._kernels`) into ``(points, triangles)``:
 
 * plane (infinite): the section of the plane by the scene box ``bounds`` — a convex polygon of
   3 to 6 vertices, triangulated as a fan from its first vertex; triangles face the particle side
@@ -25,7 +25,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..boundaries._geometry import (
+from ..errors import OutputError
+from ..geometry._kernels import (
     KIND_CYLINDER,
     KIND_NAMES,
     KIND_PLANE,
@@ -35,7 +36,6 @@ from ..boundaries._geometry import (
     KIND_TRIANGLE,
     N_PARAMS,
 )
-from ..errors import OutputError
 
 __all__ = ["wall_triangles", "mesh_area"]
 

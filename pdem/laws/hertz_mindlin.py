@@ -52,19 +52,11 @@ from pydantic import Field, model_validator
 
 from .. import api as pk
 from ..api import ContactLaw, LawParams, njit, pair_forces, tangential_spring_values, wall_forces
-from ..materials import MaterialTable, effective_moduli, rayleigh_time
+from ..materials import MaterialTable, damping_ratio, effective_moduli, rayleigh_time
 
 __all__ = ["HertzMindlin", "hertz_mindlin_force", "force_numpy", "damping_ratio"]
 
 SQRT56 = math.sqrt(5.0 / 6.0)
-
-
-def damping_ratio(e: float) -> float:
-    """β = ln e / sqrt(ln² e + π²) (−1 for e = 0, 0 for e = 1)."""
-    if e <= 0.0:
-        return -1.0
-    le = math.log(e)
-    return le / math.sqrt(le * le + math.pi * math.pi)
 
 
 @njit(inline="always")

@@ -269,8 +269,8 @@ class NeighbourList:
 
     def _build_wall_candidates(self) -> None:
         """Particles within the reach of each row of each (active) wall, concatenated."""
-        from ..boundaries._geometry import wall_gaps
-        from ..boundaries._mesh import triangle_candidates
+        from ..geometry._kernels import wall_gaps
+        from ..geometry._mesh import triangle_candidates
 
         sim = self.sim
         p = sim.particles

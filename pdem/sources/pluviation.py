@@ -46,7 +46,7 @@ def pluviate(
     time); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
     is raised. ``progress(t, v_rms)`` is called at each check. Output is spatially ordered.
     """
-    from ..boundaries.shapes import Cylinder, Plane
+    from ..geometry.shapes import Cylinder, Plane
     from ..simulation import Simulation
 
     if n <= 0:

@@ -53,9 +53,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pdem.api import ContactLaw, LawParams, njit, pair_forces, tangential_spring, wall_forces
+from pdem.api import ContactLaw, LawParams, damping_ratio, njit, pair_forces, tangential_spring, wall_forces
 from pdem.errors import InputError
-from pdem.laws.hertz_mindlin import damping_ratio
 from pdem.materials import MaterialTable
 from pydantic import Field
 

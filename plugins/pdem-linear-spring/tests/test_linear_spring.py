@@ -20,8 +20,8 @@ import math
 import numpy as np
 import pdem
 import pytest
-from pdem.boundaries.shapes import Plane, box_planes
 from pdem.errors import InputError
+from pdem.geometry.shapes import Plane, box_planes
 from pdem.materials import Material, MaterialTable
 from pdem.plugins import available, load_contact_law
 from pdem.sources import BoxRegion, Uniform, random_fill

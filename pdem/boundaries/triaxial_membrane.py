@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from pdem._jit import njit
+from pdem.api import njit
 
 FIXED = float(2**52)  # fixed-point scale of the weights (e ≤ 1: a cell of < 2^11 terms fits int64)
 STEEP = 4.0  # fall-off of a cap beyond its flat top, × a sphere's: a cell two away is ≥ 2 r lower

@@ -1,4 +1,4 @@
-"""Walls: a geometric shape (:mod:`pdem.boundaries.shapes`), a material and a motion.
+"""Walls: a geometric shape (:mod:`pdem.geometry.shapes`), a material and a motion.
 
 A wall is an infinite-mass, infinite-radius contact partner that uses the simulation's contact
 law. Its geometry is one or more packed rows (one for a primitive shape, one per facet for a mesh)
@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ._geometry import PARAM_LAYOUT
+from ._kernels import PARAM_LAYOUT
 
 __all__ = [
     "Wall",

@@ -23,7 +23,7 @@ import numpy as np
 
 from pdem._jit import njit
 
-from ._geometry import triangle_contact
+from ._kernels import triangle_contact
 
 __all__ = ["filter_mesh_candidates", "triangle_candidates"]
 

@@ -3,7 +3,7 @@ r"""Wall shapes: user-facing classes that produce ``(kind, params)`` for the con
 Each shape validates its inputs (raising :class:`pdem.errors.GeometryError` with the argument, the
 bad value and a remedy), normalises its direction vectors and exposes
 
-* ``kind`` — the integer kind of :mod:`pdem.boundaries._geometry`,
+* ``kind`` — the integer kind of :mod:`pdem.geometry._kernels`,
 * ``name_hint`` — a short default name ("plane", "disk", …),
 * ``params(offset=(0, 0, 0))`` — the float64 parameter vector (length ``N_PARAMS``) of the shape
   translated rigidly by ``offset`` (used for moving walls),
@@ -14,7 +14,7 @@ bad value and a remedy), normalises its direction vectors and exposes
 Surfaces of revolution (kind ``KIND_REVOLVED``) are parametrised by a meridian segment
 (s0, ρ0)–(s1, ρ1) along the unit axis E from an axis point A; the side on which a centre lying
 exactly on the surface is placed is the "+m side", m = (ρ1 − ρ0, −(s1 − s0))/|·| in (s, ρ)
-coordinates (see the module docstring of :mod:`pdem.boundaries._geometry`). For the shapes below:
+coordinates (see the module docstring of :mod:`pdem.geometry._kernels`). For the shapes below:
 Disk and Annulus → the +normal side; CylinderTube and Frustum → the inside.
 """
 
@@ -25,7 +25,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pdem.boundaries._geometry import (
+from pdem.errors import GeometryError
+from pdem.geometry._kernels import (
     KIND_CYLINDER,
     KIND_PLANE,
     KIND_RECTANGLE,
@@ -34,7 +35,6 @@ from pdem.boundaries._geometry import (
     KIND_TRIANGLE,
     N_PARAMS,
 )
-from pdem.errors import GeometryError
 
 __all__ = [
     "WallShape",

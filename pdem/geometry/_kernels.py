@@ -74,10 +74,10 @@ two-sided thin shell, open (no caps)
 
 Every kind keeps its anchor point in p[0:3]; :data:`PARAM_LAYOUT` says which other entries are
 points (moved by translations and rotations), direction vectors (turned by rotations) or lengths,
-so walls move and turn generically (:class:`pdem.boundaries.walls.Wall`).
+so walls move and turn generically (:class:`pdem.geometry.walls.Wall`).
 
 The kernels assume normalised direction vectors (the shape classes of
-:mod:`pdem.boundaries.shapes` normalise and validate them).
+:mod:`pdem.geometry.shapes` normalise and validate them).
 """
 
 from __future__ import annotations
