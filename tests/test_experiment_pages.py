@@ -7,7 +7,8 @@ and continuation lines resolved as the shell would), then each is run in a form 
   deck and overrides — the deck and every override are valid;
 * ``pdem study SPEC [options]``: the same with ``--dry-run`` — the spec and its grid resolve;
 * ``python tools/X.py [options]``: the tool exists and every option it is given is one it has;
-* ``pdem resume CHECKPOINT --set …``: the overridden keys are deck keys.
+* ``pdem check|advise DECK [--set …]``: as ``pdem DECK``;
+* ``pdem resume CHECKPOINT --set …``: the overrides are ``KEY=VALUE``.
 
 With ``--runslow``, every ``pdem DECK`` command also runs for a few steps into a scratch folder.
 """
@@ -173,7 +174,7 @@ def test_page_command_in_short_form(page, cmd, tmp_path, monkeypatch, request):
         # the checkpoint is a finished run's; the overridden keys must be deck keys of some deck
         assert all(s.count("=") >= 1 for s in _sets(args)[1::2]), where
         return
-    if args[0] == "check":
+    if args[0] in ("check", "advise"):
         args = args[1:]
     deck = args[0]
     assert (ROOT / deck).is_file(), f"{where}: no such deck"
