@@ -43,8 +43,9 @@ Solvers (``solver``):
 The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (with the corrected u_n when
 ``cone = "corrected"``: then it measures Coulomb's law); iterations stop when it is below
 ``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
-(``Stepper.log``, which the deck runner drains into ``solver_<stage>.csv``); steps that hit the cap
-unconverged are counted.
+(:meth:`Stepper.drain_records`, through which the deck runner drains them into
+``solver_<stage>.csv``; undrained, only the last ``Stepper.log_keep`` are kept); steps that hit the
+cap unconverged are counted.
 
 Known behaviours (documented in docs/dem_c.md and measured by tools/dem_c_study.py): collisions
 slower than the restitution threshold are perfectly inelastic, with ``cone = "relaxed"`` sliding contacts
@@ -56,7 +57,8 @@ at most one contact per iteration.
 from __future__ import annotations
 
 import math
-from typing import ClassVar, Literal
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -217,12 +219,52 @@ class Complementarity(ContactLaw):
         return Stepper(sim, self)
 
 
+@dataclass(eq=False)
+class _StepProblem:
+    """What one DEM-C step carries from phase to phase (:meth:`Stepper.step`): the step's sizes, the
+    envelope rule, the free velocities, the impulse accumulators and the solve's outcome."""
+
+    h: float  # the step [s]
+    env: float  # this step's envelope (the bound of the per-contact ones) [m]
+    v_rec: float  # recovery speed cap (0: none) [m/s]
+    v_th: float  # restitution threshold [m/s]
+    n_tot: int  # particle rows (owned, then ghosts)
+    n_own: int  # owned particle rows
+    nb: int  # free rigid-body walls (rows after the particles')
+    npairs: int  # listed pairs
+    walls: bool  # any wall
+    nw: int  # wall candidates
+    w_params: np.ndarray | None = None  # the walls' geometry at the start of the step
+    external: Any = False  # boundary forces were applied (sim.external_forces)
+    scaled: np.ndarray | None = None  # owned rows whose masses are scaled (_scale_masses)
+    per_contact: bool = False  # the per-contact envelope rule
+    gh: float = 0.0  # |g| h [m/s]
+    spd: np.ndarray | None = None  # speed bounds of the bodies (per-contact rule), else empty
+    env_base: float = 0.0  # the per-contact envelope's floor (or the global envelope) [m]
+    env_factor: float = 0.0  # its factor on the speed bound (2.5 h; 0 without the per-contact rule)
+    v_start: np.ndarray | None = None  # start-of-step velocities (per-contact rule: a re-solve's start)
+    w_start: np.ndarray | None = None
+    n_pair: int = 0  # contact rows of pairs
+    nc: int = 0  # contact rows (pairs, then walls)
+    flags: Any = 0  # the kernels' flags (sim.finish_step)
+    v_free: np.ndarray | None = None  # free velocities (bodies' rows included)
+    w_free: np.ndarray | None = None
+    f_ext: np.ndarray | None = None  # the boundary forces and torques (added back to the reported)
+    t_ext: np.ndarray | None = None
+    P: np.ndarray | None = None  # accumulated impulses per body
+    L: np.ndarray | None = None  # accumulated angular impulses per body
+    it: int = 0  # solver iterations (re-solves included)
+    res: float = 0.0  # the final residual [m/s]
+
+
 class Stepper(Integrator):
     """The DEM-C time step for one :class:`~pdem.Simulation` (holds the solver's work arrays). It uses
     the simulation's public integrator API only (:mod:`pdem.integrate.base`)."""
 
     name = "complementarity"
     drifts_before_check = False  # its deferred check comes before any drift of the next step
+    #: records kept while nobody drains them (:meth:`drain_records`): the last this many steps'
+    log_keep: int = 10_000
 
     @property
     def p(self) -> ComplementarityParams:
@@ -252,7 +294,10 @@ class Stepper(Integrator):
         self.max_residual = 0.0
         self.last_iterations = 0
         self.last_residual = 0.0
-        self.log: list[tuple[int, int, float, int]] = []  # (step, iterations, residual, contacts)
+        self.last_contacts = 0  # the last step's contact rows (this rank's)
+        # the steps' records (step, iterations, residual, contacts) not yet drained: see drain_records
+        self.log: list[tuple[int, int, float, int]] = []
+        self._drained = False  # drain_records has been called: keep every record until the next call
         self._cap = 0
         self._base_envelope = sim.envelope_base  # 0.1 r_min or the deck's value
         self._bodies: list = []
@@ -310,12 +355,43 @@ class Stepper(Integrator):
 
     # ------------------------------------------------------------------ one step
     def step(self) -> None:
+        """One time step h (the module docstring's 1–5), in phases that share a :class:`_StepProblem`:
+
+        1. :meth:`_update_list`: this step's envelope, the neighbour list's reach, the list (rebuilt,
+           or its ghosts forwarded);
+        2. :meth:`_setup_bodies`: the free rigid-body walls' rows, after the grains';
+        3. :meth:`_begin_problem`: contact rows reserved, the walls' start-of-step geometry, walls
+           advanced, boundary forces and mass scaling, the envelope rule;
+        4. :meth:`_assemble`: the contact rows (normals, biases, warm start); the run's first step
+           also measures the initial overlap;
+        5. :meth:`_predict`: the free velocities v + h g (+ h f_ext / m);
+        6. :meth:`_solve_step`: the CCP (:meth:`_solve`), solved again when the per-contact envelope
+           missed a contact (:meth:`_resolve_missed`), else the missed contacts counted
+           (:meth:`_count_missed`);
+        7. :meth:`_advance`: history, reported forces, x⁺ = x + h v⁺, rigid bodies;
+        8. :meth:`_record_step`: the modelled work, the counters and the step's record; then
+           ``sim.finish_step``."""
         sim = self.sim
-        p = sim.particles
-        h = sim.dt
-        cs = sim.contact_store
-        # this step's envelope is a function of the state alone (not of when the list was built), so
-        # results do not depend on rebuild timing, checkpoints or the partition
+        self._update_list()
+        self._setup_bodies()
+        sp = self._begin_problem()
+        sp.n_pair, sp.nc, sp.flags = self._assemble(sp, sp.spd)
+        if self.n_steps == 0:
+            cs = sim.contact_store
+            p = sim.particles
+            self.initial_overlap = all_max(sim.comm, _deepest_overlap(p.x, p.r, cs.pi, cs.pj))
+        self._predict(sp)
+        self._solve_step(sp)
+        self._advance(sp)
+        self._record_step(sp)
+        sim.finish_step(sp.flags)
+
+    def _update_list(self) -> None:
+        """This step's envelope, a function of the state alone (not of when the list was built), so
+        results do not depend on rebuild timing, checkpoints or the partition; the list's reach
+        widened to it if needed, and the neighbour list updated (rebuilt with a reach narrowed to the
+        grains' speed, or its ghosts forwarded)."""
+        sim = self.sim
         need = self._needed_envelope()
         sim.envelope = need
         if need > sim.list_envelope:
@@ -336,6 +412,12 @@ class Stepper(Integrator):
             )  # fmt: skip
 
         sim.update_neighbours(before_rebuild=narrow)
+
+    def _setup_bodies(self) -> None:
+        """The step's bodies: ``self.V, W, IM, II, DOF`` are the particles' arrays, or, when walls are
+        free rigid bodies (solved with the grains), padded copies with the bodies' rows after the
+        particles'."""
+        p = self.sim.particles
         bodies = self._bodies = self._free_bodies()
         nb = len(bodies)
         if nb:  # rigid-body walls are solved with the grains, in rows after them
@@ -351,155 +433,234 @@ class Stepper(Integrator):
                 self.DOF[n + j] = wall.motion.dof_bits
         else:
             self.V, self.W, self.IM, self.II, self.DOF = p.v, p.w, p.inv_m, p.inv_i, p.dof
+
+    def _begin_problem(self) -> _StepProblem:
+        """Everything the contact rows are assembled from: the rows reserved, the walls' geometry at
+        the start of the step, then the walls advanced (their velocity over the step enters the
+        constraints), the boundary forces (and the mass scaling they may call for) and the envelope
+        rule's speed bounds."""
+        sim = self.sim
+        p = sim.particles
+        h = sim.dt
+        cs = sim.contact_store
+        nb = len(self._bodies)
         env = sim.envelope
-        v_rec = self.p.recovery_speed or 0.0
-        v_th = self.p.restitution_threshold
         n_tot = p.n
-        n_own = p.n_owned
-        npairs = cs.pi.shape[0]
         walls = bool(cs.walls)
-        nw = int(cs.cstart[-1]) if walls else 0
-        self._reserve(npairs + nw)
+        sp = _StepProblem(
+            h=h, env=env, v_rec=self.p.recovery_speed or 0.0, v_th=self.p.restitution_threshold, n_tot=n_tot,
+            n_own=p.n_owned, nb=nb, npairs=cs.pi.shape[0], walls=walls,
+            nw=int(cs.cstart[-1]) if walls else 0,
+        )  # fmt: skip
+        self._reserve(sp.npairs + sp.nw)
         if walls and cs.walls_changed:
             cs.pack_walls()
         # geometry at the start of the step (walls where they are now) ...
-        w_params = cs.params.copy() if walls else None
+        sp.w_params = cs.params.copy() if walls else None
         # ... with the velocity the walls move at during the step
         sim.advance_walls(h)
         # external (boundary) forces: impulses h f_ext enter the free velocity; the reported force
         # below adds them back. Taken before the rows are assembled: a boundary that declares its
         # loads' stiffness makes the step scale those grains' masses (_scale_masses), which the
         # rows' effective masses read
-        external = sim.external_forces()
-        scaled = self._scale_masses(h, external)
+        sp.external = sim.external_forces()
+        sp.scaled = self._scale_masses(h, sp.external)
         # self.V: the velocities at the start of the step (restitution's pre-impact velocities)
-        per_contact = self.p.envelope is None and self.p.envelope_rule == "contact"
-        gh = float(np.linalg.norm(sim.g)) * h
-        if per_contact:
-            spd = ck.speed_bounds(self.V, n_tot + nb, gh)
-            env_base, env_factor = self._base_envelope, 2.5 * h
-            v_start, w_start = self.V.copy(), self.W.copy()
+        sp.per_contact = self.p.envelope is None and self.p.envelope_rule == "contact"
+        sp.gh = float(np.linalg.norm(sim.g)) * h
+        if sp.per_contact:
+            sp.spd = ck.speed_bounds(self.V, n_tot + nb, sp.gh)
+            sp.env_base, sp.env_factor = self._base_envelope, 2.5 * h
+            sp.v_start, sp.w_start = self.V.copy(), self.W.copy()
         else:
-            spd, env_base, env_factor = np.zeros(0), env, 0.0
+            sp.spd, sp.env_base, sp.env_factor = np.zeros(0), env, 0.0
         if walls:
             cs.filter_meshes(p.x, p.r, p.inv_m, env)
+        return sp
 
-        def assemble(spd):
-            n_pair, flags = ck.assemble_pairs(
-                cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env,
-                v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.croll, self.gam, self.csrc, spd, env_base, env_factor, self._pair_work(),
+    def _assemble(self, sp: _StepProblem, spd: np.ndarray) -> tuple[int, int, int]:
+        """The contact rows: listed pairs, then wall contacts, within their envelopes (speed bounds
+        ``spd``). Returns (pair rows, all rows, the kernels' flags)."""
+        sim = self.sim
+        p = sim.particles
+        cs = sim.contact_store
+        h, env, v_rec, v_th = sp.h, sp.env, sp.v_rec, sp.v_th
+        n_pair, flags = ck.assemble_pairs(
+            cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env,
+            v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+            self.cscale, self.croll, self.gam, self.csrc, spd, sp.env_base, sp.env_factor, self._pair_work(),
+        )  # fmt: skip
+        nc = n_pair
+        if sp.walls:
+            nc, wflags = ck.assemble_walls(
+                cs.kinds, sp.w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
+                cs.wall_hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
+                v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+                self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(sp.n_tot), spd,
+                sp.env_base, sp.env_factor,
             )  # fmt: skip
-            nc = n_pair
-            if walls:
-                nc, wflags = ck.assemble_walls(
-                    cs.kinds, w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
-                    cs.wall_hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
-                    v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                    self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(n_tot), spd,
-                    env_base, env_factor,
-                )  # fmt: skip
-                flags |= wflags
-            return n_pair, nc, flags
+            flags |= wflags
+        return n_pair, nc, flags
 
-        n_pair, nc, flags = assemble(spd)
-        if self.n_steps == 0:
-            self.initial_overlap = all_max(sim.comm, _deepest_overlap(p.x, p.r, cs.pi, cs.pj))
+    def _predict(self, sp: _StepProblem) -> None:
+        """The free velocities v_free = v + h g (a scaled grain's gain from its true weight; the rigid
+        bodies' from their loads) plus the boundary forces' impulses, and the impulse accumulators."""
+        sim = self.sim
+        p = sim.particles
+        h, n_tot, n_own = sp.h, sp.n_tot, sp.n_own
         g = sim.g
-        v_free = np.empty((n_tot + nb, 3))
-        w_free = np.zeros((n_tot + nb, 3))
-        for j, (_k, wall) in enumerate(bodies):
+        v_free = sp.v_free = np.empty((n_tot + sp.nb, 3))
+        w_free = sp.w_free = np.zeros((n_tot + sp.nb, 3))
+        for j, (_k, wall) in enumerate(self._bodies):
             v_free[n_tot + j] = wall.motion.free_velocity(h)
         ck.free_velocities(p.v, p.w, p.motion, p.dof, g[0], g[1], g[2], h, n_own, v_free, w_free)
+        scaled = sp.scaled
         if scaled is not None:  # a heavier grain gains m g h / m_eff from its (true) weight
             ratio = (p.mass[scaled] * self.IM[scaled])[:, None]
             v_free[scaled] = p.v[scaled] + (v_free[scaled] - p.v[scaled]) * ratio
-        if external:
+        if sp.external:
             ck.add_external_impulses(v_free, w_free, p.f, p.t, self.IM, p.inv_i, p.motion, p.dof, h, n_own)
-            f_ext, t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
-        P = np.empty((n_tot + nb, 3))
-        L = np.empty((n_tot + nb, 3))
-        it, res = self._solve(nc, v_free, w_free, P, L)
-        if per_contact and math.isfinite(res):
-            # a grain pushed during the step by its neighbours' impulses can close a gap its own
-            # start speed did not cover: if any pair or wall contact outside the problem overlaps
-            # at the end of the step, solve again with every body's speed bound raised to its solved
-            # speed, and if that misses one too, with the global envelope (the first rule's)
-            wb = self._body_rows(n_tot)[0] if walls else np.zeros(0, dtype=np.int64)
-            for attempt in range(2):
-                missed = ck.missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env, spd, env_base,
-                                         env_factor)  # fmt: skip
-                if walls:
-                    missed += ck.missed_walls(
-                        cs.kinds, w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
-                        p.x, self.V, p.r, p.inv_m, h, env, wb, spd, env_base, env_factor,
-                    )  # fmt: skip
-                if not any_rank(sim.comm, missed > 0):
-                    break
-                self.n_resolves += 1
-                if attempt == 0:
-                    spd = np.maximum(spd, ck.speed_bounds(self.V, n_tot + nb, gh))
-                else:
-                    spd = np.full_like(spd, np.inf)  # every contact at the global envelope
-                self.V[:] = v_start  # the start-of-step velocities (restitution reads them)
-                self.W[:] = w_start
-                n_pair, nc, flags2 = assemble(spd)
-                flags |= flags2
-                it2, res = self._solve(nc, v_free, w_free, P, L)
-                it += it2
-        elif math.isfinite(res):
-            # a fixed or global envelope: the contacts it left out that overlap at the end of the step
-            # (grains too fast for it: tunnelling) are counted, one collective decision per step
-            wb = self._body_rows(n_tot)[0] if walls else np.zeros(0, dtype=np.int64)
-            zero = np.zeros(n_tot + nb)
-            missed = ck.swept_missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env)
-            if walls:
+            sp.f_ext, sp.t_ext = p.f[:n_own].copy(), p.t[:n_own].copy()
+        sp.P = np.empty((n_tot + sp.nb, 3))
+        sp.L = np.empty((n_tot + sp.nb, 3))
+
+    def _solve_step(self, sp: _StepProblem) -> None:
+        """The CCP with the chosen solver; then the envelope's check: with the per-contact rule a
+        contact it missed makes the step solve again (:meth:`_resolve_missed`), with a fixed or
+        global envelope the missed contacts are counted (:meth:`_count_missed`). Every solver ends
+        with the velocities (and P, L) of its final impulses, accumulated in contact order
+        (deterministic)."""
+        sp.it, sp.res = self._solve(sp.nc, sp.v_free, sp.w_free, sp.P, sp.L)
+        if sp.per_contact and math.isfinite(sp.res):
+            self._resolve_missed(sp)
+        elif math.isfinite(sp.res):
+            self._count_missed(sp)
+
+    def _resolve_missed(self, sp: _StepProblem) -> None:
+        """A grain pushed during the step by its neighbours' impulses can close a gap its own start
+        speed did not cover: if any pair or wall contact outside the problem overlaps at the end of
+        the step, solve again with every body's speed bound raised to its solved speed, and if that
+        misses one too, with the global envelope (the first rule's). One collective decision per
+        attempt."""
+        sim = self.sim
+        p = sim.particles
+        cs = sim.contact_store
+        h, env, n_tot, nb = sp.h, sp.env, sp.n_tot, sp.nb
+        spd = sp.spd
+        wb = self._body_rows(n_tot)[0] if sp.walls else np.zeros(0, dtype=np.int64)
+        for attempt in range(2):
+            missed = ck.missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env, spd, sp.env_base,
+                                     sp.env_factor)  # fmt: skip
+            if sp.walls:
                 missed += ck.missed_walls(
-                    cs.kinds, w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
-                    p.x, self.V, p.r, p.inv_m, h, env, wb, zero, env, 0.0,
+                    cs.kinds, sp.w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
+                    p.x, self.V, p.r, p.inv_m, h, env, wb, spd, sp.env_base, sp.env_factor,
                 )  # fmt: skip
-            if any_rank(sim.comm, missed > 0):
-                self.n_missed_steps += 1
-            # the envelope against the largest closing distance of the step, 2 h max|v⁺| (pairs the
-            # neighbour list never held can pass through each other unseen when it is larger)
-            fastest = float(np.max(ck.speed_bounds(self.V, n_tot + nb, 0.0))) if n_tot + nb else 0.0
-            if 2.0 * h * all_max(sim.comm, fastest) > env:
-                self.n_short_steps += 1
-        # every solver ends with the velocities (and P, L) of its final impulses, accumulated in
-        # contact order (deterministic)
+            if not any_rank(sim.comm, missed > 0):
+                break
+            self.n_resolves += 1
+            if attempt == 0:
+                spd = np.maximum(spd, ck.speed_bounds(self.V, n_tot + nb, sp.gh))
+            else:
+                spd = np.full_like(spd, np.inf)  # every contact at the global envelope
+            self.V[:] = sp.v_start  # the start-of-step velocities (restitution reads them)
+            self.W[:] = sp.w_start
+            sp.n_pair, sp.nc, flags2 = self._assemble(sp, spd)
+            sp.flags |= flags2
+            it2, sp.res = self._solve(sp.nc, sp.v_free, sp.w_free, sp.P, sp.L)
+            sp.it += it2
+
+    def _count_missed(self, sp: _StepProblem) -> None:
+        """A fixed or global envelope: the contacts it left out that overlap at the end of the step
+        (grains too fast for it: tunnelling) are counted, one collective decision per step; and the
+        envelope against the largest closing distance of the step, 2 h max|v⁺| (pairs the neighbour
+        list never held can pass through each other unseen when it is larger)."""
+        sim = self.sim
+        p = sim.particles
+        cs = sim.contact_store
+        h, env, n_tot, nb = sp.h, sp.env, sp.n_tot, sp.nb
+        wb = self._body_rows(n_tot)[0] if sp.walls else np.zeros(0, dtype=np.int64)
+        zero = np.zeros(n_tot + nb)
+        missed = ck.swept_missed_pairs(cs.pi, cs.pj, p.x, self.V, p.r, p.inv_m, h, env)
+        if sp.walls:
+            missed += ck.missed_walls(
+                cs.kinds, sp.w_params, cs.params, cs.vel, cs.omega, cs.centre, cs.cstart, cs.cand_step,
+                p.x, self.V, p.r, p.inv_m, h, env, wb, zero, env, 0.0,
+            )  # fmt: skip
+        if any_rank(sim.comm, missed > 0):
+            self.n_missed_steps += 1
+        fastest = float(np.max(ck.speed_bounds(self.V, n_tot + nb, 0.0))) if n_tot + nb else 0.0
+        if 2.0 * h * all_max(sim.comm, fastest) > env:
+            self.n_short_steps += 1
+
+    def _advance(self, sp: _StepProblem) -> None:
+        """Apply the solved impulses: the warm-start history, the reported forces (impulses / h; the
+        walls' loads), v⁺ and x⁺ = x + h v⁺ of the grains (boundary forces added back to the reported
+        ones), and the rigid bodies moved by semi-implicit Euler, as the grains."""
+        sim = self.sim
+        p = sim.particles
+        cs = sim.contact_store
+        h, nc, n_pair, n_own, n_tot = sp.h, sp.nc, sp.n_pair, sp.n_own, sp.n_tot
+        g = sim.g
         ck.store_history(self.gam, self.csrc, nc, n_pair, cs.hist, cs.wall_hist)
-        if cs.force.shape[0] != npairs:
-            cs.force = np.zeros((npairs, 3))
+        if cs.force.shape[0] != sp.npairs:
+            cs.force = np.zeros((sp.npairs, 3))
         ck.contact_forces(
             self.gam, self.cn, self.cpt, self.croll, self.csrc, nc, n_pair, 1.0 / h, cs.force, cs.out_idx,
             cs.out_val, cs.counts, cs.cstart,
         )  # fmt: skip
         sim.record_wall_loads()
-        flags |= ck.finish_step(
-            p.x, p.v, p.w, p.f, p.t, P, L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own,
+        sp.flags |= ck.finish_step(
+            p.x, p.v, p.w, p.f, p.t, sp.P, sp.L, p.mass, p.motion, g[0], g[1], g[2], 1.0 / h, h, n_own,
             sim.position_snap,
         )  # fmt: skip
-        if external:
-            p.f[:n_own] += f_ext
-            p.t[:n_own] += t_ext
-        for j, (k, wall) in enumerate(bodies):  # semi-implicit Euler, as the grains
+        if sp.external:
+            p.f[:n_own] += sp.f_ext
+            p.t[:n_own] += sp.t_ext
+        for j, (k, wall) in enumerate(self._bodies):  # semi-implicit Euler, as the grains
             wall.motion.finish(wall, self.V[n_tot + j].copy(), h)
             cs.update_wall(k)  # the next step's contacts start from where the body is now
+
+    def _record_step(self, sp: _StepProblem) -> None:
+        """The step's bookkeeping: the load balancer's measure of this rank's work, the solver's
+        counters and the step's record (:meth:`drain_records`)."""
         # the load balancer's measure of this rank's work: modelled, not timed. The step's time includes
         # the waits in its collectives (every iteration has one or two), where the emptier rank waits
         # for the busier, so both look equally busy and the cut planes never move: the 2-rank DEM-C
         # hopper stayed at a work imbalance (max/mean) of 1.8-2.0 through 653 rebalances
-        sim.add_work_time(self._modelled_work(nc, it, n_tot + nb, npairs + nw))
+        sim = self.sim
+        it, res, nc = sp.it, sp.res, sp.nc
+        sim.add_work_time(self._modelled_work(nc, it, sp.n_tot + sp.nb, sp.npairs + sp.nw))
         converged = res <= self.p.tolerance
         if not converged:
             self.n_unconverged += 1
         self.last_iterations = it
         self.last_residual = res
+        self.last_contacts = nc
         self.n_steps += 1
         self.total_iterations += it
         self.max_residual = max(self.max_residual, res)
-        self.log.append((sim.step_count + 1, it, res, nc))  # contacts: this rank's
-        sim.finish_step(flags)
+        self._record((sim.step_count + 1, it, res, nc))  # contacts: this rank's
+
+    # ------------------------------------------------------------------ the steps' records
+    def _record(self, record: tuple[int, int, float, int]) -> None:
+        """Keep a step's record: every one while a reader drains them (:meth:`drain_records` has been
+        called), else the last ``log_keep`` (the list is trimmed in blocks, so it never holds more
+        than 5/4 of them)."""
+        log = self.log
+        log.append(record)
+        if not self._drained and len(log) > self.log_keep + self.log_keep // 4:
+            del log[: len(log) - self.log_keep]
+
+    def drain_records(self) -> list[tuple[int, int, float, int]]:
+        """The steps' records (step, iterations, residual, this rank's contacts) since the last drain,
+        oldest first, handed over and forgotten. The first call makes the stepper keep every record
+        from then on until the next call (a reader that drains, as the deck runner does at every
+        series row, bounds the log by its cadence); before it, only the last ``log_keep``
+        records are kept (``Simulation.run`` for a million steps does not grow the log)."""
+        self._drained = True
+        records, self.log = self.log, []
+        return records
 
     @property
     def wants_load_stiffness(self) -> bool:
@@ -816,7 +977,7 @@ class Stepper(Integrator):
         sim = self.sim
         p = sim.particles
         comm = sim.comm
-        nc = int(self.log[-1][3]) if self.log else 0
+        nc = int(self.last_contacts)
         width = self.gam.shape[1]
         mask = (self.gam[:nc, 0] > 0.0) if active else np.ones(nc, dtype=bool)
         B = np.zeros((width, nc))
@@ -880,69 +1041,117 @@ class Stepper(Integrator):
         residual) are global: exact sums over :meth:`_counted_rows` (each contact once) and an
         exact max, gathered in one collective per line-search trial, so every rank takes the same
         decisions and the results are bitwise identical on any number of ranks. The serial run
-        takes the same path (its sums are exact too)."""
+        takes the same path (its sums are exact too).
+
+        Phases (:class:`_ApgdSolve`): :meth:`~_ApgdSolve.start` (the first iterate and the step
+        size from a Lipschitz estimate), then per iteration :meth:`~_ApgdSolve.line_search` (the
+        projected step, halved until accepted, or a stall), :meth:`~_ApgdSolve.stop` (the residual
+        on checked iterations, the best iterate, the stopping test) and :meth:`~_ApgdSolve.next_point`
+        (restart or Nesterov extrapolation). The solve returns its best checked iterate."""
         pr = self.p
-        comm = self.sim.comm
-        if not any_rank(comm, nc > 0):
+        if not any_rank(self.sim.comm, nc > 0):
             self._sync_velocities(nc, v_free, w_free, P, L)
             return 0, 0.0
-        corrected = self.corrected
-        cmu = self.cmu[:nc]
-        cscale = self.cscale[:nc]
-        croll = self.croll[:nc]
-        rows = self._counted_rows(nc)
-        all_rows = rows.shape[0] == nc  # serially, or no contact held by two ranks: every row counts
+        solve = _ApgdSolve(self, nc, v_free, w_free, P, L)
+        solve.start(warm=pr.apgd_start == "warm")
+        it = 0
+        while it < pr.max_iterations:
+            it += 1
+            # the residual on every k-th iteration (the first included) and at the cap
+            check = (it - 1) % pr.check_every == 0 or it == pr.max_iterations
+            trial = solve.line_search(check)
+            if trial is None:  # stalled: stop this solve, keeping its best iterate
+                self.n_stalls += 1
+                break
+            if solve.stop(trial, check, pr.tolerance):
+                break
+            solve.next_point(trial)
+        self.gam[:nc] = solve.best.T
+        self._sync_velocities(nc, v_free, w_free, P, L)
+        return it, solve.best_res
 
-        def reduce(pairs, maxima=()):
-            """Global exact Σ a·b for each (a, b) (columns) and global max of each local value."""
-            return exact_reduce(comm, [dot_partials_columns(a, b, rows, all_rows) for a, b in pairs], maxima)
 
-        # The iterates live in columns (array[k, c]: component k of contact c), as Jacobi's, so that
-        # the passes stream (ck.apgd_*). Work arrays are reused through the solve and across steps
-        # (views of one block): allocating them per iteration cost as much as the iteration's
-        # kernels on a 10,000-contact scene (page faults of fresh memory).
-        width = self.gam.shape[1]
+class _ApgdSolve:
+    """One APGD solve of a step (:meth:`Stepper._apgd`, which documents the method): its work arrays,
+    its global sums and its phases. The iterates live in columns (array[k, c]: component k of
+    contact c), as Jacobi's, so that the passes stream (``ck.apgd_*``)."""
+
+    def __init__(self, st: Stepper, nc: int, v_free, w_free, P, L) -> None:
+        self.st = st
+        self.nc = nc
+        self.v_free, self.w_free, self.P, self.L = v_free, w_free, P, L
+        self.comm = st.sim.comm
+        self.corrected = st.corrected
+        self.cmu = st.cmu[:nc]
+        self.cscale = st.cscale[:nc]
+        self.croll = st.croll[:nc]
+        self.rows = st._counted_rows(nc)
+        # serially, or no contact held by two ranks: every row counts
+        self.all_rows = self.rows.shape[0] == nc
+        # Work arrays are reused through the solve and across steps (views of one block): allocating
+        # them per iteration cost as much as the iteration's kernels on a 10,000-contact scene (page
+        # faults of fresh memory).
+        width = self.width = st.gam.shape[1]
         # (a flat buffer reshaped: every array C-contiguous, which lets numba vectorize the passes)
-        if self._apgd_work.shape[0] < (9 * width + 6) * nc:
-            self._apgd_work = np.empty(int(1.25 * (9 * width + 6) * nc))
-        work = self._apgd_work[: 9 * width * nc].reshape(9, width, nc)
-        Y, GY, GK, UK, GN, UN, BEST, G0, GH = work
-        GYN_c, UNN_c = self._apgd_work[9 * width * nc : (9 * width + 2) * nc].reshape(2, nc)
-
-        def normal(u: np.ndarray, un: np.ndarray) -> np.ndarray:
-            """The normal row of ũ: the corrected one, or u's own for the relaxed cone."""
-            return un if corrected else u[0]
-
+        if st._apgd_work.shape[0] < (9 * width + 6) * nc:
+            st._apgd_work = np.empty(int(1.25 * (9 * width + 6) * nc))
+        buf = st._apgd_work
+        work = buf[: 9 * width * nc].reshape(9, width, nc)
+        self.Y, self.GY, self.GK, self.UK, self.GN, self.UN, self.BEST, self.G0, self.GH = work
+        self.GYN_c, self.UNN_c = buf[9 * width * nc : (9 * width + 2) * nc].reshape(2, nc)
         # the trial's three dot products per contact, and the contacts' residuals
-        D = self._apgd_work[(9 * width + 2) * nc : (9 * width + 6) * nc].reshape(4, nc)
-        no_trial = np.empty((width, 0))
+        self.D = buf[(9 * width + 2) * nc : (9 * width + 6) * nc].reshape(4, nc)
+        self.no_trial = np.empty((width, 0))
 
-        def grad(gv: np.ndarray, u: np.ndarray, un: np.ndarray, trial: bool = False) -> None:
-            """u(γ) into ``u`` (and ũ_n into ``un`` for the corrected cone), from γ = ``gv``; with
-            ``trial`` also the trial's first dot products (against y)."""
-            ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, gv, nc, P, L)
-            self._apply_impulses(nc, v_free, w_free, P, L, gv.T)
-            ck.apgd_gather(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, cmu, self.V, self.W, nc, u, un,
-                corrected, gv, Y if trial else no_trial, GY if trial else no_trial, GYN_c, D[0], trial,
-            )  # fmt: skip
+    # ------------------------------------------------------------------ the solve's operations
+    def reduce(self, pairs, maxima=()):
+        """Global exact Σ a·b for each (a, b) (columns) and global max of each local value."""
+        rows, all_rows = self.rows, self.all_rows
+        return exact_reduce(self.comm, [dot_partials_columns(a, b, rows, all_rows) for a, b in pairs], maxima)
 
+    def normal(self, u: np.ndarray, un: np.ndarray) -> np.ndarray:
+        """The normal row of ũ: the corrected one, or u's own for the relaxed cone."""
+        return un if self.corrected else u[0]
+
+    def grad(self, gv: np.ndarray, u: np.ndarray, un: np.ndarray, trial: bool = False) -> None:
+        """u(γ) into ``u`` (and ũ_n into ``un`` for the corrected cone), from γ = ``gv``; with
+        ``trial`` also the trial's first dot products (against y)."""
+        st = self.st
+        nc = self.nc
+        ck.accumulate_columns(st.cb, st.cn, st.ca, st.croll, gv, nc, self.P, self.L)
+        st._apply_impulses(nc, self.v_free, self.w_free, self.P, self.L, gv.T)
+        no_trial = self.no_trial
+        ck.apgd_gather(
+            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.croll, self.cmu, st.V, st.W, nc, u, un,
+            self.corrected, gv, self.Y if trial else no_trial, self.GY if trial else no_trial, self.GYN_c,
+            self.D[0], trial,
+        )  # fmt: skip
+
+    @staticmethod
+    def objective(s_nu: float, s_r: float) -> float:
+        """f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ."""
+        return 0.5 * s_nu + s_r
+
+    # ------------------------------------------------------------------ phases
+    def start(self, warm: bool) -> None:
+        """The first iterate γ0 (zero impulses, or the last step's with ``warm``), projected onto the
+        cones, y = γ_k = γ0 and u(y); the relaxed cone's r = u(0); the step size 1/L from a
+        Lipschitz estimate |ũ(γ0) − ũ(γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start (3/min B when that
+        is not positive)."""
+        st, nc, width = self.st, self.nc, self.width
+        cmu, cscale, croll = self.cmu, self.cscale, self.croll
+        G0, GH, GY, UN, GYN_c, UNN_c = self.G0, self.GH, self.GY, self.UN, self.GYN_c, self.UNN_c
         # a cold start: from the last step's impulses (the Jacobi warm start) APGD took 23.8 instead
         # of 22.8 iterations per step on the 300-bead hopper scene, and the 4,000-bead hopper's fill
         # (h = 1e-3 s) no longer settled below its kinetic-energy threshold by 0.3 s
-        warm = self.gam[:nc].copy() if pr.apgd_start == "warm" else np.zeros((nc, width))
+        start = st.gam[:nc].copy() if warm else np.zeros((nc, width))
         # u(0) = r (the relaxed cone's f), kept for the solve
-        r_vec = None
-        if not corrected:
+        self.r_vec = None
+        if not self.corrected:
             G0[:] = 0.0
-            grad(G0, UN, UNN_c)
-            r_vec = UN.copy()
-
-        def objective(s_nu: float, s_r: float) -> float:
-            # f = ½ γ·(Nγ) + r·γ with Nγ = u − r, from the global sums γ·(u − r) and r·γ
-            return 0.5 * s_nu + s_r
-
-        g0 = ck.project_cone_array(warm, cmu, croll)
+            self.grad(G0, UN, UNN_c)
+            self.r_vec = UN.copy()
+        g0 = ck.project_cone_array(start, cmu, croll)
         # step from a Lipschitz estimate: |N(γ0 − γ̂)| / |γ0 − γ̂| with γ̂ a perturbed start
         e_n = np.zeros(width)
         e_n[0] = 1.0
@@ -950,107 +1159,117 @@ class Stepper(Integrator):
         G0[:] = g0.T
         GH[:] = ghat.T
         d = G0 - GH
-        nd = math.sqrt(reduce([(d, d)])[0][0])
-        grad(G0, GY, GYN_c)  # ũ and u at the first y = γ0
-        gyn = normal(GY, GYN_c)
+        nd = math.sqrt(self.reduce([(d, d)])[0][0])
+        self.grad(G0, GY, GYN_c)  # ũ and u at the first y = γ0
+        self.gyn = self.normal(GY, GYN_c)
         if nd > 0.0:
-            grad(GH, UN, UNN_c)
+            self.grad(GH, UN, UNN_c)
             du = GY - UN
-            du[0] = gyn - normal(UN, UNN_c)
-            lip = math.sqrt(reduce([(du, du)])[0][0]) / nd
+            du[0] = self.gyn - self.normal(UN, UNN_c)
+            lip = math.sqrt(self.reduce([(du, du)])[0][0]) / nd
         else:
             lip = 0.0
         if not (lip > 0.0):
             local = float(np.max(3.0 / cscale)) if nc else -math.inf
-            lip = reduce([], [local])[1][0]
-        t = 1.0 / lip
-        gam_k = GK
-        gam_k[:] = G0
-        u_k = UK
-        u_k[:] = GY  # u(γ_k)
-        y = Y
-        y[:] = G0
-        theta = 1.0
-        best = BEST
-        best[:] = G0
-        g_new, u_new = GN, UN
-        best_res = math.inf
-        res = math.inf
-        it = 0
-        while it < pr.max_iterations:
-            it += 1
-            trials = 0
-            stalled = False
-            # the residual on every k-th iteration (the first included) and at the cap
-            check = (it - 1) % pr.check_every == 0 or it == pr.max_iterations
+            lip = self.reduce([], [local])[1][0]
+        self.lip = lip
+        self.t = 1.0 / lip
+        self.gam_k = self.GK
+        self.gam_k[:] = G0
+        self.u_k = self.UK
+        self.u_k[:] = GY  # u(γ_k)
+        self.y = self.Y
+        self.y[:] = G0
+        self.theta = 1.0
+        self.best = self.BEST
+        self.best[:] = G0
+        self.g_new, self.u_new = self.GN, self.UN
+        self.best_res = math.inf
+
+    def line_search(self, check: bool) -> tuple | None:
+        """One iteration's step: γ = Π_K(y − t ũ(y)) and ũ(γ), accepted when the local Lipschitz
+        test holds (the relaxed cone: f's sufficient decrease), else L doubled and tried again.
+        ``check``: the trial's residual is measured too. One collective per trial: the acceptance
+        test's sums, the restart test's and the residual (the last two used only if the trial is
+        accepted). Returns the accepted trial's global (sums, maxima), or None when the search
+        stalls (non-finite sums, or more than ``MAX_TRIALS`` doublings)."""
+        nc, comm = self.nc, self.comm
+        cmu, cscale, croll = self.cmu, self.cscale, self.croll
+        corrected = self.corrected
+        y, GY, D, UNN_c, r_vec = self.y, self.GY, self.D, self.UNN_c, self.r_vec
+        g_new, u_new, gam_k = self.g_new, self.u_new, self.gam_k
+        if corrected:
+            fy = 0.0
+        else:
+            s = self.reduce([(y, GY - r_vec), (r_vec, y)])[0]
+            fy = self.objective(s[0], s[1])
+        trials = 0
+        while True:
+            # Π(y − t ∇), with the corrected cone's trial sums |γ − y|² and ũ(y)·(γ − γ_k)
+            ck.apgd_project_step(y, GY, self.gyn, gam_k, self.t, cmu, croll, nc, g_new, D[1], D[2], corrected)
+            self.grad(g_new, u_new, UNN_c, corrected)  # and (γ − y)·(ũ(γ) − ũ(y))
+            res_args = (g_new, u_new, self.normal(u_new, UNN_c), cmu, cscale, croll, nc, D[3])
+            local_res = ck.apgd_residual(*res_args) if check else math.inf
             if corrected:
-                fy = 0.0
+                p1, e1, p2, e2, p3, e3 = ck.apgd_trial_sums(D[0], D[1], D[2], self.rows, self.all_rows, nc)
+                s, m = exact_reduce(comm, [(p1, e1), (p2, e2), (p3, e3)], [local_res])
+                accept = s[0] <= self.lip * s[1]
             else:
-                s = reduce([(y, GY - r_vec), (r_vec, y)])[0]
-                fy = objective(s[0], s[1])
-            while True:
-                # Π(y − t ∇), with the corrected cone's trial sums |γ − y|² and ũ(y)·(γ − γ_k)
-                ck.apgd_project_step(y, GY, gyn, gam_k, t, cmu, croll, nc, g_new, D[1], D[2], corrected)
-                grad(g_new, u_new, UNN_c, corrected)  # and (γ − y)·(ũ(γ) − ũ(y))
-                res_args = (g_new, u_new, normal(u_new, UNN_c), cmu, cscale, croll, nc, D[3])
-                local_res = ck.apgd_residual(*res_args) if check else math.inf
-                # one collective per trial: the acceptance test's sums, the restart test's and the
-                # residual (the last two used only if the trial is accepted)
-                if corrected:
-                    p1, e1, p2, e2, p3, e3 = ck.apgd_trial_sums(D[0], D[1], D[2], rows, all_rows, nc)
-                    s, m = exact_reduce(comm, [(p1, e1), (p2, e2), (p3, e3)], [local_res])
-                    accept = s[0] <= lip * s[1]
-                else:
-                    step = g_new - y
-                    restart_terms = (GY, g_new - gam_k)
-                    s, m = reduce(
-                        [(g_new, u_new - r_vec), (r_vec, g_new), (GY, step), (step, step), restart_terms],
-                        [local_res],
-                    )
-                    accept = objective(s[0], s[1]) <= fy + s[2] + 0.5 * lip * s[3]
-                if accept:
-                    break
-                trials += 1
-                if not (math.isfinite(s[0]) and math.isfinite(s[1])) or trials > self.MAX_TRIALS:
-                    # non-finite sums never pass the test, and a step 2^60 times below the estimate
-                    # makes no progress: stop this solve (keeping its best iterate) instead of looping
-                    stalled = True
-                    break
-                lip *= 2.0
-                t = 1.0 / lip
-            if stalled:
-                self.n_stalls += 1
-                break
-            theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
-            beta = theta * (1.0 - theta) / (theta * theta + theta_new)
-            if check:
-                res = m[0]
-                if res < best_res:
-                    best_res = res
-                    best[:] = g_new
-                if res <= pr.tolerance:
-                    break
-            if s[-1] > 0.0:  # restart
-                y[:] = g_new
-                GY[:] = u_new
-                if corrected:
-                    GYN_c[:] = UNN_c
-                theta_new = 1.0
-            else:
-                # y = γ + β (γ − γ_k), and u(y) = u(γ) + β (u(γ) − u(γ_k)) without solving for the
-                # bodies' velocities again (u is affine in γ; elementwise, so the same on every rank):
-                # one evaluation of ũ per iteration instead of two
-                ck.apgd_extrapolate(g_new, gam_k, beta, nc, y)
-                ck.apgd_extrapolate_velocities(u_new, u_k, beta, cmu, nc, GY, GYN_c, corrected)
-            lip *= 0.9
-            t = 1.0 / lip
-            # γ_k ← γ, u(γ_k) ← u(γ); the old γ_k's arrays take the next trial
-            gam_k, g_new = g_new, gam_k
-            u_k, u_new = u_new, u_k
-            theta = theta_new
-        self.gam[:nc] = best.T
-        self._sync_velocities(nc, v_free, w_free, P, L)
-        return it, best_res
+                step = g_new - y
+                restart_terms = (GY, g_new - gam_k)
+                s, m = self.reduce(
+                    [(g_new, u_new - r_vec), (r_vec, g_new), (GY, step), (step, step), restart_terms],
+                    [local_res],
+                )
+                accept = self.objective(s[0], s[1]) <= fy + s[2] + 0.5 * self.lip * s[3]
+            if accept:
+                return s, m
+            trials += 1
+            if not (math.isfinite(s[0]) and math.isfinite(s[1])) or trials > self.st.MAX_TRIALS:
+                # non-finite sums never pass the test, and a step 2^60 times below the estimate
+                # makes no progress: stop this solve (keeping its best iterate) instead of looping
+                return None
+            self.lip *= 2.0
+            self.t = 1.0 / self.lip
+
+    def stop(self, trial: tuple, check: bool, tolerance: float) -> bool:
+        """On a checked iteration: the accepted iterate's residual, kept as the best iterate when it
+        is the lowest so far; True when it is below ``tolerance``."""
+        if not check:
+            return False
+        res = trial[1][0]
+        if res < self.best_res:
+            self.best_res = res
+            self.best[:] = self.g_new
+        return res <= tolerance
+
+    def next_point(self, trial: tuple) -> None:
+        """The next y: a restart (y = γ, θ = 1) when ũ(y)·(γ − γ_k) > 0, else Nesterov's
+        extrapolation y = γ + β (γ − γ_k); L decays by 0.9; γ_k ← γ."""
+        s = trial[0]
+        theta = self.theta
+        theta_new = 0.5 * (-theta * theta + theta * math.sqrt(theta * theta + 4.0))
+        beta = theta * (1.0 - theta) / (theta * theta + theta_new)
+        g_new, u_new = self.g_new, self.u_new
+        if s[-1] > 0.0:  # restart
+            self.y[:] = g_new
+            self.GY[:] = u_new
+            if self.corrected:
+                self.GYN_c[:] = self.UNN_c
+            theta_new = 1.0
+        else:
+            # y = γ + β (γ − γ_k), and u(y) = u(γ) + β (u(γ) − u(γ_k)) without solving for the
+            # bodies' velocities again (u is affine in γ; elementwise, so the same on every rank):
+            # one evaluation of ũ per iteration instead of two
+            ck.apgd_extrapolate(g_new, self.gam_k, beta, self.nc, self.y)
+            ck.apgd_extrapolate_velocities(u_new, self.u_k, beta, self.cmu, self.nc, self.GY, self.GYN_c,
+                                           self.corrected)  # fmt: skip
+        self.lip *= 0.9
+        self.t = 1.0 / self.lip
+        # γ_k ← γ, u(γ_k) ← u(γ); the old γ_k's arrays take the next trial
+        self.gam_k, self.g_new = g_new, self.gam_k
+        self.u_k, self.u_new = u_new, self.u_k
+        self.theta = theta_new
 
 
 def _deepest_overlap(x: np.ndarray, r: np.ndarray, pi: np.ndarray, pj: np.ndarray) -> float:
