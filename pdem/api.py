@@ -28,7 +28,9 @@ Boundaries (``pdem.boundaries``)
     :class:`Rotation`, :class:`Resize` (named sizes: radius, length, …), :class:`Follow` (moves with
     another wall), :class:`RigidBody` (a wall moved by its load), :func:`rotation_matrix`; velocity
     servos: :func:`servo_gain` (a proportional gain capped so the loop stays stable at the step,
-    from :func:`wall_stiffness`, the stiffness of a wall's contacts).
+    from :func:`wall_stiffness`, the stiffness of a wall's contacts); what the boundary tells
+    ``pdem advise``: :class:`Loading`, :class:`Extent`, :class:`SampleSize`, :class:`SizeCheck`,
+    given :class:`SceneFacts`.
 Writers (``pdem.writers``)
     :class:`Writer`, :class:`Frame`, :class:`WallState`, :class:`Piece`, :func:`atomic_write_text`,
     :func:`piece_name`, :func:`safe_key`, :data:`KIND_NAMES`, :func:`wall_triangles`.
@@ -50,7 +52,12 @@ from .boundaries.api import (
     STAGE_COLUMN,
     Boundary,
     BoundaryParams,
+    Extent,
+    Loading,
     MotionSpec,
+    SampleSize,
+    SceneFacts,
+    SizeCheck,
     Vec3,
     WallBoundaryParams,
     listed,
@@ -146,6 +153,7 @@ __all__ = [
     "ContactLaw", "LawParams", "ListNeeds", "ContactStore", "Integrator", "VelocityVerlet",
     "Boundary", "BoundaryParams", "WallBoundaryParams", "Vec3", "MotionSpec", "make_motion",
     "STAGE_COLUMN", "merge_series", "stage_rows", "listed",
+    "Loading", "Extent", "SampleSize", "SizeCheck", "SceneFacts",
     "any_rank", "all_max", "all_min", "all_max_array", "all_sum_int_array",
     "Wall", "shapes", "Motion", "Fixed", "ConstantVelocity", "VelocityFunction", "PositionFunction",
     "Controlled", "Rotation", "Resize", "RigidBody", "Follow", "rotation_matrix",

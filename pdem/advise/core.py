@@ -17,8 +17,7 @@ from typing import Any
 from ..contact.stability import STIFFNESS_LIMIT
 from ..errors import InputError
 from . import rules
-from .scene import LOOSE_SOURCES as LOOSE
-from .scene import Scene, _push_depth, deck_scene, run_probe
+from .scene import Scene, deck_scene, run_probe
 
 __all__ = ["Finding", "Advice", "advise", "apply"]
 
@@ -250,7 +249,7 @@ class _Advisor:
         self.dt_new: dict[str, float] = {}  # stage -> dt it will run with
         self.dt_old: dict[str, float] = {}
         self.rate_factor: dict[str, float] = {}  # stage -> loading-rate factor
-        self.hertz = scene.law == "hertz_mindlin" and scene.parameterisation == "material"
+        self.hertz = scene.hertzian
 
     def run(self) -> list[Finding]:
         if not self.scene.groups:
@@ -344,9 +343,13 @@ class _Advisor:
 
     # ------------------------------------------------------------------ overlap and stiffness
     def _wave_boundaries(self) -> list[str]:
-        """The boundaries that strike grains or time a wave (its speed is set by the stiffness)."""
-        kinds = ("impulse", "sensors")
-        return [n for n, p in self.scene.boundaries.items() if getattr(p, "type", None) in kinds]
+        """The boundaries that strike grains or time a wave (its speed is set by the stiffness): their
+        :class:`~pdem.boundaries.api.Loading` says ``wave``."""
+        return [n for n, lds in self.scene.loadings().items() if any(ld.wave for ld in lds)]
+
+    def _impact_boundaries(self) -> list[str]:
+        """The boundaries that drop a body whose impact the advice does not estimate (``impact``)."""
+        return [n for n, lds in self.scene.loadings().items() if any(ld.impact for ld in lds)]
 
     def overlap(self) -> None:
         sc = self.scene
@@ -356,16 +359,12 @@ class _Advisor:
             self.findings.append(Finding(
                 "overlap", f"law {sc.law}", "ok",
                 "the overlap and stiffness rules are for hertz_mindlin with material stiffness; "
-                + ("DEM-C grains are rigid (no overlap, no stiffness step)" if sc.law == "complementarity"
+                + ("DEM-C grains are rigid (no overlap, no stiffness step)" if sc.rigid
                    else f"law '{sc.law}' ({sc.parameterisation}) is left as it is"),
             ))  # fmt: skip
             return
         waves = self._wave_boundaries()
-        drops = [
-            n
-            for n, p in sc.boundaries.items()
-            if getattr(p, "type", None) == "penetrometer" and getattr(p, "mode", "") == "drop"
-        ]
+        drops = self._impact_boundaries()
         fastest = max((self._stage_speed(s) for s in sc.stages), key=lambda x: x[0])
         factors = {}
         for name in sc.grain_materials():
@@ -497,7 +496,7 @@ class _Advisor:
     def step(self) -> None:
         sc = self.scene
         if not self.hertz:
-            if sc.law == "complementarity":
+            if sc.rigid:
                 self.findings.append(Finding(
                     "step", "all stages", "ok",
                     "DEM-C: the step is bounded by accuracy (how far grains travel per step), not by a "
@@ -656,84 +655,65 @@ class _Advisor:
                "Phys. Rev. E 72, 021309 (2005); target calibrated on the rate halvings of "
                "docs/experiments/direct_shear.md (+1.0 % at I = 4.6e-4) and triaxial.md (−0.09 % at "
                "2.4e-4)")  # fmt: skip
-        for name, p in sc.boundaries.items():
-            kind = getattr(p, "type", None)
-            if kind == "triaxial":
-                key, rate, stage = "strain_rate", p.strain_rate, p.shear_stage
-                shear = rate
-                stress = p.sigma3
-                how = "I = ε̇ d sqrt(ρ/σ₃) (the boundary's own 'inertial' at the start of the shear)"
-            elif kind == "shear_box":
-                key, rate, stage = "shear_speed", p.shear_speed, p.shear_stage
-                shear = rate / (10 * d)
-                stress = p.normal_stress
-                how = (
-                    "I = (v / 10 d) d sqrt(ρ/σ_n): a shear band 10 grains thick (the boundary's own "
-                    "'inertial')"
+        for name, loadings in sc.loadings().items():
+            for ld in loadings:
+                self._inertial_of(name, ld, d, rho, src)
+
+    def _inertial_of(self, name: str, ld: Any, d: float, rho: float, src: str) -> None:
+        """The inertial-number finding of one :class:`~pdem.boundaries.api.Loading` of boundary
+        ``name``: its quasi-static rate (``rate_key``), or its note on a rate nothing changes."""
+        if ld.rate_key is None:
+            if ld.note:
+                self.findings.append(Finding("inertial", f"boundaries.{name}", "ok", ld.note, ld.note_source))
+            return
+        key, rate, stage = ld.rate_key, ld.rate, ld.stages[0] if ld.stages else ""
+        shear, stress, how = ld.shear_rate, ld.stress, ld.rate_how
+        inert = rules.inertial_number(shear, d, rho, stress)
+        nums = {"rate": rate, "key": f"boundaries.{name}.{key}", "stage": stage, "d [m]": d,
+                "density [kg/m3]": rho, "stress [Pa]": stress, "I": inert, "I "
+                "target": rules.INERTIAL_TARGET}  # fmt: skip
+        if not (inert < math.inf):
+            self.findings.append(
+                Finding(
+                    "inertial",
+                    f"boundaries.{name}",
+                    "warn",
+                    "no stress to compute I with (no gravity?)",
+                    src,
+                    nums,
                 )
-            elif kind == "penetrometer" and p.mode == "push":
-                key, rate, stage = "speed", p.speed, p.penetration_stage
-                diameter = p.diameter if p.diameter else 2 * math.sqrt(p.base_area / math.pi)
-                shear = rate / diameter
-                depth = _push_depth(self.deck, name, p, sc.packed_height)
-                stress = rules.CONE_TIP_FACTOR * rules.PACKING_FRACTION * rho * sc.gravity * depth
-                how = (f"I = (v / D_cone) d sqrt(ρ/σ_v), σ_v = φ ρ g z at the deepest tip z = {depth:.3g} m "
-                       "(a rule of thumb: the stress near the tip is a few times σ_v)")  # fmt: skip
-            elif kind == "hopper":
-                self.findings.append(Finding(
-                    "inertial", f"boundaries.{name}", "ok",
-                    "a hopper discharge is a dense inertial flow (I ~ d/D near the orifice), not a "
-                    "quasi-static "
-                    "test: its rate is set by gravity, nothing to change", "GDR MiDi 2004"))  # fmt: skip
-                continue
-            else:
-                continue
-            inert = rules.inertial_number(shear, d, rho, stress)
-            nums = {"rate": rate, "key": f"boundaries.{name}.{key}", "stage": stage, "d [m]": d,
-                    "density [kg/m3]": rho, "stress [Pa]": stress, "I": inert, "I "
-                    "target": rules.INERTIAL_TARGET}  # fmt: skip
-            if not (inert < math.inf):
-                self.findings.append(
-                    Finding(
-                        "inertial",
-                        f"boundaries.{name}",
-                        "warn",
-                        "no stress to compute I with (no gravity?)",
-                        src,
-                        nums,
-                    )
-                )
-                continue
-            k = rules.INERTIAL_TARGET / inert
-            if inert > rules.INERTIAL_MAX:
-                slow = rules.round_sig(rate * k, 2, "down")
-                self.findings.append(Finding(
-                    "inertial", f"boundaries.{name}", "warn",
-                    f"{how}: I = {inert:.2g} is above {rules.INERTIAL_MAX:g}, so the loading is not "
-                    "quasi-static "
-                    f"(the quantity may move by several %); {key} = {slow:.3g} gives I = "
-                    f"{rules.INERTIAL_TARGET:g} "
-                    f"({1 / k:.3g}× slower, costlier)", src, nums,
-                    suggestions={f"boundaries.{name}.{key}": slow}))  # fmt: skip
-            elif k >= rules.CHANGE_FACTOR:
-                fast = rules.round_sig(rate * k, 2, "down")
-                factor = fast / rate
-                self.rate_factor[stage] = factor
-                nums["rate proposed"] = fast
-                self.findings.append(Finding(
-                    "inertial", f"boundaries.{name}", "change",
-                    f"{how}: I = {inert:.2g}, {k:.3g}× below the target {rules.INERTIAL_TARGET:g} "
-                    "(which keeps the "
-                    f"quantity within ~1.3 % of its quasi-static limit): {key} {rate:.3g} → {fast:.3g} "
-                    f"({factor:.3g}× faster); stage '{stage}' ends scaled by the same factor where they "
-                    "are times "
-                    "or steps (an end in strain, displacement or depth needs nothing)", src, nums,
-                    changes={f"boundaries.{name}.{key}": fast}))  # fmt: skip
-            else:
-                self.findings.append(Finding(
-                    "inertial", f"boundaries.{name}", "ok",
-                    f"{how}: I = {inert:.2g}, within {rules.CHANGE_FACTOR:g}× of the target "
-                    f"{rules.INERTIAL_TARGET:g} and below {rules.INERTIAL_MAX:g}", src, nums))  # fmt: skip
+            )
+            return
+        k = rules.INERTIAL_TARGET / inert
+        if inert > rules.INERTIAL_MAX:
+            slow = rules.round_sig(rate * k, 2, "down")
+            self.findings.append(Finding(
+                "inertial", f"boundaries.{name}", "warn",
+                f"{how}: I = {inert:.2g} is above {rules.INERTIAL_MAX:g}, so the loading is not "
+                "quasi-static "
+                f"(the quantity may move by several %); {key} = {slow:.3g} gives I = "
+                f"{rules.INERTIAL_TARGET:g} "
+                f"({1 / k:.3g}× slower, costlier)", src, nums,
+                suggestions={f"boundaries.{name}.{key}": slow}))  # fmt: skip
+        elif k >= rules.CHANGE_FACTOR:
+            fast = rules.round_sig(rate * k, 2, "down")
+            factor = fast / rate
+            self.rate_factor[stage] = factor
+            nums["rate proposed"] = fast
+            self.findings.append(Finding(
+                "inertial", f"boundaries.{name}", "change",
+                f"{how}: I = {inert:.2g}, {k:.3g}× below the target {rules.INERTIAL_TARGET:g} "
+                "(which keeps the "
+                f"quantity within ~1.3 % of its quasi-static limit): {key} {rate:.3g} → {fast:.3g} "
+                f"({factor:.3g}× faster); stage '{stage}' ends scaled by the same factor where they "
+                "are times "
+                "or steps (an end in strain, displacement or depth needs nothing)", src, nums,
+                changes={f"boundaries.{name}.{key}": fast}))  # fmt: skip
+        else:
+            self.findings.append(Finding(
+                "inertial", f"boundaries.{name}", "ok",
+                f"{how}: I = {inert:.2g}, within {rules.CHANGE_FACTOR:g}× of the target "
+                f"{rules.INERTIAL_TARGET:g} and below {rules.INERTIAL_MAX:g}", src, nums))  # fmt: skip
 
     # ------------------------------------------------------------------ stage ends
     def stage_lengths(self) -> None:
@@ -777,7 +757,7 @@ class _Advisor:
             return
         for st in self.deck.stages:
             end = st.end
-            loose = [g for g in sc.groups if g.stage == st.name and g.source in LOOSE and g.speed == 0]
+            loose = [g for g in sc.groups if g.stage == st.name and g.loose and g.speed == 0]
             if end.kinetic_energy_below is None or not loose or sc.fall_height <= 0:
                 continue
             dt = self.dt_new.get(st.name) or self.dt_old.get(st.name)
@@ -804,7 +784,6 @@ class _Advisor:
     # ------------------------------------------------------------------ sample size
     def sample_size(self) -> None:
         sc = self.scene
-        dmax, dmean = sc.d_max, sc.d_mean
         n = sc.n
 
         def finding(
@@ -844,39 +823,13 @@ class _Advisor:
                 )
             self.findings.append(Finding("sample_size", where, verdict, reason, "; ".join(srcs), nums))
 
-        phi = rules.PACKING_FRACTION
-        vgrain = sc.mean("mean_volume")
+        facts = sc.facts()
         for name, p in sc.boundaries.items():
-            kind = getattr(p, "type", None)
-            if kind == "shear_box":
-                width = min(p.length, p.width)
-                height = sc.packed_height
-                n_min = phi * (10 * dmax) ** 2 * 6 * dmax / vgrain
-                finding(f"boundaries.{name} (direct shear)", [
-                    ("box width / d_max", width / dmax, rules.SHEAR_BOX_WIDTH),
-                    ("sample height / d_max", height / dmax, rules.SHEAR_BOX_HEIGHT)], n_min)  # fmt: skip
-            elif kind == "triaxial":
-                diameter = 2 * p.radius
-                height = sc.packed_height
-                dd = max(6 * dmax, 15 * dmean)
-                n_min = phi * math.pi / 4 * dd**2 * 2 * dd / vgrain
-                finding(f"boundaries.{name} (triaxial)", [
-                    ("diameter / d_max", diameter / dmax, rules.TRIAXIAL_DIAMETER),
-                    ("diameter / d_mean", diameter / dmean, rules.TRIAXIAL_DIAMETER_DEM),
-                    ("height / diameter (packed, estimated)", height / diameter,
-                     rules.TRIAXIAL_SLENDERNESS)], n_min)  # fmt: skip
-            elif kind == "hopper":
-                finding(f"boundaries.{name} (hopper)", [
-                    ("orifice D / d_max", p.orifice_diameter / dmax, rules.HOPPER_ORIFICE),
-                    ("fill height / D", sc.packed_height / p.orifice_diameter,
-                     (1.0, "experiments.md §5: Beverloo's law needs a fill height above ~D"))],
-                    None)  # fmt: skip
-            elif kind == "penetrometer":
-                diameter = p.diameter if p.diameter else 2 * math.sqrt(p.base_area / math.pi)
-                width = math.sqrt(sc.footprint) if sc.footprint else math.nan
-                finding(f"boundaries.{name} (cone penetration)", [
-                    ("cone D / d_mean", diameter / dmean, rules.CONE_GRAIN),
-                    ("bed width / cone D", width / diameter, rules.CONE_CHAMBER)], None)  # fmt: skip
+            size = sc.boundary_class(name).sample_size(name, p, facts)
+            if size is None:
+                continue
+            checks = [(c.label, float(c.value), (float(c.minimum), c.source)) for c in size.checks]
+            finding(f"boundaries.{name} ({size.test})", checks, size.grains_min)
 
     # ------------------------------------------------------------------ method
     def method(self) -> None:
@@ -884,7 +837,7 @@ class _Advisor:
         from ..complementarity.method import Complementarity
 
         table = self.raw.get("contact", {}) if isinstance(self.raw.get("contact"), dict) else {}
-        if sc.law == "complementarity":
+        if isinstance(self.resolved.law_params, Complementarity.Params):  # the deck runs it
             cparams = self.resolved.law_params
         else:
             sub = table.get("complementarity") if isinstance(table.get("complementarity"), dict) else {}
@@ -895,7 +848,7 @@ class _Advisor:
         r_min = min(g.r_min for g in sc.groups)
         h_c = (
             float(sc.run_dt)
-            if sc.law == "complementarity" and sc.run_dt
+            if sc.rigid and sc.run_dt
             else (cparams.max_travel * r_min / cparams.reference_speed)
         )
         layers = max(sc.packed_height / sc.d_mean, 1.0) if math.isfinite(sc.packed_height) else 10.0
@@ -941,7 +894,7 @@ class _Advisor:
         winner = "DEM-P (hertz_mindlin)" if ratio > 1 else "DEM-C (complementarity)"
         using = (
             "the deck's"
-            if sc.law == "complementarity"
+            if sc.rigid
             else "DEM-C's automatic step (max_travel r_min / reference_speed)"
         )
         reason = (
@@ -969,14 +922,14 @@ class _Advisor:
         verdict = "ok"
         waves = self._wave_boundaries()
         if waves:  # the cost model is beside the point: only one method has the quantity
-            verdict = "warn" if sc.law == "complementarity" else "ok"
+            verdict = "warn" if sc.rigid else "ok"
             reason = (
                 f"DEM-P (hertz_mindlin): boundaries {', '.join(waves)} measure a wave, and rigid grains "
                 "carry none. DEM-C's front moves as far per step as its solver carries an impulse, so its "
                 "speed follows the step and the iteration cap, not the material (docs/study/wave_chain.md: "
                 "errors of 133–10,860 % over steps 1e-6–1e-5 s and caps 50–500; "
                 "docs/study/shock_wave.md for the 2-D bed)"
-                + (". This deck runs DEM-C: its wave speeds measure the solver" if sc.law == "complementarity"
+                + (". This deck runs DEM-C: its wave speeds measure the solver" if sc.rigid
                    else f". (By contact work alone the cost model would rate DEM-C {1 / ratio:.2g}× "
                    f"{'faster' if ratio < 1 else 'slower'}.)")
             )  # fmt: skip
@@ -1012,9 +965,11 @@ def apply(advice: Advice, out_path: str | Path, overwrite: bool = False) -> Path
         )
     data = copy.deepcopy(advice.raw)
     if advice.resolved is not None:  # packing files: the resolved (absolute) path, valid from anywhere
-        for k, params in enumerate(advice.resolved.deck.particles):
-            if getattr(params, "source", None) == "file" and isinstance(data.get("particles"), list):
-                data["particles"][k]["path"] = str(params.path)
+        sources = zip(advice.resolved.source_classes, advice.resolved.deck.particles, strict=True)
+        for k, (cls, params) in enumerate(sources):
+            for key in getattr(cls, "path_keys", ()):
+                if isinstance(data.get("particles"), list) and getattr(params, key, None) is not None:
+                    data["particles"][k][key] = str(getattr(params, key))
     texts = advice.set_args("changes")
     applied, problems = apply_overrides(data, texts)
     if problems:  # pragma: no cover - the changes are built from the schema's own keys

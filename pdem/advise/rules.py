@@ -58,11 +58,6 @@ INERTIAL_TARGET = 3e-4
 INERTIAL_MAX = 1e-3
 """Quasi-static limit of the inertial number (GDR MiDi 2004; da Cruz et al. 2005)."""
 
-CONE_TIP_FACTOR = 5.0
-"""Stress near a pushed cone's tip as a multiple of the overburden φ ρ g z: pdem's reduced bed
-measured q_c ≈ 1.0 kPa at 1.8–2 cm where φ ρ g z ≈ 0.28 kPa (3.7×, docs/experiments/
-cone_penetration.md); 5 is a rounded-up rule of thumb."""
-
 MIN_GAIN = 1.5
 """Softer grains are proposed only if they make the run at least this much faster (when the step is
 set by collisions at the scene's speeds, softening gains little: t_c ∝ E^(−2/5))."""
@@ -108,29 +103,12 @@ COLUMN_ITERATIONS = {
 }
 
 # ---------------------------------------------------------------------------------------------
-# sample-size rules: (minimum, source)
+# device rules
 # ---------------------------------------------------------------------------------------------
-
-SHEAR_BOX_WIDTH = (10.0, "ASTM D3080: box width ≥ 10 × the largest grain diameter")
-SHEAR_BOX_HEIGHT = (6.0, "ASTM D3080: initial specimen thickness ≥ 6 × the largest grain diameter")
-TRIAXIAL_DIAMETER = (6.0, "ASTM D7181 / D4767: specimen diameter ≥ 6 × the largest grain diameter")
-TRIAXIAL_DIAMETER_DEM = (
-    15.0,
-    "DEM practice, a rule of thumb: ≥ ~15 grains across the specimen for a representative peak",
-)
-TRIAXIAL_SLENDERNESS = (2.0, "ASTM D7181 / D4767: specimen height between 2 and 2.5 diameters")
-HOPPER_ORIFICE = (6.0, "Beverloo et al., Chem. Eng. Sci. 15, 260 (1961): the law holds for D/d ≳ 6")
-CONE_GRAIN = (
-    20.0,
-    "a rule of thumb from centrifuge tests (Bolton et al., Géotechnique 49, 543, 1999): cone "
-    "diameter ≥ ~20 grain diameters for a grain-size-free q_c",
-)
-CONE_CHAMBER = (
-    20.0,
-    "a rule of thumb from calibration-chamber studies (e.g. Salgado, Mitchell & Jamiolkowski, "
-    "J. Geotech. Geoenviron. Eng. 124, 878, 1998): chamber width ≥ ~20 cone diameters, wall "
-    "effects persist beyond in dense sand",
-)
+# A device's own numbers (the minimum sizes of its test with their sources, the stress near a cone's
+# tip) live with the boundary that runs it and reach the advice through the boundary contract's
+# hooks (pdem.boundaries.api: Boundary.sample_size, Boundary.loading): ShearBox (ASTM D3080),
+# TriaxialCell (ASTM D7181 / D4767), HopperBoundary (Beverloo), Penetrometer (cone rules).
 
 # ---------------------------------------------------------------------------------------------
 # closed forms

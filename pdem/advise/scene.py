@@ -3,6 +3,9 @@ stresses), and what a short probe of the first stage measures.
 
 The deck-level facts need no particles: counts come from the same estimate as the memory check
 (:mod:`pdem.deck.capacity`), sizes from the sources' size distributions, heights from their regions.
+What the boundaries impose (speeds, stresses, loading rates) and the area a device packs the grains
+into come from the boundary contract's hooks (:meth:`~pdem.boundaries.api.Boundary.loading`,
+:meth:`~pdem.boundaries.api.Boundary.extent`, …), never from a boundary's ``type``.
 The probe builds the first stage's scene exactly as ``pdem check`` does (:meth:`Runner.check_scene`,
 nothing written) and steps it for a few hundred steps within a wall-time budget.
 """
@@ -16,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from ..boundaries.api import Boundary, Loading, SceneFacts
 from ..errors import InputError
 from . import rules
 
-LOOSE_SOURCES = ("random_fill", "lattice")  # grains that start apart and may fall; pluviate/file are packed
 
 
 @dataclass
@@ -43,6 +46,8 @@ class GrainGroup:
     bounds: tuple[np.ndarray, np.ndarray] | None
     footprint: float | None  # horizontal area of its region [m²]
     params: Any = None
+    loose: bool = False  # its grains start apart and may fall (Source.starts_loose)
+    settles: bool = False  # it settles its grains with pdem before the run (Source.settles)
 
     @property
     def mass_min(self) -> float:
@@ -66,6 +71,7 @@ class StageFacts:
 class Scene:
     law: str
     parameterisation: str
+    hertzian: bool  # the law's normal force is Hertz's from E and ν (ContactLaw.hertz_from_materials)
     groups: list[GrainGroup]
     stages: list[StageFacts]
     gravity: float
@@ -80,6 +86,14 @@ class Scene:
     probe: dict[str, Any] = field(default_factory=dict)
     #: run.dt_fraction: stages that give no dt step at this fraction of the law's critical step (T_R)
     dt_fraction: float | None = None
+    #: name -> the boundary's plugin class (its hooks describe it; Boundary's defaults if unknown)
+    boundary_classes: dict[str, type] = field(default_factory=dict)
+    #: the stage names in deck order
+    stage_names: tuple[str, ...] = ()
+    #: "<boundary>.<key>" -> the largest value a stage ends at when the quantity rises above it
+    ends: dict[str, float] = field(default_factory=dict)
+    #: the law's grains are rigid (its ``rigid`` capability: no overlap, no stiffness step)
+    rigid: bool = False
 
     @property
     def n(self) -> float:
@@ -106,6 +120,33 @@ class Scene:
 
     def r_min_of(self, material: str) -> float:
         return min(g.r_min for g in self.groups if g.material == material)
+
+    def boundary_class(self, name: str) -> type:
+        return self.boundary_classes.get(name, Boundary)
+
+    def facts(self) -> SceneFacts:
+        """What the boundaries' hooks are told about the grains."""
+        return SceneFacts(
+            stages=tuple(self.stage_names), gravity=self.gravity, density=self.density, d_mean=self.d_mean,
+            d_max=self.d_max, grain_volume=self.mean("mean_volume"), packed_height=self.packed_height,
+            footprint=self.footprint, packing_fraction=rules.PACKING_FRACTION, ends=dict(self.ends),
+        )  # fmt: skip
+
+    def loadings(self) -> dict[str, list[Loading]]:
+        """Every boundary's :meth:`~pdem.boundaries.api.Boundary.loading`, by name (deck order)."""
+        facts = self.facts()
+        return {
+            name: list(self.boundary_class(name).loading(name, params, facts))
+            for name, params in self.boundaries.items()
+        }
+
+    def acts_in(self, name: str, stage: str) -> bool:
+        """Is boundary ``name`` doing something in ``stage`` (its ``stage_roles``)?"""
+        p = self.boundaries[name]
+        names = list(self.stage_names)
+        if stage not in names:
+            return False
+        return self.boundary_class(name).stage_roles(p, names)[names.index(stage)] is not None
 
 
 def _sizes(params: Any) -> tuple[float, float, float, float] | None:
@@ -134,7 +175,6 @@ def _region_footprint(params: Any) -> float | None:
 def deck_scene(resolved: Any, raw: dict) -> Scene:
     """The scene as the deck describes it (no particles made)."""
     from ..deck.capacity import estimate_source
-    from ..sources import read_spheres
 
     deck = resolved.deck
     names = [s.name for s in deck.stages]
@@ -148,19 +188,14 @@ def deck_scene(resolved: Any, raw: dict) -> Scene:
         sizes = _sizes(params)
         count_est = estimate_source(raw_particles[k] if k < len(raw_particles) else None, resolved.base_dir)
         count, counted = count_est if count_est is not None else (math.nan, "unknown")
-        if getattr(params, "source", None) == "file":
-            try:
-                spheres = read_spheres(resolved.base_dir / params.path)
-                r = np.asarray(spheres["radii"], dtype=float)
-                sizes = (
-                    float(r.min()),
-                    float(r.max()),
-                    float(r.mean()),
-                    float(np.mean(4 / 3 * math.pi * r**3)),
-                )
-                count, counted = float(len(r)), f"file with {len(r):,} rows"
-            except Exception:  # noqa: BLE001 - a file the advice cannot read is left to the run
-                pass
+        try:
+            r = cls(params).known_radii(resolved.base_dir)
+        except Exception:  # noqa: BLE001 - radii the advice cannot read are left to the run
+            r = None
+        if r is not None and len(r):
+            r = np.asarray(r, dtype=float)
+            sizes = (float(r.min()), float(r.max()), float(r.mean()), float(np.mean(4 / 3 * math.pi * r**3)))
+            count, counted = float(len(r)), f"{len(r):,} radii given by the source"
         if sizes is None:
             try:
                 rmax = cls(params).r_max()
@@ -193,21 +228,30 @@ def deck_scene(resolved: Any, raw: dict) -> Scene:
                 bounds=bounds,
                 footprint=_region_footprint(params),
                 params=params,
+                loose=bool(getattr(cls, "starts_loose", False)),
+                settles=bool(getattr(cls, "settles", False)),
             )
         )
     boundaries = dict(resolved.boundaries)
+    classes = {name: resolved.boundary_classes.get(name, Boundary) for name in boundaries}
     wall_materials = {}
-    for params in boundaries.values():
-        for key in ("material", "plate_material"):
-            name = getattr(params, key, None)
+    for bname, params in boundaries.items():
+        for name in classes[bname].wall_materials(params):
             if isinstance(name, str) and name in deck.materials:
                 wall_materials[name] = deck.materials[name]
-    footprint = _footprint(groups, boundaries)
+    footprint = _footprint(groups, boundaries, classes)
+    ends: dict[str, float] = {}
+    for st in deck.stages:
+        if st.end.quantity and st.end.above is not None:
+            ends[st.end.quantity] = max(float(st.end.above), ends.get(st.end.quantity, -math.inf))
     volume = sum(g.count * g.mean_volume for g in groups if math.isfinite(g.count))
     packed = volume / (rules.PACKING_FRACTION * footprint) if footprint else math.nan
     scene = Scene(
         law=deck.contact.law,
         parameterisation=str(getattr(resolved.law_params, "parameterisation", "material")),
+        hertzian=bool(
+            resolved.law_class is not None and resolved.law_class.hertz_from_materials(resolved.law_params)
+        ),
         groups=groups,
         stages=[],
         gravity=gmag,
@@ -220,20 +264,26 @@ def deck_scene(resolved: Any, raw: dict) -> Scene:
         packed_height=packed,
         fall_height=_fall_height(groups, axis),
         footprint=footprint,
+        boundary_classes=classes,
+        stage_names=tuple(names),
+        ends=ends,
+        rigid=bool(getattr(resolved.law_class, "rigid", False)),
     )
     scene.stages = [_stage_facts(scene, resolved, k) for k in range(len(deck.stages))]
     return scene
 
 
-def _footprint(groups: list[GrainGroup], boundaries: dict[str, Any]) -> float | None:
-    """The horizontal area the grains pack into: a device's own (shear box, triaxial cell), else the
-    largest source region's."""
-    for params in boundaries.values():
-        kind = getattr(params, "type", None)
-        if kind == "shear_box":
-            return float(params.length * params.width)
-        if kind == "triaxial":
-            return math.pi * float(params.radius) ** 2
+def _footprint(
+    groups: list[GrainGroup], boundaries: dict[str, Any], classes: dict[str, type]
+) -> float | None:
+    """The horizontal area the grains pack into: the first boundary's that holds the sample (its
+    :meth:`~pdem.boundaries.api.Boundary.extent`: a shear box, a triaxial cell, a plate of known
+    area), else the largest source region's."""
+    for name, params in boundaries.items():
+        extent = classes.get(name, Boundary).extent(params)
+        area = extent.footprint if extent is not None else None
+        if area:
+            return float(area)
     areas = [g.footprint for g in groups if g.footprint]
     return max(areas) if areas else None
 
@@ -242,7 +292,7 @@ def _fall_height(groups: list[GrainGroup], axis: np.ndarray) -> float:
     """How far loose grains can fall: from the top of a loose source's region to the lowest point
     of any region, along gravity."""
     boxes = [g.bounds for g in groups if g.bounds is not None]
-    loose = [g.bounds for g in groups if g.bounds is not None and g.source in LOOSE_SOURCES]
+    loose = [g.bounds for g in groups if g.bounds is not None and g.loose]
     if not loose:
         return 0.0
 
@@ -272,12 +322,11 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
                 dt, key = earlier.dt, f"stages.{earlier.name}.dt"
                 break
     facts = StageFacts(name=stage.name, index=k, dt_given=dt, dt_key=key)
-    names = [s.name for s in deck.stages]
     g = scene.gravity
     # speeds
     for grp in scene.groups:
         if grp.stage == stage.name:
-            if grp.source in LOOSE_SOURCES and g > 0 and scene.fall_height > 0:
+            if grp.loose and g > 0 and scene.fall_height > 0:
                 facts.speeds.append(
                     (
                         math.sqrt(2 * g * scene.fall_height),
@@ -293,75 +342,28 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
         hydro,
         (f"grains' weight φ ρ g H (H = {scene.packed_height:.3g} m packed)" if hydro > 0 else "none"),
     )
-    for name, p in scene.boundaries.items():
-        kind = getattr(p, "type", None)
-        active = getattr(p, "stages", None)
-        if active and stage.name not in active:
+    for name, loadings in scene.loadings().items():
+        if not scene.acts_in(name, stage.name):
             continue
-        motion = getattr(p, "motion", None)
+        p = scene.boundaries[name]
+        motion = getattr(p, "motion", None)  # the generic key of a wall (WallBoundaryParams)
         vel = getattr(motion, "velocity", None)
         if vel is not None:
             facts.speeds.append((float(np.linalg.norm(vel)), f"boundaries.{name}.motion"))
-        if kind == "triaxial":
-            if stage.name in [*p.mould_stages, p.consolidation_stage]:  # the servo; the shear is driven
-                facts.speeds.append((p.max_speed, f"boundaries.{name}.max_speed (servo)"))
-            if stage.name in (p.consolidation_stage, p.shear_stage):
-                facts.stress, facts.stress_from = p.sigma3, f"boundaries.{name}.sigma3"
-            if stage.name == p.shear_stage:
-                facts.speeds.append((p.strain_rate * p.height, f"boundaries.{name}.strain_rate × height"))
-        elif kind == "shear_box":
-            first = names.index(p.consolidation_stage) if p.consolidation_stage else 0
-            if k >= first:
-                facts.speeds.append((p.max_speed, f"boundaries.{name}.max_speed (servo)"))
-                facts.stress = p.normal_stress + hydro
-                facts.stress_from = f"boundaries.{name}.normal_stress + the grains' weight"
-            if stage.name == p.shear_stage:
-                facts.speeds.append((p.shear_speed, f"boundaries.{name}.shear_speed"))
-        elif kind == "penetrometer":
-            if k >= names.index(p.penetration_stage) and p.mode == "push" and hydro > 0:
-                z = _push_depth(deck, name, p, scene.packed_height)
-                tip = rules.CONE_TIP_FACTOR * rules.PACKING_FRACTION * scene.density * g * z
-                if tip > facts.stress:
-                    facts.stress = tip
-                    facts.stress_from = (
-                        f"boundaries.{name}: {rules.CONE_TIP_FACTOR:g} × φ ρ g z at the tip (z = {z:.3g} m)"
-                    )
-            if k >= names.index(p.penetration_stage):
-                if p.mode == "drop":
-                    facts.speeds.append(
-                        (
-                            math.sqrt(2 * max(g, 9.81) * p.release_height),
-                            f"boundaries.{name}: drop from release_height",
-                        )
-                    )
-                else:
-                    fastest = max(p.speed, p.approach_speed or 0.0)
-                    facts.speeds.append((fastest, f"boundaries.{name}.speed"))
-        elif kind == "impulse":
-            facts.speeds.append((float(np.linalg.norm(p.velocity)), f"boundaries.{name}.velocity"))
-        elif kind == "hopper":
-            if k >= names.index(p.open_at_stage) and g > 0:
-                h = scene.packed_height if math.isfinite(scene.packed_height) else 0.0
-                facts.speeds.append(
-                    (
-                        math.sqrt(2 * g * (h + p.outflow_depth)),
-                        f"boundaries.{name}: grains falling through the orifice",
-                    )
-                )
+        for ld in loadings:
+            if stage.name not in ld.stages:
+                continue
+            if ld.speed_from:
+                facts.speeds.append((float(ld.speed), ld.speed_from))
+            if ld.stress_from:
+                stress = float(ld.stress) + (hydro if ld.on_weight else 0.0)
+                if stress > facts.stress:
+                    facts.stress = stress
+                    facts.stress_from = ld.stress_from + (" + the grains' weight" if ld.on_weight else "")
     if k == 0 and scene.probe.get("max_speed"):
         facts.speeds.append((scene.probe["max_speed"], "fastest grain in the probe"))
     facts.duration, facts.duration_from = _duration(stage, facts.dt_given, scene)
     return facts
-
-
-def _push_depth(deck: Any, name: str, p: Any, packed: float) -> float:
-    """The deepest tip depth of a pushed penetrometer: its stage's end depth, max_depth, or half the bed."""
-    for st in deck.stages:
-        if st.end.quantity == f"{name}.depth" and st.end.above is not None:
-            return float(st.end.above)
-    if p.max_depth:
-        return float(p.max_depth)
-    return 0.5 * packed if math.isfinite(packed) else 0.01
 
 
 def _duration(stage: Any, dt: float | None, scene: Scene) -> tuple[float | None, str]:
@@ -369,16 +371,13 @@ def _duration(stage: Any, dt: float | None, scene: Scene) -> tuple[float | None,
     early on kinetic energy, a quantity or its max_time)."""
     end = stage.end
     q = end.quantity
-    if q and end.above is not None:
+    if q and end.above is not None and "." in q:
         name, key = q.split(".", 1)
-        p = scene.boundaries.get(name)
-        kind = getattr(p, "type", None)
-        if kind == "shear_box" and key == "displacement" and stage.name == p.shear_stage:
-            return end.above / p.shear_speed, f"{q} to {end.above:g} at shear_speed"
-        if kind == "triaxial" and key == "eps_a" and stage.name == p.shear_stage:
-            return end.above / p.strain_rate, f"{q} to {end.above:g} at strain_rate"
-        if kind == "penetrometer" and key == "depth" and p.mode == "push":
-            return (end.above + p.start_gap) / p.speed, f"{q} to {end.above:g} at speed"
+        for ld in scene.loadings().get(name, ()):  # a measurement that grows at a known rate
+            if stage.name in ld.stages and key in ld.ends:
+                rate, start = ld.ends[key]
+                if rate > 0:
+                    return (end.above - start) / rate, f"{q} to {end.above:g} at {ld.rate_key or key}"
     if end.time is not None:
         return end.time, "end.time" + (" (or earlier)" if end.kinetic_energy_below or q else "")
     if end.steps is not None and dt is not None:
@@ -397,7 +396,7 @@ def _pluviation_seconds(scene: Scene, first: str) -> float:
     """Predicted wall time of the first stage's pluviated packings (they settle with pdem itself)."""
     total = 0.0
     for grp in scene.groups:
-        if grp.source != "pluviate" or grp.stage != first:
+        if not grp.settles or grp.stage != first:
             continue
         p = grp.params
         t_r = rules.rayleigh_time(grp.r_min, grp.density, grp.youngs_modulus, grp.poisson_ratio)

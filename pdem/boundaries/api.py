@@ -37,6 +37,32 @@ keys are errors) and overrides the hooks it needs:
   return the same rows); a resumed run truncates that file at the checkpoint's step like a series;
 * ``state()`` / ``restore(state)`` — JSON-serialisable memory kept in checkpoints.
 
+**Describing the boundary to pdem's checks** (class methods, from the parameters alone, no
+simulation; ``pdem advise`` and the deck's checks ask them and never look at the ``type``, so a
+boundary a user writes gets the same advice as pdem's own). Each default says "nothing known":
+
+* ``loading(name, params, facts) -> list[Loading]`` — what it imposes on the grains and in which
+  stages (:class:`Loading`): the fastest speed it gives a wall or a grain (a servo's speed limit, a
+  prescribed wall speed, a strain rate × the sample's height, a dropped body's impact speed), the
+  normal stress it holds (a servo's target, a confining pressure; ``on_weight`` when it acts on top of
+  the grains' weight, as a plate on a bed), the quasi-static loading rate and the key that sets it
+  (``rate_key``, ``rate``, ``shear_rate``: the inertial number I = γ̇ d sqrt(ρ/σ) is advised on it and
+  ``--apply`` may change that key), the measurements that grow at a known rate (``ends``: a stage that
+  ends on ``<name>.<key>`` lasts as long as the key takes to reach the end value), and whether it
+  measures a wave (``wave``) or drops a body (``impact``): then the grains' stiffness is left alone.
+  ``name`` is the boundary's name in the deck (for the labels ``boundaries.<name>.<key>``) and
+  ``facts`` (:class:`SceneFacts`) what the deck says about the grains (sizes, density, gravity, the
+  packed height, the stages and their ends). Default: ``[]``.
+* ``extent(params) -> Extent | None`` — the region in which the boundary holds the sample
+  (:class:`Extent`: its bounding box and the horizontal area the grains pack into), when it holds
+  one (a shear box, a triaxial cell, a plate of known area). The advice takes the packed height from
+  that area (else from the sources' regions). Default: None.
+* ``sample_size(name, params, facts) -> SampleSize | None`` — the minimum sizes of the test the
+  boundary runs, with their sources (:class:`SampleSize` of :class:`SizeCheck`: "box width / d_max
+  ≥ 10, ASTM D3080"); the advice warns below a minimum. Default: None.
+* ``wall_materials(params) -> list[str]`` — the names of the materials of its walls (the advice's
+  grain–wall collision times). Default: the ``material`` key, when it is a name.
+
 **Stage keys.** A boundary names the stages it acts in with keys called ``stages``, ``stage`` or
 ending in ``_stage`` / ``_stages`` (the deck checks that they name defined stages): ``stages`` (on
 in these, default all), ``off_stages`` (off in these, said explicitly) and a device's own roles
@@ -61,6 +87,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -71,6 +98,7 @@ from ..geometry.walls import ConstantVelocity, Fixed, Motion, Wall
 __all__ = [
     "STAGE_COLUMN", "Boundary", "BoundaryParams", "WallBoundaryParams", "MotionSpec", "Vec3", "listed",
     "make_motion", "merge_series", "names_stage", "stage_keys", "stage_rows",
+    "Extent", "Loading", "SampleSize", "SceneFacts", "SizeCheck",
 ]
 
 #: the merged series' column holding each row's stage name (:func:`merge_series`)
@@ -190,6 +218,131 @@ class WallBoundaryParams(BoundaryParams):
     omega: Vec3 = Field(default=(0.0, 0.0, 0.0), description="surface spin about the reference point [rad/s]")
 
 
+# descriptions for pdem's checks (see "Describing the boundary" in the module docstring) --------------
+
+
+@dataclass(frozen=True)
+class SceneFacts:
+    """What the deck says about the grains, given to :meth:`Boundary.loading` and
+    :meth:`Boundary.sample_size` (SI units; NaN where the deck does not tell).
+
+    ``stages``: the stage names in deck order; ``gravity``: |g| [m/s²]; ``density``: the grains' mean
+    density [kg/m³]; ``d_mean`` / ``d_max``: their mean and largest diameters [m]; ``grain_volume``:
+    the mean volume of a grain [m³]; ``packed_height``: the height the grains fill once packed [m];
+    ``footprint``: the horizontal area they pack into [m²] (None: unknown); ``packing_fraction``: the
+    solid fraction assumed for a packed bed; ``ends``: ``{quantity: value}`` of the stages that end
+    when a quantity (``"<boundary>.<key>"``) rises above a value (the largest value per quantity).
+    """
+
+    stages: tuple[str, ...]
+    gravity: float = 0.0
+    density: float = math.nan
+    d_mean: float = math.nan
+    d_max: float = math.nan
+    grain_volume: float = math.nan
+    packed_height: float = math.nan
+    footprint: float | None = None
+    packing_fraction: float = 0.6
+    ends: Mapping[str, float] = field(default_factory=dict)
+
+    def stages_from(self, stage: str | None) -> tuple[str, ...]:
+        """The stages from ``stage`` on (all of them for None or a name not in :attr:`stages`)."""
+        if stage is None or stage not in self.stages:
+            return tuple(self.stages)
+        return tuple(self.stages[self.stages.index(stage):])
+
+    def overburden(self, depth: float) -> float:
+        """φ ρ g z: the weight of the packed grains above ``depth`` [Pa] (0 without gravity)."""
+        if not (self.gravity > 0 and math.isfinite(self.density) and math.isfinite(depth)):
+            return 0.0
+        return self.packing_fraction * self.density * self.gravity * depth
+
+
+@dataclass(frozen=True)
+class Loading:
+    """One thing a boundary imposes on the grains in ``stages`` (see :meth:`Boundary.loading`).
+
+    Every part is optional (its default: nothing):
+
+    * ``speed`` [m/s] and ``speed_from`` (a label, e.g. ``"boundaries.lid.max_speed (servo)"``): the
+      fastest speed it gives a wall or a grain; the advice resolves the collisions at it;
+    * ``stress`` [Pa] and ``stress_from``: the normal stress it holds on the grains; ``on_weight``:
+      it acts on top of the grains' weight (a plate on a bed), else it is the stress itself (a
+      confining pressure); the advice sizes the overlaps at the largest stress of the scene;
+    * ``rate_key`` (a key of the boundary's parameters), ``rate`` (its value), ``shear_rate`` [1/s]
+      (the shear rate that rate gives the grains) and ``rate_how`` (how, in words): the quasi-static
+      loading whose inertial number I = ``shear_rate`` d sqrt(ρ / ``stress``) is advised on, in the
+      first of ``stages``; the advice may propose another ``rate_key`` value (the stage's time ends
+      scale with it);
+    * ``note`` with ``note_source``: what the advice says of the loading rate when there is no
+      ``rate_key`` (e.g. a discharge whose rate gravity sets);
+    * ``ends``: ``{key: (rate, start)}`` — the measurement ``<name>.<key>`` starts at ``start`` and
+      grows at ``rate`` per second in these stages: a stage ending on it lasts (end − start) / rate;
+    * ``wave``: the boundary launches or times a wave, whose speed the grains' stiffness sets;
+      ``impact``: it drops a body whose impact the advice does not estimate. Either keeps the
+      stiffness as the deck gives it.
+    """
+
+    stages: tuple[str, ...]
+    speed: float = 0.0
+    speed_from: str = ""
+    stress: float = 0.0
+    stress_from: str = ""
+    on_weight: bool = False
+    rate_key: str | None = None
+    rate: float = 0.0
+    shear_rate: float = 0.0
+    rate_how: str = ""
+    note: str = ""
+    note_source: str = ""
+    ends: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    wave: bool = False
+    impact: bool = False
+
+
+@dataclass(frozen=True)
+class Extent:
+    """The region in which a boundary holds the sample (see :meth:`Boundary.extent`): ``lo`` and
+    ``hi``, the corners of its bounding box [m] (None where unknown, e.g. a plate of infinite extent
+    but known loaded area), and ``area``, the horizontal area the grains pack into [m²] (default: the
+    box's x–y face)."""
+
+    lo: tuple[float, float, float] | None = None
+    hi: tuple[float, float, float] | None = None
+    area: float | None = None
+
+    @property
+    def footprint(self) -> float | None:
+        """``area``, else the x–y face of the box, else None."""
+        if self.area is not None:
+            return float(self.area)
+        if self.lo is not None and self.hi is not None:
+            return float((self.hi[0] - self.lo[0]) * (self.hi[1] - self.lo[1]))
+        return None
+
+
+@dataclass(frozen=True)
+class SizeCheck:
+    """One minimum size: ``label`` (what is compared, e.g. ``"box width / d_max"``), its ``value``,
+    the ``minimum`` and the ``source`` of the rule."""
+
+    label: str
+    value: float
+    minimum: float
+    source: str
+
+
+@dataclass(frozen=True)
+class SampleSize:
+    """The size checks of a boundary's test (see :meth:`Boundary.sample_size`): ``test`` names it in
+    words (``"direct shear"``), ``checks`` are :class:`SizeCheck`, ``grains_min`` is the number of
+    grains of a sample at the minimum size (None: not known)."""
+
+    test: str
+    checks: tuple[SizeCheck, ...]
+    grains_min: float | None = None
+
+
 class Boundary:
     """Base class of boundary plugins; see the module docstring."""
 
@@ -230,6 +383,32 @@ class Boundary:
             out.append(("stages", [*stages, stage], "on"))
         out.append(("off_stages", [*(getattr(params, "off_stages", None) or []), stage], "off"))
         return out
+
+    @classmethod
+    def loading(cls, name: str, params: BaseModel, facts: SceneFacts) -> list[Loading]:
+        """What the boundary ``name`` imposes on the grains, stage by stage (:class:`Loading`), from
+        its parameters and the deck's grains (``facts``). Default: nothing known (``[]``); the
+        advice still reads the generic ``motion`` key of a wall."""
+        return []
+
+    @classmethod
+    def extent(cls, params: BaseModel) -> Extent | None:
+        """The region in which the boundary holds the sample (:class:`Extent`), or None (default):
+        it holds none, or it is not known."""
+        return None
+
+    @classmethod
+    def sample_size(cls, name: str, params: BaseModel, facts: SceneFacts) -> SampleSize | None:
+        """The published minimum sizes of the test the boundary runs (:class:`SampleSize`), or None
+        (default): no such rule."""
+        return None
+
+    @classmethod
+    def wall_materials(cls, params: BaseModel) -> list[str]:
+        """The materials of the boundary's walls (names under ``[materials]``). Default: the
+        ``material`` key when it is a string."""
+        name = getattr(params, "material", None)
+        return [name] if isinstance(name, str) else []
 
     def set_active(self, sim: Any, active: bool) -> None:
         """Switch the boundary (its hooks and its own walls) on or off."""

@@ -13,7 +13,19 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from pdem.api import Boundary, BoundaryParams, GeometryError, Vec3, WallBoundaryParams, njit, shapes
+from pdem.api import (
+    Boundary,
+    BoundaryParams,
+    GeometryError,
+    Loading,
+    SampleSize,
+    SceneFacts,
+    SizeCheck,
+    Vec3,
+    WallBoundaryParams,
+    njit,
+    shapes,
+)
 
 __all__ = [
     "PlaneBoundary",
@@ -282,6 +294,11 @@ class HopperParams(WallBoundaryParams):
         return self
 
 
+#: the orifice size Beverloo's law holds above (the advice's sample-size check): (minimum, source)
+SIZE_ORIFICE = (6.0, "Beverloo et al., Chem. Eng. Sci. 15, 260 (1961): the law holds for D/d ≳ 6")
+SIZE_FILL = (1.0, "experiments.md §5: Beverloo's law needs a fill height above ~D")
+
+
 class HopperBoundary(Boundary):
     """Conical hopper: cone from the orifice up to ``top_diameter``, a barrel above it, a plug disk
     that closes the orifice until stage ``open_at_stage``, and a sink ``outflow_depth`` below.
@@ -293,6 +310,31 @@ class HopperBoundary(Boundary):
     """
 
     Params = HopperParams
+
+    @classmethod
+    def loading(cls, name: str, params: Any, facts: SceneFacts) -> list[Loading]:
+        """From ``open_at_stage`` on, grains fall through the orifice, from the packed height down to
+        the sink, at sqrt(2 g (H + outflow_depth)); a discharge, whose rate gravity sets."""
+        g = facts.gravity
+        h = facts.packed_height if math.isfinite(facts.packed_height) else 0.0
+        fall = {}
+        if g > 0:
+            fall = {"speed": math.sqrt(2 * g * (h + params.outflow_depth)),
+                    "speed_from": f"boundaries.{name}: grains falling through the orifice"}  # fmt: skip
+        return [Loading(
+            stages=facts.stages_from(params.open_at_stage), **fall,
+            note="a hopper discharge is a dense inertial flow (I ~ d/D near the orifice), not a quasi-static "
+            "test: its rate is set by gravity, nothing to change", note_source="GDR MiDi 2004",
+        )]  # fmt: skip
+
+    @classmethod
+    def sample_size(cls, name: str, params: Any, facts: SceneFacts) -> SampleSize:
+        """Beverloo's orifice size and a fill above the orifice diameter."""
+        d = params.orifice_diameter
+        return SampleSize("hopper", (
+            SizeCheck("orifice D / d_max", d / facts.d_max, *SIZE_ORIFICE),
+            SizeCheck("fill height / D", facts.packed_height / d, *SIZE_FILL),
+        ))  # fmt: skip
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)

@@ -71,7 +71,11 @@ from pdem.api import (
     BoundaryParams,
     Controlled,
     InputError,
+    Loading,
     RigidBody,
+    SampleSize,
+    SceneFacts,
+    SizeCheck,
     shapes,
 )
 
@@ -81,6 +85,30 @@ STANDARD_BASE_AREA = (
     323e-6  # m², the standard cone (ISO 22476-1: 10 cm² is the large one; 323 mm² the study's)
 )
 INCH = 0.0254
+
+#: the stress near a pushed cone's tip as a multiple of the overburden φ ρ g z (the advice's stress
+#: and inertial number): pdem's reduced bed measured q_c ≈ 1.0 kPa at 1.8–2 cm where φ ρ g z ≈
+#: 0.28 kPa (3.7×, docs/experiments/cone_penetration.md); 5 is a rounded-up rule of thumb
+TIP_FACTOR = 5.0
+#: the minimum sizes of a cone penetration test (the advice's sample-size check): (minimum, source)
+SIZE_CONE_GRAIN = (
+    20.0,
+    "a rule of thumb from centrifuge tests (Bolton et al., Géotechnique 49, 543, 1999): cone "
+    "diameter ≥ ~20 grain diameters for a grain-size-free q_c",
+)
+SIZE_CHAMBER = (
+    20.0,
+    "a rule of thumb from calibration-chamber studies (e.g. Salgado, Mitchell & Jamiolkowski, "
+    "J. Geotech. Geoenviron. Eng. 124, 878, 1998): chamber width ≥ ~20 cone diameters, wall "
+    "effects persist beyond in dense sand",
+)
+
+
+def body_diameter(params: Any) -> float:
+    """The diameter of the cone's rod (default from ``base_area``) or of the sphere (default 1 inch)."""
+    if params.diameter is not None:
+        return float(params.diameter)
+    return math.sqrt(4.0 * params.base_area / math.pi) if params.tip == "cone" else INCH
 
 
 class PenetrometerParams(BoundaryParams):
@@ -265,6 +293,46 @@ class Penetrometer(Boundary):
 
     def tip_z(self) -> float:
         return float(self.body.reference_point[2] + self._tip0)
+
+    @classmethod
+    def loading(cls, name: str, params: Any, facts: SceneFacts) -> list[Loading]:
+        """From ``penetration_stage`` on: pushed, the body moves at ``speed`` (``approach_speed``
+        until it touches), loads the grains near its tip with :data:`TIP_FACTOR` × φ ρ g z at its
+        deepest depth z, shears them at speed / D, and its ``depth`` grows from −``start_gap``;
+        dropped, it hits the bed at sqrt(2 g ``release_height``) (an impact the advice does not
+        estimate)."""
+        p = params
+        stages = facts.stages_from(p.penetration_stage)
+        if p.mode == "drop":
+            speed = math.sqrt(2 * max(facts.gravity, 9.81) * p.release_height)
+            drop = f"boundaries.{name}: drop from release_height"
+            return [Loading(stages=stages, speed=speed, speed_from=drop, impact=True)]
+        depth = facts.ends.get(f"{name}.depth")
+        if depth is None:
+            depth = p.max_depth or (0.5 * facts.packed_height if math.isfinite(facts.packed_height) else 0.01)
+        tip = TIP_FACTOR * facts.overburden(depth)
+        stress = {}
+        if tip > 0:
+            at = f"boundaries.{name}: {TIP_FACTOR:g} × φ ρ g z at the tip (z = {depth:.3g} m)"
+            stress = {"stress": tip, "stress_from": at}
+        return [Loading(
+            stages=stages, speed=max(p.speed, p.approach_speed or 0.0), speed_from=f"boundaries.{name}.speed",
+            **stress, rate_key="speed", rate=p.speed, shear_rate=p.speed / body_diameter(p),
+            rate_how=f"I = (v / D_cone) d sqrt(ρ/σ_v), σ_v = φ ρ g z at the deepest tip z = {depth:.3g} m "
+            "(a rule of thumb: the stress near the tip is a few times σ_v)",
+            ends={"depth": (p.speed, -p.start_gap)},
+        )]  # fmt: skip
+
+    @classmethod
+    def sample_size(cls, name: str, params: Any, facts: SceneFacts) -> SampleSize:
+        """Grains across the body, and the bed's width (the square root of its footprint) in body
+        diameters."""
+        diameter = body_diameter(params)
+        width = math.sqrt(facts.footprint) if facts.footprint else math.nan
+        return SampleSize("cone penetration", (
+            SizeCheck("cone D / d_mean", diameter / facts.d_mean, *SIZE_CONE_GRAIN),
+            SizeCheck("bed width / cone D", width / diameter, *SIZE_CHAMBER),
+        ))  # fmt: skip
 
     @classmethod
     def stage_roles(cls, params: Any, stages: Any) -> list[str | None]:

@@ -70,7 +70,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pdem.api import FIXED, REMOVED, Boundary, BoundaryParams, InputError, Vec3
+from pdem.api import FIXED, REMOVED, Boundary, BoundaryParams, InputError, Loading, SceneFacts, Vec3
 
 __all__ = ["Sensors", "SensorsParams", "Impulse", "ImpulseParams", "LineSpec", "GrainSelectionParams"]
 
@@ -254,6 +254,11 @@ class Sensors(Boundary):
 
     Params = SensorsParams
     measurement_keys = ("arrived_count", "front_distance", "max_speed")
+
+    @classmethod
+    def loading(cls, name: str, params: BaseModel, facts: SceneFacts) -> list[Loading]:
+        """It times a wave (whose speed the grains' stiffness sets)."""
+        return [Loading(stages=tuple(facts.stages), wave=True)]
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)
@@ -484,6 +489,13 @@ class Impulse(Boundary):
     """See the module docstring."""
 
     Params = ImpulseParams
+
+    @classmethod
+    def loading(cls, name: str, params: BaseModel, facts: SceneFacts) -> list[Loading]:
+        """It strikes grains at ``velocity`` and launches a wave (whose speed the stiffness sets)."""
+        speed = float(np.linalg.norm(np.asarray(params.velocity, dtype=float)))
+        return [Loading(stages=tuple(facts.stages), speed=speed, speed_from=f"boundaries.{name}.velocity",
+                        wave=True)]  # fmt: skip
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)

@@ -86,7 +86,7 @@ import math
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from pdem.api import (
     REMOVED,
@@ -94,9 +94,14 @@ from pdem.api import (
     Boundary,
     BoundaryParams,
     Controlled,
+    Extent,
     Fixed,
     InputError,
+    Loading,
     RigidBody,
+    SampleSize,
+    SceneFacts,
+    SizeCheck,
     Vec3,
     listed,
     servo_gain,
@@ -107,6 +112,12 @@ from pdem.api import (
 __all__ = ["ShearBox", "ShearBoxParams"]
 
 _X, _Y, _Z = np.eye(3)
+
+#: the minimum sizes of a direct shear specimen (the advice's sample-size check): (minimum, source)
+SIZE_WIDTH = (10.0, "ASTM D3080: box width ≥ 10 × the largest grain diameter")
+SIZE_HEIGHT = (6.0, "ASTM D3080: initial specimen thickness ≥ 6 × the largest grain diameter")
+#: thickness of the shear band, in mean grain diameters (the inertial number's shear rate v / band)
+BAND_GRAINS = 10.0
 
 
 class ShearBoxParams(BoundaryParams):
@@ -166,6 +177,53 @@ class ShearBox(Boundary):
     """See the module docstring."""
 
     Params = ShearBoxParams
+
+    @classmethod
+    def loading(cls, name: str, params: BaseModel, facts: SceneFacts) -> list[Loading]:
+        """The top plate's servo holds ``normal_stress`` (on the grains' weight) at up to
+        ``max_speed`` from ``consolidation_stage`` on; the upper half moves at ``shear_speed`` in
+        ``shear_stage``, shearing a band :data:`BAND_GRAINS` grains thick."""
+        p = params
+        servo = Loading(
+            stages=facts.stages_from(p.consolidation_stage),
+            speed=p.max_speed, speed_from=f"boundaries.{name}.max_speed (servo)",
+            stress=p.normal_stress, stress_from=f"boundaries.{name}.normal_stress", on_weight=True,
+        )  # fmt: skip
+        shear = Loading(
+            stages=(p.shear_stage,),
+            speed=p.shear_speed, speed_from=f"boundaries.{name}.shear_speed",
+            stress=p.normal_stress, stress_from=f"boundaries.{name}.normal_stress", on_weight=True,
+            rate_key="shear_speed", rate=p.shear_speed,
+            shear_rate=p.shear_speed / (BAND_GRAINS * facts.d_mean),
+            rate_how=f"I = (v / {BAND_GRAINS:g} d) d sqrt(ρ/σ_n): a shear band {BAND_GRAINS:g} grains thick "
+            "(the boundary's own 'inertial')",
+            ends={"displacement": (p.shear_speed, 0.0)},
+        )  # fmt: skip
+        return [servo, shear]
+
+    @classmethod
+    def extent(cls, params: BaseModel) -> Extent:
+        """The box's inside, from the floor to the top of the upper walls."""
+        p = params
+        lo = tuple(float(c) for c in p.corner)
+        size = (p.length, p.width, p.lower_height + p.gap + p.upper_height)
+        return Extent(lo=lo, hi=tuple(a + b for a, b in zip(lo, size, strict=True)), area=p.length * p.width)
+
+    @classmethod
+    def sample_size(cls, name: str, params: BaseModel, facts: SceneFacts) -> SampleSize:
+        """ASTM D3080's minimum width and thickness (the thickness estimated as the packed height)."""
+        p, dmax = params, facts.d_max
+        width = min(p.length, p.width)
+        n_min = facts.packing_fraction * (10 * dmax) ** 2 * 6 * dmax / facts.grain_volume
+        return SampleSize("direct shear", (
+            SizeCheck("box width / d_max", width / dmax, *SIZE_WIDTH),
+            SizeCheck("sample height / d_max", facts.packed_height / dmax, *SIZE_HEIGHT),
+        ), n_min)  # fmt: skip
+
+    @classmethod
+    def wall_materials(cls, params: BaseModel) -> list[str]:
+        """``material`` and ``plate_material``."""
+        return [m for m in (params.material, params.plate_material) if m]
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)

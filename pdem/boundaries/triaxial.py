@@ -82,9 +82,14 @@ from pdem.api import (
     Boundary,
     BoundaryParams,
     Controlled,
+    Extent,
     Follow,
     InstabilityError,
+    Loading,
     RigidBody,
+    SampleSize,
+    SceneFacts,
+    SizeCheck,
     Vec3,
     all_max,
     all_max_array,
@@ -97,6 +102,14 @@ from pdem.api import (
 from pdem.boundaries import triaxial_membrane as _mb
 
 __all__ = ["TriaxialCell", "TriaxialParams"]
+
+#: the minimum sizes of a triaxial specimen (the advice's sample-size check): (minimum, source)
+SIZE_DIAMETER = (6.0, "ASTM D7181 / D4767: specimen diameter ≥ 6 × the largest grain diameter")
+SIZE_DIAMETER_DEM = (
+    15.0,
+    "DEM practice, a rule of thumb: ≥ ~15 grains across the specimen for a representative peak",
+)
+SIZE_SLENDERNESS = (2.0, "ASTM D7181 / D4767: specimen height between 2 and 2.5 diameters")
 
 
 class TriaxialParams(BoundaryParams):
@@ -270,6 +283,51 @@ class TriaxialCell(Boundary):
             else:
                 out.append(None)
         return out
+
+    @classmethod
+    def loading(cls, name: str, params: BaseModel, facts: SceneFacts) -> list[Loading]:
+        """The platen's servo (up to ``max_speed``) in the mould stages and the consolidation; σ₃
+        from the consolidation on; the shear at ``strain_rate`` (the platen at ``strain_rate`` ×
+        ``height``), whose axial strain ``eps_a`` grows from 0 in ``shear_stage``."""
+        p = params
+        sigma3 = {"stress": p.sigma3, "stress_from": f"boundaries.{name}.sigma3"}
+        later = tuple(p.later_shear_stages or ())
+        speed = {"speed": p.strain_rate * p.height, "speed_from": f"boundaries.{name}.strain_rate × height"}
+        out = [
+            Loading(stages=(*p.mould_stages, p.consolidation_stage), speed=p.max_speed,
+                    speed_from=f"boundaries.{name}.max_speed (servo)"),
+            Loading(stages=(p.consolidation_stage,), **sigma3),
+            Loading(stages=(p.shear_stage,), **sigma3, **speed, rate_key="strain_rate", rate=p.strain_rate,
+                    shear_rate=p.strain_rate,
+                    rate_how="I = ε̇ d sqrt(ρ/σ₃) (the boundary's own 'inertial' at the start of the shear)",
+                    ends={"eps_a": (p.strain_rate, 0.0)}),
+        ]  # fmt: skip
+        if later:
+            out.append(Loading(stages=later, **sigma3, **speed))
+        return out
+
+    @classmethod
+    def extent(cls, params: BaseModel) -> Extent:
+        """The mould: ``radius`` around the axis, ``height`` above ``base_center``."""
+        p = params
+        x, y, z = (float(c) for c in p.base_center)
+        r = float(p.radius)
+        return Extent(lo=(x - r, y - r, z), hi=(x + r, y + r, z + p.height), area=math.pi * r * r)
+
+    @classmethod
+    def sample_size(cls, name: str, params: BaseModel, facts: SceneFacts) -> SampleSize:
+        """ASTM D7181 / D4767's diameter and slenderness, and DEM practice's grains across (the
+        height estimated as the packed height)."""
+        dmax, dmean = facts.d_max, facts.d_mean
+        diameter = 2 * params.radius
+        dd = max(SIZE_DIAMETER[0] * dmax, SIZE_DIAMETER_DEM[0] * dmean)
+        n_min = facts.packing_fraction * math.pi / 4 * dd**2 * SIZE_SLENDERNESS[0] * dd / facts.grain_volume
+        return SampleSize("triaxial", (
+            SizeCheck("diameter / d_max", diameter / dmax, *SIZE_DIAMETER),
+            SizeCheck("diameter / d_mean", diameter / dmean, *SIZE_DIAMETER_DEM),
+            SizeCheck("height / diameter (packed, estimated)", facts.packed_height / diameter,
+                      *SIZE_SLENDERNESS),
+        ), n_min)  # fmt: skip
 
     @classmethod
     def stage_remedies(cls, params: BaseModel, stage: str) -> list[tuple[str, Any, str]]:

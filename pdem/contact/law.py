@@ -11,6 +11,9 @@ declares, as class data:
   the id order, an automatic skin, a collision envelope); the default suits a penalty law;
 * ``rigid`` — rigid grains (False for penalty laws): contact forces are the method's impulses over
   the step, which may act at a zero gap, and servo boundaries control force rather than velocity;
+* ``hertz_from_materials(params)`` (class method) — True when, with these parameters, the normal
+  force is Hertz's from the materials' E and ν (default False): ``pdem advise``'s overlap and
+  stiffness rules then apply to the scene;
 * ``Params`` — a pydantic model of its parameters (validated before anything runs);
 * ``pair_kernel`` / ``wall_kernel`` — the generic loops of :mod:`pdem.contact._kernels`
   specialised with the law's ``@njit`` force function.
@@ -94,6 +97,12 @@ class ContactLaw:
     Params: ClassVar[type[LawParams]] = LawParams
     pair_kernel: ClassVar[Any] = None
     wall_kernel: ClassVar[Any] = None
+
+    @classmethod
+    def hertz_from_materials(cls, params: LawParams) -> bool:
+        """Whether the normal force is Hertz's from the materials' E and ν with these parameters
+        (``pdem advise``'s overlap and stiffness rules assume it). Default: False."""
+        return False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

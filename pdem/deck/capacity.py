@@ -4,7 +4,11 @@ A deck such as ``n = 1000000000000`` in a random fill, or a lattice of 5 µm sph
 (≈ 10⁹ spheres), would otherwise run until the machine runs out of memory. :func:`check_capacity`
 estimates every ``[[particles]]`` source from its raw table (so it does not depend on the source
 models of :mod:`pdem.deck.schema`) and refuses the deck when the total exceeds ``run.max_particles``,
-naming the source, the count, the memory it needs and the remedy:
+naming the source, the count, the memory it needs and the remedy.
+
+The estimate is the source plugin's own: its ``estimate_count(data, context)`` class method
+(:class:`pdem.sources.api.Source`; a source that does not say is left out). pdem's sources estimate
+with the helpers of this module (:func:`fill_count`, :func:`lattice_count`, :func:`file_rows`):
 
 ========== ==================================================================================
 source     estimate
@@ -45,7 +49,11 @@ __all__ = [
     "ID_LIMIT",
     "check_capacity",
     "default_max_particles",
+    "estimate_source",
     "estimate_sources",
+    "file_rows",
+    "fill_count",
+    "lattice_count",
     "machine_memory",
 ]
 
@@ -165,7 +173,8 @@ def _steps(length: float, step: float) -> float:
     return math.floor(ratio) if math.isfinite(ratio) else math.inf
 
 
-def _lattice_count(src: dict) -> tuple[float, str] | None:
+def lattice_count(src: dict) -> tuple[float, str] | None:
+    """``(count, description)`` of a raw lattice table (sc, fcc, hcp, hex2d), or None."""
     lattice = src.get("lattice")
     if lattice == "hex2d":
         nc, nr = src.get("n_cols"), src.get("n_rows")
@@ -202,7 +211,8 @@ def _lattice_count(src: dict) -> tuple[float, str] | None:
     return n, f"a {lattice} lattice of spheres of radius {r:.3g} m (spacing {s:.3g} m) in {where}"
 
 
-def _file_rows(path: Path) -> tuple[float, str] | None:
+def file_rows(path: Path) -> tuple[float, str] | None:
+    """``(rows, description)`` of a packing file (HDF5 or text), or None if it cannot be read."""
     try:
         if not path.is_file():
             return None  # the schema reports a missing file
@@ -235,32 +245,50 @@ def _file_rows(path: Path) -> tuple[float, str] | None:
     return float(lines), f"the packing file {path.name} ({lines:,} lines)"
 
 
-def estimate_source(src: Any, base_dir: Path) -> tuple[float, str] | None:
-    """``(count, description)`` of one raw ``[[particles]]`` table, or None if it cannot be estimated
-    (an invalid table: the schema reports it)."""
-    if not isinstance(src, dict):
-        return None
+def fill_count(src: dict, by_fraction: bool = True) -> tuple[float, str] | None:
+    """``(count, description)`` of a raw table that gives ``n``, or (``by_fraction``) a
+    ``volume_fraction`` of its ``region`` filled with spheres of its ``sizes``; None otherwise."""
     kind = src.get("source")
-    if kind in ("random_fill", "pluviate"):
-        n = src.get("n")
-        if isinstance(n, int) and not isinstance(n, bool) and n > 0:
-            return float(n), f"{kind} with n = {n:,}"
-        vf = _num(src.get("volume_fraction"))
-        box = _region_box(src.get("region"))
-        r3 = _mean_r3(src.get("sizes"))
-        if kind == "random_fill" and vf is not None and vf > 0 and box is not None and r3 is not None:
-            n = vf * box[2] / (4.0 / 3.0 * math.pi * r3)
-            return n, f"random_fill of volume fraction {vf:g} of a {box[2]:.3g} m³ region"
+    n = src.get("n")
+    if isinstance(n, int) and not isinstance(n, bool) and n > 0:
+        return float(n), f"{kind} with n = {n:,}"
+    if not by_fraction:
         return None
-    if kind == "lattice":
-        return _lattice_count(src)
-    if kind == "file":
-        p = src.get("path")
-        if not isinstance(p, str) or not p:
-            return None
-        path = Path(p).expanduser()
-        return _file_rows(path if path.is_absolute() else Path(base_dir) / path)
+    vf = _num(src.get("volume_fraction"))
+    box = _region_box(src.get("region"))
+    r3 = _mean_r3(src.get("sizes"))
+    if vf is not None and vf > 0 and box is not None and r3 is not None:
+        n = vf * box[2] / (4.0 / 3.0 * math.pi * r3)
+        return n, f"{kind} of volume fraction {vf:g} of a {box[2]:.3g} m³ region"
     return None
+
+
+def _source_class(name: str) -> Any:
+    """The source plugin registered as ``name``, or None (the deck reports an unknown source)."""
+    from ..errors import PdemError
+    from ..plugins import load
+
+    try:
+        return load("sources", name)
+    except PdemError:
+        return None
+
+
+def estimate_source(src: Any, base_dir: Path) -> tuple[float, str] | None:
+    """``(count, description)`` of one raw ``[[particles]]`` table, from its source plugin's
+    ``estimate_count``; None if it cannot be estimated (an invalid table: the schema reports it; a
+    source that does not say)."""
+    if not isinstance(src, dict) or not isinstance(src.get("source"), str):
+        return None
+    cls = _source_class(src["source"])
+    hook = getattr(cls, "estimate_count", None)
+    if hook is None:
+        return None
+    out = hook(src, {"base_dir": str(base_dir)})
+    if out is None:
+        return None
+    n, what = out
+    return float(n), str(what)
 
 
 def estimate_sources(data: dict, base_dir: Path) -> list[tuple[int, float, str]]:

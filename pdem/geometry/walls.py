@@ -216,7 +216,18 @@ class RigidBody(Motion):
 
     Each step (symplectic Euler, explicit in the load): v += dt (F/m + g), x += dt v, with F the
     load the particles put on the wall in the previous step; likewise ω += dt T/I and the wall
-    turns by ω dt. The load is an exact sum, so the motion is the same on any number of ranks."""
+    turns by ω dt. The load is an exact sum, so the motion is the same on any number of ranks.
+
+    Holding (a boundary's inactive stages, a body parked until it is dropped): :meth:`hold` stops
+    the body where it stands: from the next step on it does not move, its velocities are zero and
+    it acts as a fixed wall (``moved_by_load`` is false: DEM-C does not solve it with the grains,
+    fixed grains do not push it), whatever its load, gravity or ``force``. :meth:`release` resumes
+    the integration, from rest or from given velocities; :meth:`set_velocity` sets the velocities
+    of a released body (e.g. to stop it before a stage). ``held``, ``velocity_now`` and
+    ``angular_velocity_now`` read the state. A held body's checkpoint (:meth:`state`) carries
+    ``held``; a state without it (a released body, or a checkpoint written before holding existed)
+    restores a released body. Switching a wall off (``Simulation.set_wall_active``) does not hold
+    its body: an inactive free body keeps moving under gravity and ``force`` unless held."""
 
     mass: float
     inertia: float | None = None
@@ -226,7 +237,6 @@ class RigidBody(Motion):
     angular_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     fixed_translation: str = ""
     fixed_rotation: str = ""
-    moved_by_load = True
 
     def __post_init__(self) -> None:
         if not (self.mass > 0 and math.isfinite(self.mass)):
@@ -241,12 +251,60 @@ class RigidBody(Motion):
             self._free_r[:] = 0.0
         self._v *= self._free_t
         self._w *= self._free_r
+        self._held = False
 
     implicit = False  # DEM-C solves the body with the grains (its stepper sets this)
 
     @property
+    def moved_by_load(self) -> bool:  # type: ignore[override]
+        """A free body (its contacts with fixed grains count, with its mass), unless held."""
+        return not self._held
+
+    @property
+    def held(self) -> bool:
+        """Whether the body is held (:meth:`hold`): it does not move and its velocities are zero."""
+        return self._held
+
+    @property
     def velocity_now(self) -> np.ndarray:
+        """The body's velocity [m/s] (a copy; zero while held)."""
         return self._v.copy()
+
+    @property
+    def angular_velocity_now(self) -> np.ndarray:
+        """The body's angular velocity [rad/s] (a copy; zero while held or without ``inertia``)."""
+        return self._w.copy()
+
+    def hold(self) -> None:
+        """Hold the body where it stands: from the next step on it does not move and its velocity
+        and angular velocity are zero (a fixed wall), until :meth:`release`. Holding a held body
+        changes nothing."""
+        self._held = True
+        self._v = np.zeros(3)
+        self._w = np.zeros(3)
+
+    def release(self, velocity=None, angular_velocity=None) -> None:
+        """Let the body move again from the next step on: from rest, or from ``velocity`` [m/s] and
+        ``angular_velocity`` [rad/s] when given (components along fixed axes are dropped). Releasing
+        a body that is not held keeps its velocities unless given (so calling it at the start of
+        every stage is harmless)."""
+        self._held = False
+        self.set_velocity(self._v if velocity is None else velocity, angular_velocity)
+
+    def set_velocity(self, velocity, angular_velocity=None) -> None:
+        """Set the body's velocity [m/s] (and angular velocity [rad/s] when given; it stays otherwise)
+        from the next step on; components along fixed axes are dropped. A held body must be
+        released first (:meth:`release` takes the velocities too)."""
+        if self._held:
+            raise InputError(
+                f"RigidBody.set_velocity: velocity = {velocity!r} was given while the body is held; a "
+                "held body stays at rest. Release it with the velocity instead: release(velocity=...)"
+            )
+        v = _vector3("velocity", velocity, "m/s")
+        w = None if angular_velocity is None else _vector3("angular_velocity", angular_velocity, "rad/s")
+        self._v = v * self._free_t
+        if w is not None:
+            self._w = w * self._free_r
 
     @property
     def free_axes(self) -> np.ndarray:
@@ -258,19 +316,25 @@ class RigidBody(Motion):
         return int(sum(1 << c for c in range(3) if self._free_t[c] == 0.0)) | 0b111000
 
     def free_velocity(self, dt: float) -> np.ndarray:
-        """v + dt (g + F/m): the body's velocity before the contact impulses (DEM-C)."""
+        """v + dt (g + F/m): the body's velocity before the contact impulses (DEM-C); zero while
+        held."""
+        if self._held:
+            return np.zeros(3)
         acc = np.asarray(self.force, float) / self.mass + np.asarray(self.gravity, float)
         return (self._v + dt * acc) * self._free_t
 
     def finish(self, wall, v: np.ndarray, dt: float) -> None:
-        """After the DEM-C solve: take the solved velocity and move by dt v."""
-        self._v = v * self._free_t
+        """After the DEM-C solve: take the solved velocity and move by dt v (held: stay at rest)."""
+        self._v = np.zeros(3) if self._held else v * self._free_t
         wall.translate(dt * self._v)
         wall.velocity = self._v.copy()
         wall.omega = np.zeros(3)
         wall.size_rate = 0.0
 
     def move(self, wall, t, dt):
+        if self._held:
+            _move(wall, dt, np.zeros(3), np.zeros(3), {})  # at rest: a fixed wall
+            return
         if self.implicit:
             return  # moved by the DEM-C stepper after its solve
         load_f = wall.force  # collective under MPI: every rank advances walls together
@@ -282,12 +346,29 @@ class RigidBody(Motion):
         _move(wall, dt, self._v, self._w, {})
 
     def state(self):
-        return {"velocity": self._v.copy(), "angular_velocity": self._w.copy()}
+        out = {"velocity": self._v.copy(), "angular_velocity": self._w.copy()}
+        if self._held:  # only then: a released body's checkpoint is as it always was
+            out["held"] = np.array(True)
+        return out
 
     def restore(self, state):
         if "velocity" in state:
             self._v = np.array(state["velocity"], float)
             self._w = np.array(state["angular_velocity"], float)
+            self._held = bool(state["held"]) if "held" in state else False
+
+
+def _vector3(key: str, value, unit: str) -> np.ndarray:
+    """``value`` as three finite floats, else an InputError naming ``key``."""
+    try:
+        a = np.array(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        a = np.array([np.nan])
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise InputError(
+            f"RigidBody: {key} = {value!r} must be three finite numbers [{unit}], e.g. (0, 0, -0.1)"
+        )
+    return a
 
 
 class Follow(Motion):

@@ -14,7 +14,11 @@ Files written in the output directory
     ``[A-Za-z0-9_.-]`` replaced by ``_``) holding datasets ``points`` (m, 3) float64 [m] and
     ``cells`` (k, 3) int64 (triangles, from :func:`pdem.io.wall_mesh.wall_triangles`) and
     attributes ``name``, ``index`` (order in the frame), ``kind``, ``kind_name``, ``params`` (16,),
-    ``force`` (3,) [N], ``torque`` (3,) [N m].
+    ``force`` (3,) [N], ``torque`` (3,) [N m]; and a group ``cell_data`` with one row per triangle,
+    the cell data of the VTK walls (:mod:`pdem.io.vtk`): ``wall_index`` (k,) int32 (= ``index``),
+    ``kind`` (k,) int32, ``force`` (k, 3) float64 [N] and ``torque`` (k, 3) float64 [N m] (the
+    wall's load repeated on each of its triangles). Frames written before ``cell_data`` existed
+    lack it; they still read and continue.
 ``particles.xdmf``, ``walls.xdmf``
     XDMF 3 sidecars: a ``Temporal`` collection with one grid per frame (``<Time Value>`` = frame
     time, written with ``repr`` so it round-trips exactly; ``step`` and ``stage`` as grid
@@ -24,8 +28,11 @@ Files written in the output directory
     (``Vector`` for (n, 3), ``Scalar`` for (n,)). Frames without particles are left out of
     ``particles.xdmf`` (ParaView's XDMF reader fails on empty grids); they stay in ``particles.h5``.
     Walls: per frame a ``Spatial`` collection of one ``Uniform`` grid per wall (ParaView shows one
-    block per wall, named after it) with ``Triangle`` topology; the wall's force and torque are
-    grid-centred ``Vector`` attributes with inline values (field data in ParaView). Walls whose
+    block per wall, named after it) with ``Triangle`` topology and the attributes the VTK walls
+    carry: cell-centred ``wall_index`` and ``kind`` (``Scalar``) and ``force`` [N] and ``torque``
+    [N m] (``Vector``), referencing ``cell_data`` (cell data in ParaView: colour the walls by
+    ``force``); and, as before, the wall's force and torque as grid-centred ``Vector`` attributes
+    of the same names with inline values (field data in ParaView). Walls whose
     mesh is empty (a plane missing the scene box) are left out of the XDMF (they stay in
     ``walls.h5``), and so are frames without any wall triangle.
 
@@ -76,7 +83,7 @@ from .frame import PARTICLE_FIELDS, Frame, WallState
 from .journal import discard_frame
 from .wall_mesh import wall_triangles
 
-__all__ = ["HDF5Writer", "xdmf_number_type"]
+__all__ = ["HDF5Writer", "WALL_CELL_DATA", "wall_cell_data", "xdmf_number_type"]
 
 # HDF5 1.8 file format: readable by every HDF5 >= 1.8 (ParaView's included) and allows attributes
 # larger than 64 kB (a long deck in the metadata).
@@ -115,6 +122,55 @@ def _xml_vector_attribute(parent: ET.Element, name: str, values: np.ndarray) -> 
     att = ET.SubElement(parent, "Attribute", Name=name, AttributeType="Vector", Center="Grid")
     item = ET.SubElement(att, "DataItem", Dimensions="1 3", NumberType="Float", Precision="8", Format="XML")
     item.text = " ".join(repr(float(v)) for v in values)
+
+
+#: the per-triangle arrays of a wall (the VTK walls' cell data), in the order they are written
+WALL_CELL_DATA = ("wall_index", "kind", "force", "torque")
+
+
+def wall_cell_data(index: int, wall: WallState, n_cells: int) -> dict[str, np.ndarray]:
+    """The cell data of wall number ``index`` of a frame drawn with ``n_cells`` triangles, as the VTK
+    walls carry it: ``wall_index``, ``kind`` (int32) and the load ``force``, ``torque`` (float64,
+    repeated on every triangle)."""
+    return {
+        "wall_index": np.full(n_cells, index, dtype=np.int32),
+        "kind": np.full(n_cells, int(wall.kind), dtype=np.int32),
+        "force": np.tile(np.asarray(wall.force, dtype=np.float64), (n_cells, 1)),
+        "torque": np.tile(np.asarray(wall.torque, dtype=np.float64), (n_cells, 1)),
+    }
+
+
+def _wall_uniform_grid(
+    coll: ET.Element,
+    h5: str,
+    key: str,
+    wname: str,
+    cells: tuple[tuple[int, ...], np.dtype],
+    points: tuple[tuple[int, ...], np.dtype],
+    force: np.ndarray,
+    torque: np.ndarray,
+    cell_data: dict[str, tuple[tuple[int, ...], np.dtype]],
+) -> None:
+    """Append one wall's Uniform grid to the frame's collection ``coll``: triangles, points, the cell
+    attributes found in ``cell_data`` (name: shape, dtype of ``/frames/<key>/<wname>/cell_data/<name>``)
+    and the grid-centred ``force``, ``torque``."""
+    base = f"/frames/{key}/{wname}"
+    grid = ET.SubElement(coll, "Grid", Name=wname, GridType="Uniform")
+    topo = ET.SubElement(
+        grid, "Topology", TopologyType="Triangle", NumberOfElements=str(cells[0][0]), NodesPerElement="3"
+    )
+    _hdf_item(topo, h5, f"{base}/cells", *cells)
+    geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
+    _hdf_item(geo, h5, f"{base}/points", *points)
+    for name in WALL_CELL_DATA:
+        if name not in cell_data:
+            continue
+        shape, dtype = cell_data[name]
+        kind = "Vector" if len(shape) == 2 else "Scalar"
+        att = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center="Cell")
+        _hdf_item(att, h5, f"{base}/cell_data/{name}", shape, dtype)
+    _xml_vector_attribute(grid, "force", force)
+    _xml_vector_attribute(grid, "torque", torque)
 
 
 class HDF5Writer(Writer):
@@ -236,7 +292,7 @@ class HDF5Writer(Writer):
                     shapes = {k: (g[k].shape, g[k].dtype) for k in _field_order(list(g.keys()))}
                     pieces.setdefault(int(key), []).append((rank, path.name, shapes))
                 f.flush()
-        walls: dict[int, list[tuple[str, tuple, np.dtype, tuple, np.dtype, Any, Any]]] = {}
+        walls: dict[int, list[tuple[str, tuple, np.dtype, tuple, np.dtype, Any, Any, dict]]] = {}
         if self.walls_path.exists():
             with self._open_existing(self.walls_path) as f:
                 for key, g in self._kept_frames(f, headers):
@@ -255,6 +311,7 @@ class HDF5Writer(Writer):
                                 wg["points"].dtype,
                                 np.asarray(wg.attrs.get("force", np.zeros(3)), dtype=np.float64),
                                 np.asarray(wg.attrs.get("torque", np.zeros(3)), dtype=np.float64),
+                                _cell_data_layout(wg),
                             )
                         )
                     walls[int(key)] = [r[1:] for r in sorted(rows, key=lambda r: r[0])]
@@ -321,23 +378,12 @@ class HDF5Writer(Writer):
         coll = ET.Element("Grid", Name=f"frame_{key}", GridType="Collection", CollectionType="Spatial")
         self._grid_header(coll, hdr)
         drawn = 0
-        for wname, cshape, cdtype, pshape, pdtype, force, torque in walls:
+        for wname, cshape, cdtype, pshape, pdtype, force, torque, cell_data in walls:
             if cshape[0] == 0:
                 continue
-            base = f"/frames/{key}/{wname}"
-            grid = ET.SubElement(coll, "Grid", Name=wname, GridType="Uniform")
-            topo = ET.SubElement(
-                grid,
-                "Topology",
-                TopologyType="Triangle",
-                NumberOfElements=str(cshape[0]),
-                NodesPerElement="3",
+            _wall_uniform_grid(
+                coll, h5, key, wname, (cshape, cdtype), (pshape, pdtype), force, torque, cell_data
             )
-            _hdf_item(topo, h5, f"{base}/cells", cshape, cdtype)
-            geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
-            _hdf_item(geo, h5, f"{base}/points", pshape, pdtype)
-            _xml_vector_attribute(grid, "force", force)
-            _xml_vector_attribute(grid, "torque", torque)
             drawn += 1
         return coll if drawn else None
 
@@ -434,6 +480,9 @@ class HDF5Writer(Writer):
                 wg.attrs["params"] = np.asarray(w.params, dtype=np.float64)
                 wg.attrs["force"] = np.asarray(w.force, dtype=np.float64)
                 wg.attrs["torque"] = np.asarray(w.torque, dtype=np.float64)
+                cg = wg.create_group("cell_data")
+                for name, a in wall_cell_data(i, w, tri.shape[0]).items():
+                    cg.create_dataset(name, data=a)
             f.flush()
 
     # ------------------------------------------------------------------ XDMF
@@ -481,23 +530,14 @@ class HDF5Writer(Writer):
         coll = ET.Element("Grid", Name=f"frame_{key}", GridType="Collection", CollectionType="Spatial")
         self._grid_header(coll, frame)
         drawn = 0
-        for w, (pts, tri) in zip(walls, meshes, strict=True):
+        for i, (w, (pts, tri)) in enumerate(zip(walls, meshes, strict=True)):
             if tri.shape[0] == 0:
                 continue
-            base = f"/frames/{key}/{safe_key(w.name)}"
-            grid = ET.SubElement(coll, "Grid", Name=safe_key(w.name), GridType="Uniform")
-            topo = ET.SubElement(
-                grid,
-                "Topology",
-                TopologyType="Triangle",
-                NumberOfElements=str(tri.shape[0]),
-                NodesPerElement="3",
-            )
-            _hdf_item(topo, h5, f"{base}/cells", tri.shape, tri.dtype)
-            geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
-            _hdf_item(geo, h5, f"{base}/points", pts.shape, pts.dtype)
-            _xml_vector_attribute(grid, "force", np.asarray(w.force, dtype=np.float64))
-            _xml_vector_attribute(grid, "torque", np.asarray(w.torque, dtype=np.float64))
+            cell_data = {k: (a.shape, a.dtype) for k, a in wall_cell_data(i, w, tri.shape[0]).items()}
+            _wall_uniform_grid(
+                coll, h5, key, safe_key(w.name), (tri.shape, tri.dtype), (pts.shape, pts.dtype),
+                np.asarray(w.force, dtype=np.float64), np.asarray(w.torque, dtype=np.float64), cell_data,
+            )  # fmt: skip
             drawn += 1
         return coll if drawn else None
 
@@ -521,6 +561,15 @@ class HDF5Writer(Writer):
 def _field_order(names: list[str]) -> list[str]:
     """Dataset names in the order frames write them: known particle fields first, then the others."""
     return [k for k in PARTICLE_FIELDS if k in names] + sorted(k for k in names if k not in PARTICLE_FIELDS)
+
+
+def _cell_data_layout(wg: h5py.Group) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of each ``cell_data`` array of a wall group in ``walls.h5`` (none: written
+    before walls carried cell data)."""
+    cg = wg.get("cell_data")
+    if not isinstance(cg, h5py.Group):
+        return {}
+    return {k: (cg[k].shape, cg[k].dtype) for k in WALL_CELL_DATA if isinstance(cg.get(k), h5py.Dataset)}
 
 
 def _shapes(particles: dict[str, np.ndarray]) -> dict[str, tuple[tuple[int, ...], np.dtype]]:

@@ -398,6 +398,11 @@ class HertzMindlin(ContactLaw):
     pair_kernel = hertz_mindlin_pair_kernel
     wall_kernel = hertz_mindlin_wall_kernel
 
+    @classmethod
+    def hertz_from_materials(cls, params: LawParams) -> bool:
+        """Hertz from E and ν unless the coefficient form is chosen."""
+        return getattr(params, "parameterisation", "material") == "material"
+
     def pair_coefficients(self, materials: MaterialTable, a: int, b: int) -> np.ndarray:
         p = self.params
         clamp = 1.0 if p.clamp_normal else 0.0

@@ -27,6 +27,14 @@ A source class derives from :class:`Source` and declares
   box against it) and ``bounds()`` (the box ``(lo, hi)`` the spheres lie in, if known: the deck checks
   that it is not wider than a periodic box). The defaults read a ``sizes`` / ``region`` key of the
   parameters when it is a :data:`SizeSpec` / :data:`RegionSpec`, and give None otherwise.
+* optionally ``estimate_count(data, context)`` (class method): ``(count, description)`` — about how
+  many spheres the *raw* table makes, and how that was estimated (e.g. ``"a fcc lattice of spheres
+  of radius 1e-3 m in a 0.1×0.1×0.1 m box"``), or None when it cannot tell (the default; also for a
+  table with wrong types: it never assumes they are right). The deck's memory check
+  (:mod:`pdem.deck.capacity`) refuses a deck whose sources make more particles than
+  ``run.max_particles``, and ``pdem advise`` counts the grains with it; ``context["base_dir"]`` is the
+  deck's directory. It must be cheap: it runs before the table is validated, on decks that would
+  make 10¹² spheres.
 
 Units are SI (m, m/s). Determinism: ``generate`` must return bitwise the same arrays for the same
 parameters and ``seed`` (``run.seed`` plus the index of the table in the deck) on any machine and
@@ -156,9 +164,28 @@ class Source:
     """Base of particle-source plugins: construct with validated ``Params``, then ``generate``."""
 
     Params: ClassVar[type[SourceParams]] = SourceParams
+    #: the grains start apart and may fall before they touch (a random fill, a lattice), rather than
+    #: packed (a file, a pour): ``pdem advise`` takes free-fall speeds from such sources
+    starts_loose: ClassVar[bool] = False
+    #: the source settles its grains with pdem before the run (a pour): ``pdem advise`` predicts the
+    #: time that takes
+    settles: ClassVar[bool] = False
+    #: parameters naming input files relative to the deck (``pdem advise --apply`` makes them absolute)
+    path_keys: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, params: SourceParams) -> None:
         self.params = params
+
+    def known_radii(self, base_dir: Path) -> np.ndarray | None:
+        """The radii the source will make, when it knows them before generating (a packing file: its
+        rows), else None (default). ``pdem advise`` sizes its rules from them."""
+        return None
+
+    @classmethod
+    def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
+        """``(count, description)``: about how many spheres the raw table ``data`` makes, or None
+        (default) when the source cannot tell (see the module docstring)."""
+        return None
 
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         """The spheres of this table.

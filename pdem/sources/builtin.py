@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from ..deck import capacity as _capacity
 from ..deck.rules import REGION_MODELS as _REGION_MODELS
 from ..deck.rules import SIZE_MODELS as _SIZE_MODELS
 from ..deck.rules import context_of as _ctx
@@ -298,6 +299,12 @@ class RandomFillSource(Source):
     """``source = "random_fill"``: :func:`pdem.sources.random_fill` in a region."""
 
     Params = RandomFillParams
+    starts_loose = True
+
+    @classmethod
+    def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
+        """``n``, or ``volume_fraction`` × the region's volume / the mean sphere volume."""
+        return _capacity.fill_count(data, by_fraction=True)
 
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         from . import random_fill
@@ -313,6 +320,12 @@ class LatticeSource(Source):
     """``source = "lattice"``: :func:`pdem.sources.simple_cubic`, ``fcc``, ``hcp`` or ``hex2d``."""
 
     Params = LatticeParams
+    starts_loose = True
+
+    @classmethod
+    def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
+        """The lattice points the generator makes (:func:`pdem.deck.capacity.lattice_count`)."""
+        return _capacity.lattice_count(data)
 
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         from . import fcc, hcp, hex2d, simple_cubic
@@ -339,6 +352,22 @@ class FileSource(Source):
     """``source = "file"``: spheres (and velocities, if given) read by :func:`pdem.sources.read_spheres`."""
 
     Params = FileParams
+    path_keys = ("path",)
+
+    @classmethod
+    def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
+        """The rows of the packing file (:func:`pdem.deck.capacity.file_rows`)."""
+        p = data.get("path")
+        if not isinstance(p, str) or not p:
+            return None
+        path = Path(p).expanduser()
+        return _capacity.file_rows(path if path.is_absolute() else Path(context.get("base_dir", ".")) / path)
+
+    def known_radii(self, base_dir: Path) -> np.ndarray | None:
+        """The file's radii."""
+        from . import read_spheres
+
+        return np.asarray(read_spheres(Path(base_dir) / self.params.path)["radii"], dtype=float)
 
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         from . import read_spheres
@@ -357,6 +386,12 @@ class PluviateSource(Source):
     """``source = "pluviate"``: :func:`pdem.sources.pluviate`, poured and settled with pdem itself."""
 
     Params = PluviateParams
+    settles = True
+
+    @classmethod
+    def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
+        """``n``."""
+        return _capacity.fill_count(data, by_fraction=False)
 
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         from . import pluviate

@@ -53,9 +53,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pdem.api import ContactLaw, LawParams, damping_ratio, njit, pair_forces, tangential_spring, wall_forces
-from pdem.errors import InputError
-from pdem.materials import MaterialTable
+from pdem.api import (
+    ContactLaw,
+    InputError,
+    LawParams,
+    MaterialTable,
+    damping_ratio,
+    njit,
+    pair_forces,
+    tangential_spring,
+    wall_forces,
+)
 from pydantic import Field
 
 __all__ = [

@@ -35,6 +35,11 @@ Deck::
     target_stress = 2000.0   # Pa
     max_speed = 0.05         # m/s
 
+For ``pdem advise`` it describes itself through the boundary contract's hooks: its loading
+(:meth:`ServoPlate.loading`: the target stress on the grains' weight, reached at up to
+``max_speed``) and the area it holds the grains in (:meth:`ServoPlate.extent`), so the advice sizes
+the overlaps and the step for it as for a built-in device's servo plate.
+
 It uses only the public plugin API (:mod:`pdem.api`).
 """
 
@@ -43,7 +48,18 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from pdem.api import Boundary, BoundaryParams, Controlled, RigidBody, Vec3, servo_gain, shapes
+from pdem.api import (
+    Boundary,
+    BoundaryParams,
+    Controlled,
+    Extent,
+    Loading,
+    RigidBody,
+    SceneFacts,
+    Vec3,
+    servo_gain,
+    shapes,
+)
 from pydantic import Field, model_validator
 
 __all__ = ["ServoPlate", "ServoPlateParams"]
@@ -87,6 +103,21 @@ class ServoPlate(Boundary):
     """See the module docstring."""
 
     Params = ServoPlateParams
+
+    @classmethod
+    def loading(cls, name: str, params: ServoPlateParams, facts: SceneFacts) -> list[Loading]:
+        """The plate holds ``target_stress`` on top of the grains' weight, moving at up to
+        ``max_speed``, in every stage it is on in."""
+        return [Loading(
+            stages=tuple(facts.stages),
+            speed=params.max_speed, speed_from=f"boundaries.{name}.max_speed (servo)",
+            stress=params.target_stress, stress_from=f"boundaries.{name}.target_stress", on_weight=True,
+        )]  # fmt: skip
+
+    @classmethod
+    def extent(cls, params: ServoPlateParams) -> Extent:
+        """The grains pack under the plate's loaded ``area`` (the plane itself is unbounded)."""
+        return Extent(area=params.area)
 
     def build(self, sim: Any) -> None:
         p = self.params
