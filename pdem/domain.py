@@ -161,6 +161,37 @@ class PeriodicBox:
                     "smaller particles or a smaller run.skin"
                 )
 
+    def check_walls(self, walls, width: float) -> None:
+        """Walls are not periodic: along a periodic axis a wall must look the same from every image
+        of a particle (an infinite plane parallel to the axis), or stay ``width`` (the ghost width)
+        away from the box faces (so that no particle near a face can touch it)."""
+        from .geometry.shapes import Cylinder, Plane
+
+        box, w = self, width
+        for wall in walls:
+            for d in np.flatnonzero(box.periodic):
+                ax = "xyz"[d]
+                if isinstance(wall.shape, Cylinder) and abs(wall.shape.axis[d]) == 1.0:
+                    continue  # an infinite cylinder along the axis (a periodic pipe)
+                if isinstance(wall.shape, Plane):
+                    if wall.shape.normal[d] != 0.0:
+                        raise InputError(
+                            f"wall '{wall.name}' is a plane with a normal component along the periodic axis "
+                            f"{ax}; walls are not periodic, so such a plane would cut the periodic box. Use "
+                            f"planes parallel to {ax} (normal along a non-periodic axis), or drop {ax} from "
+                            "the periodic axes"
+                        )
+                    continue
+                lo, hi = wall.bounding_box()
+                if not (lo[d] >= box.lo[d] + w and hi[d] <= box.hi[d] - w):
+                    raise InputError(
+                        f"wall '{wall.name}' spans [{lo[d]:.4g}, {hi[d]:.4g}] m along the periodic axis "
+                        f"{ax}, closer than the ghost width {w:.4g} m to the box faces {box.lo[d]:.4g} / "
+                        f"{box.hi[d]:.4g} m; walls are not periodic (a particle and its image would see "
+                        "different walls). Keep finite walls inside the box away from its faces, or use "
+                        f"infinite planes parallel to {ax} or an infinite cylinder along {ax}"
+                    )
+
     def state(self) -> dict[str, np.ndarray]:
         """Checkpoint entries."""
         return {

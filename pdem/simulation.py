@@ -38,36 +38,22 @@ import numpy as np
 from . import diagnose as _diag
 from .contact._kernels import FLAG_NONFINITE
 from .contact.law import ContactLaw
-from .contact.stability import STIFFNESS_LIMIT
+from .contact.stability import StiffnessMonitor
 from .contact.store import ContactStore
 from .domain import PeriodicBox
-from .errors import GeometryError, InputError, InstabilityError, PdemError
-from .geometry.walls import Controlled, Motion, Wall
+from .errors import GeometryError, InputError, PdemError
+from .geometry.walls import Motion, Wall
 from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor.list import SKIN_MAX, SKIN_MIN, SKIN_STEPS, NeighbourList  # noqa: F401 - re-exported
-from .parallel.comm import SerialComm, all_max, all_min, all_sum_int_array, any_rank
+from .parallel.comm import SerialComm, all_max, all_min, any_rank, gather_by_id
 from .parallel.exact import exact_sum, global_count
 from .parallel.work import WorkModel
 from .plugins import load_contact_law
-from .state.particles import FREE, MOTION_NAMES, REMOVED, Field, ParticleStore, dof_mask
+from .state.particles import FREE, REMOVED, Field, ParticleStore, dof_mask, new_particles
+from .state.removal import Removals
 
 __all__ = ["Simulation"]
-
-
-def _history(saved, hsize: int) -> np.ndarray:
-    """A checkpoint's contact history as (rows, hsize). A 2-D history narrower than the law's (a
-    DEM-C checkpoint written before rolling friction: 4 columns of 8) is padded with zeros."""
-    h = np.asarray(saved, dtype=np.float64)
-    if h.ndim == 2 and h.shape[1] < hsize:
-        return np.concatenate([h, np.zeros((h.shape[0], hsize - h.shape[1]))], axis=1)
-    return h.reshape(-1, hsize)
-
-
-def _fresh_stiffness() -> dict[str, float]:
-    """The live step bound's record over a run: the smallest bound [s], the step it was met, how
-    many checks were made and at how many the step exceeded the bound."""
-    return {"min_dt": math.inf, "step": -1.0, "checks": 0.0, "exceeded": 0.0}
 
 
 class Simulation:
@@ -87,9 +73,7 @@ class Simulation:
         self._decomp = None  # a Decomposition when running on several ranks, or periodic
         self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
         self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
-        self._removed_ids: list[np.ndarray] = []
-        self._n_removed = 0  # Σ len(_removed_ids), kept as the lists grow (one per removal)
-        self._n_parked = 0  # removed rows still in the storage (parked until the next rebuild)
+        self.removals = Removals(self)  # particles taken out (outflows), and the global count
         self.decomposition_dims: tuple[int, int, int] | None = None
         self.balance_threshold = 1.05  # rebalance when max/mean estimated work exceeds this
         self.materials = MaterialTable()
@@ -116,14 +100,8 @@ class Simulation:
         self._pending_flags: int | None = None
         self._defer_check = False
         self.dt_critical = math.nan
-        #: live step bound from the contacts' stiffness (pdem.contact.stability), checked every this
-        #: many steps for penalty laws that support it (0: never), and at steps 1, 2, 4, … below it
-        #: (a run's first steps are often its impact: a coarse run of ~100 steps saw it only once)
-        self.stiffness_every = 100
-        #: stop (InstabilityError) when dt exceeds this multiple of the live bound; 0: never
-        self.stiffness_limit = STIFFNESS_LIMIT
-        self._load_stiffness: np.ndarray | None = None  # this step's boundary loads' (N/m)
-        self.stiffness = _fresh_stiffness()
+        #: the live step bound from the contacts' stiffness and the boundary loads' stiffness
+        self.stiffness_monitor = StiffnessMonitor(self)
         self.integrator = None  # made by the law at preparation (velocity Verlet, DEM-C stepper, …)
         self.envelope = 0.0  # collision envelope of DEM-C [m]: pairs this far apart enter the problem
         self.neighbours = NeighbourList(self)  # the list, its reach, storage order and rebuild
@@ -345,89 +323,21 @@ class Simulation:
         one name per particle (a bed whose edge grains are fixed). Fixed and prescribed particles act
         as infinitely massive in contacts. ``group``: an integer tag (scalar or per
         particle). ``fixed_translation``/``fixed_rotation``: axes along/about which the particles may
-        not move or turn (see :meth:`set_dof`). Other keywords give values of registered fields.
+        not move or turn (see :meth:`set_dof`). Other keywords give values of registered fields
+        (all checked by :func:`pdem.state.particles.new_particles`).
         """
-        x = np.array(positions, dtype=np.float64, ndmin=2)
-        if x.ndim != 2 or x.shape[1] != 3:
-            raise GeometryError(f"positions must have shape (n, 3); got {np.shape(positions)}")
-        n = x.shape[0]
-        r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
-        if not np.all(np.isfinite(x)):
-            raise GeometryError("positions contain non-finite values")
-        if self.box is not None:  # onto the periodic grid and into the box (exact, idempotent)
-            x = x.copy()
-            self.box.snap_positions(x)
-            self.box.wrap(x)
-        if not np.all((r > 0) & np.isfinite(r)):
-            bad = r[~((r > 0) & np.isfinite(r))][0]
-            raise GeometryError(f"radius = {bad!r} is invalid; radii must be positive and finite (metres)")
-        if material is None:
-            if len(self.materials) != 1:
-                raise InputError("add_particles: name the material (several or no materials are defined)")
-            mat_idx = 0
-        else:
-            mat_idx = self.materials.index(material)
-        if self.materials[mat_idx].rigid:
-            raise InputError(
-                f"material '{self.materials[mat_idx].name}' is rigid (Material.rigid_wall): for walls only; "
-                "give the particles an elastic material"
-            )
-        if isinstance(motion, str):
-            if motion not in MOTION_NAMES:
-                raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
-            mo = np.full(n, MOTION_NAMES[motion], np.int8)
-        else:
-            names = np.asarray(motion, dtype=object).reshape(-1)
-            if names.shape != (n,):
-                raise InputError(f"motion: give one name or one per particle ({n}); got {names.shape[0]}")
-            bad = sorted({str(m) for m in names if m not in MOTION_NAMES})
-            if bad:
-                raise InputError(f"motion = {bad[0]!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
-            mo = np.array([MOTION_NAMES[m] for m in names], dtype=np.int8)
-        v = (
-            np.zeros((n, 3))
-            if velocities is None
-            else np.broadcast_to(np.asarray(velocities, dtype=float), (n, 3)).copy()
-        )
-        w = (
-            np.zeros((n, 3))
-            if angular_velocities is None
-            else np.broadcast_to(np.asarray(angular_velocities, dtype=float), (n, 3)).copy()
-        )
-        rho = self.materials[mat_idx].density
-        mass = rho * 4.0 / 3.0 * math.pi * r**3
-        inertia = 0.4 * mass * r**2
-        free = mo == FREE
-        inv_m = np.where(free, 1.0 / mass, 0.0)
-        inv_i = np.where(free, 1.0 / inertia, 0.0)
-        try:
-            dof = dof_mask(fixed_translation, fixed_rotation)
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
-        if ids.size and ids[-1] >= 2**31:
-            raise InputError("more than 2**31 particles are not supported")
-        values = {
-            "id": ids, "x": x, "v": v, "w": w, "r": r, "mass": mass, "inv_m": inv_m, "inv_i": inv_i,
-            "mat": np.full(n, mat_idx, np.int32), "motion": mo,
-            "group": np.broadcast_to(np.asarray(group, dtype=np.int32), (n,)),
-            "dof": np.full(n, dof, np.uint8),
-        }  # fmt: skip
-        for name, val in fields.items():
-            spec = self.particles.fields.get(name)
-            if spec is None or name in values or name == "x_build":
-                raise InputError(
-                    f"add_particles: unknown keyword {name!r}; registered fields: "
-                    f"{', '.join(sorted(set(self.particles.fields) - set(values) - {'x_build', 'f', 't'}))}"
-                    " (register_field adds one)"
-                )
-            values[name] = np.broadcast_to(np.asarray(val, dtype=spec.dtype), spec.shape(n))
+        values, dof = new_particles(
+            self.particles, self.materials, self.box, self._next_id, positions, radii, material, velocities,
+            angular_velocities, motion, group, fixed_translation, fixed_rotation, fields,
+        )  # fmt: skip
+        ids = values["id"]
+        n = ids.size
         self._next_id += n
         if self._decomp is not None:  # every rank is given all new particles and keeps its own
-            keep = self._decomp.owned_mask(x)
+            keep = self._decomp.owned_mask(values["x"])
             values = {k: a[keep] for k, a in values.items()}
             self.particles.n_ghost = 0
-            self._n_expected += n
+            self.removals.n_expected += n
         n0 = self.particles.n_owned
         self.particles.append_owned(values)
         if dof:
@@ -488,59 +398,16 @@ class Simulation:
 
         They stop interacting at once (marked REMOVED: no mass, not integrated, left out of every
         query) and leave the storage at the next neighbour-list rebuild. Meanwhile each is parked
-        far from every grain (:meth:`_park`) and out of the walls' candidates, so no contact can
-        reach it and the list stays valid without a rebuild (a hopper removes grains at most steps
-        of its discharge; forcing a rebuild each time had made rebuilds most of DEM-P's). Contact
-        history of the remaining pairs is kept (it is keyed by particle ids).
+        far from every grain (:meth:`pdem.state.removal.Removals.park`) and out of the walls'
+        candidates, so no contact can reach it and the list stays valid without a rebuild (a hopper
+        removes grains at most steps of its discharge; forcing a rebuild each time had made rebuilds
+        most of DEM-P's). Contact history of the remaining pairs is kept (it is keyed by particle ids).
         """
-        p = self.particles
-        n = p.n_owned
-        mask = np.asarray(mask, dtype=bool)[:n] & (p.motion[:n] != REMOVED)
-        count = int(mask.sum())
-        if count == 0:
-            return 0, 0.0
-        mass = math.fsum(p.mass[:n][mask])
-        self._removed_ids.append(p.id[:n][mask].copy())
-        self._n_removed += count
-        idx = np.flatnonzero(mask)
-        p.motion[idx] = REMOVED
-        p.inv_m[idx] = 0.0
-        p.inv_i[idx] = 0.0
-        p.v[idx] = 0.0
-        p.w[idx] = 0.0
-        self._park(idx)
-        return count, mass
-
-    def _park(self, idx: np.ndarray) -> None:
-        """Move removed rows ``idx`` out of reach until the next rebuild compacts them away.
-
-        Between rebuilds a particle can only meet the partners listed at the last build, all within
-        a ghost width W of it. Parked at x + (1000 W + 3 W id) along x, each is ~1000 W from them
-        and at least 2 W from every other parked particle, so no pair touches or enters DEM-C's
-        envelope (the ghost copies on other ranks follow at the next forward, before any force is
-        computed). ``x_build`` moves with it, so the rebuild test does not see the jump; the walls
-        drop it from their candidates (a wall moved by its load would otherwise meet it)."""
-        p = self.particles
-        w = float(self.neighbours.ghost_width)
-        p.x[idx, 0] += 1000.0 * w + 3.0 * w * p.id[idx].astype(np.float64)
-        p.x_build[idx] = p.x[idx]
-        self._n_parked += idx.size
-        gone = np.zeros(p.n, dtype=bool)
-        gone[idx] = True
-        self.contact_store.drop_wall_candidates(gone)
+        return self.removals.remove(mask)
 
     def compact_removed(self) -> None:
         """Drop REMOVED particles from the storage (at a rebuild, before migration)."""
-        p = self.particles
-        n = p.n_owned
-        gone = p.motion[:n] == REMOVED
-        k = int(gone.sum())
-        self._n_parked = 0
-        if k == 0:
-            return
-        p.n_ghost = 0
-        self.particles.permute(np.concatenate([np.flatnonzero(~gone), np.flatnonzero(gone)]))
-        p.n_owned = n - k
+        self.removals.compact()
 
     # ------------------------------------------------------------------ preparation
     def prepare(self) -> None:
@@ -587,7 +454,7 @@ class Simulation:
         nl.configure(r_max, n)
         if self.box is not None:
             self.box.check_width(nl.ghost_width)
-            self._check_walls_periodic()
+            self.box.check_walls(self._wall_list, nl.ghost_width)
             self.box.snap_positions(p.x[:n])  # particles added before set_periodic
             self.box.wrap(p.x[:n])
         if (self.comm.size > 1 or self.box is not None) and self._decomp is None:
@@ -603,6 +470,8 @@ class Simulation:
             store.pair_capacity = max(8 * n, 64, store.pair_capacity)
             self._started = True
         store.walls_changed = True
+        for wall in self._wall_list:  # its loads are summed over the ranks (collective reads)
+            wall._comm = self.comm
         self._prepared = True
         nl.rebuild()
         self._check_initial_overlaps()
@@ -625,38 +494,7 @@ class Simulation:
         keep = self._decomp.owned_mask(p.x[:n])
         self.particles.permute(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
         p.n_owned = int(keep.sum())
-        self._n_expected = global_count(self.comm, p.n_owned)
-
-    def _check_walls_periodic(self) -> None:
-        """Walls are not periodic: along a periodic axis a wall must look the same from every image
-        of a particle (an infinite plane parallel to the axis), or stay a ghost width away from the
-        box faces (so that no particle near a face can touch it)."""
-        from .geometry.shapes import Cylinder, Plane
-
-        box, w = self.box, self.neighbours.ghost_width
-        for wall in self._wall_list:
-            for d in np.flatnonzero(box.periodic):
-                ax = "xyz"[d]
-                if isinstance(wall.shape, Cylinder) and abs(wall.shape.axis[d]) == 1.0:
-                    continue  # an infinite cylinder along the axis (a periodic pipe)
-                if isinstance(wall.shape, Plane):
-                    if wall.shape.normal[d] != 0.0:
-                        raise InputError(
-                            f"wall '{wall.name}' is a plane with a normal component along the periodic axis "
-                            f"{ax}; walls are not periodic, so such a plane would cut the periodic box. Use "
-                            f"planes parallel to {ax} (normal along a non-periodic axis), or drop {ax} from "
-                            "the periodic axes"
-                        )
-                    continue
-                lo, hi = wall.bounding_box()
-                if not (lo[d] >= box.lo[d] + w and hi[d] <= box.hi[d] - w):
-                    raise InputError(
-                        f"wall '{wall.name}' spans [{lo[d]:.4g}, {hi[d]:.4g}] m along the periodic axis "
-                        f"{ax}, closer than the ghost width {w:.4g} m to the box faces {box.lo[d]:.4g} / "
-                        f"{box.hi[d]:.4g} m; walls are not periodic (a particle and its image would see "
-                        "different walls). Keep finite walls inside the box away from its faces, or use "
-                        f"infinite planes parallel to {ax} or an infinite cylinder along {ax}"
-                    )
+        self.removals.n_expected = global_count(self.comm, p.n_owned)
 
     def exact_sum(self, values) -> float:
         """Correctly rounded sum over all ranks (collective; independent of the partition)."""
@@ -686,152 +524,28 @@ class Simulation:
         """Everything needed to continue bitwise-identically: particles ordered by id (every field
         registered with ``checkpoint``; forces included: velocity Verlet starts a step from them),
         contact history keyed by id pairs, per-wall history by particle id, wall positions, time and
-        step. Independent of the storage order and (with MPI) of the number of ranks."""
-        if not self._prepared:
-            self._prepare()
-        self.check_deferred()  # a checkpoint holds only a checked state
-        p = self.particles
-        n = p.n_owned
-        live = p.motion[:n] != REMOVED
-        names = p.names(checkpoint=True)
-        local = {k: getattr(p, k)[:n][live].copy() for k in names}
-        if self.box is not None:  # wrapped (exact: the trajectory does not depend on it)
-            self.box.wrap(local["x"])
-        g = self._gather_by_id(local)
-        out: dict[str, object] = {f"particles/{k}": g[k] for k in names}
-        store = self.contact_store
-        live = np.any(store.hist != 0.0, axis=1)
-        keys, hist = store.keys[live], store.hist[live]
-        if store.walls_changed:
-            store.pack_walls()
-        walls = [store.wall_history_of(k) for k in range(len(self._wall_list))]
-        if self.comm.size > 1:
-            parts = self.comm.allgather((keys, hist, walls))
-            keys = np.concatenate([q[0] for q in parts])
-            hist = np.concatenate([q[1] for q in parts]).reshape(-1, store.history_size)
-            walls = [
-                (np.concatenate([q[2][k][0] for q in parts]),
-                 np.concatenate([q[2][k][1] for q in parts]),
-                 np.concatenate([q[2][k][2] for q in parts]).reshape(-1, store.history_size))
-                for k in range(len(self._wall_list))
-            ]  # fmt: skip
-        # a pair across ranks is held by both, and a pair across the periodic boundary twice (by each
-        # end's image), identically: keep one
-        keys, first = np.unique(keys, return_index=True)
-        hist = hist[first]
-        out["pairs/keys"] = keys.copy()
-        out["pairs/hist"] = hist.copy()
-        for k, wall in enumerate(self._wall_list):
-            key = f"walls/{wall.name}/"
-            rows, ids, whist = walls[k]
-            order = np.lexsort((ids, rows))
-            out[key + "rows"] = rows[order].copy()
-            out[key + "ids"] = ids[order].copy()
-            out[key + "hist"] = whist[order].copy()
-            out[key + "offset"] = wall.offset.copy()
-            out[key + "velocity"] = wall.velocity.copy()
-            out[key + "omega"] = wall.omega.copy()
-            out[key + "size_rate"] = np.array(wall.size_rate)
-            out[key + "rotation"] = wall.rotation.copy()
-            names = sorted(wall.sizes)
-            out[key + "sizes"] = np.array([wall.sizes[nm] for nm in names], float)
-            out[key + "active"] = np.array(wall.active)
-            for name, value in wall.motion.state().items():
-                out[key + "motion/" + name] = np.asarray(value)
-        out["scalars/time"] = np.array(self.time)
-        out["scalars/step"] = np.array(self.step_count)
-        out["scalars/dt"] = np.array(self.dt)
-        out["scalars/next_id"] = np.array(self._next_id)
-        for name, value in self.stiffness.items():
-            if math.isfinite(value):  # (min_dt is +inf until a bound is measured, always with DEM-C: a
-                # checkpoint leaves it out, a resume starts from +inf again, and no file holds a
-                # non-finite number that a failure scan would take for a blown-up state)
-                out[f"stiffness/{name}"] = np.array(value)
-        out.update(self.integrator.state())  # e.g. DEM-C solver counters
-        if self.box is not None:
-            out.update(self.box.state())
-        return out
+        step. Independent of the storage order and (with MPI) of the number of ranks
+        (:func:`pdem.io.state.simulation_state`; collective)."""
+        from .io.state import simulation_state
+
+        return simulation_state(self)
 
     def load_state(self, state: dict[str, object]) -> None:
         """Restore :meth:`state_dict` into a simulation built with the same materials, law and walls
-        but no particles."""
-        from .errors import CheckpointError
+        but no particles (:func:`pdem.io.state.restore_simulation`), and prepare it to go on."""
+        from .io.state import restore_forces, restore_simulation
 
-        if self.particles.n_owned:
-            raise CheckpointError(
-                "load_state needs a simulation without particles (built from the deck "
-                "without running its particle sources)"
-            )
-        names = set(self.walls)
-        saved = {k.split("/")[1] for k in state if k.startswith("walls/")}
-        if names != saved:
-            raise CheckpointError(
-                f"the checkpoint's walls {sorted(saved)} differ from the deck's "
-                f"{sorted(names)}; resume with the deck the checkpoint was written from"
-            )
-        saved = {k: np.asarray(state[k]) for k in ("domain/periodic", "domain/lo", "domain/hi") if k in state}
-        mine = self.box.state() if self.box is not None else {}
-        if saved.keys() != mine.keys() or not all(np.array_equal(saved[k], mine[k]) for k in saved):
-
-            def show(b):
-                if not b:
-                    return "none"
-                return ", ".join(f"{k.split('/')[1]} {b[k].tolist()}" for k in sorted(b))
-
-            raise CheckpointError(
-                f"the checkpoint's periodic box ({show(saved)}) differs from this simulation's "
-                f"({show(mine)}); resume with the deck (or set_periodic call) it was written with"
-            )
-        p = self.particles
-        g = {
-            k: np.asarray(state[f"particles/{k}"])
-            for k in p.names(checkpoint=True)
-            if f"particles/{k}" in state  # fields registered after the checkpoint was written: defaults
-        }
-        p.append_owned({k: v for k, v in g.items() if k not in ("f", "t")})
-        store = self.contact_store
-        hsize = store.history_size
-        store.keys = np.asarray(state["pairs/keys"], dtype=np.int64)
-        store.hist = _history(state["pairs/hist"], hsize)
-        store.pi = store.pj = np.zeros(0, dtype=np.int64)
-        store.key_order = None
-        store.force = np.zeros((0, 3))
-        store.pair_capacity = max(8 * len(g["id"]), 64)
-        for k, wall in enumerate(self._wall_list):
-            key = f"walls/{wall.name}/"
-            whist = _history(state[key + "hist"], hsize)
-            ids = np.asarray(state[key + "ids"]) if key + "ids" in state else g["id"]  # dense before 0.2
-            rows = np.asarray(state[key + "rows"]) if key + "rows" in state else np.zeros(len(ids), np.int64)
-            store.set_wall_history(k, rows, ids, whist)
-            if key + "rotation" in state:
-                wall.rotation = np.array(state[key + "rotation"], dtype=float).reshape(3, 3)
-                names = sorted(wall.sizes)
-                sizes = (float(v) for v in np.atleast_1d(state[key + "sizes"]))
-                wall.sizes.update(zip(names, sizes, strict=True))
-                wall.omega = np.array(state[key + "omega"], dtype=float)
-                wall.size_rate = float(state[key + "size_rate"])
-            wall.set_offset(np.array(state[key + "offset"], dtype=float))
-            wall.velocity = np.array(state[key + "velocity"], dtype=float)
-            wall.active = bool(state[key + "active"])
-            prefix = key + "motion/"
-            wall.motion.restore({k2[len(prefix):]: v for k2, v in state.items() if k2.startswith(prefix)})
-            if key + "motion_velocity" in state and isinstance(wall.motion, Controlled):  # before 0.2
-                wall.motion.velocity = np.array(state[key + "motion_velocity"], dtype=float)
-        self.time = float(state["scalars/time"])
-        self.step_count = int(state["scalars/step"])
-        self.dt = float(state["scalars/dt"])
+        saved = restore_simulation(self, state)
         self._next_id = int(state["scalars/next_id"])
-        self.stiffness = _fresh_stiffness()
-        for name in self.stiffness:
-            if f"stiffness/{name}" in state:  # checkpoints before the live bound: start afresh
-                self.stiffness[name] = float(state[f"stiffness/{name}"])
         self._restored = {k: v for k, v in state.items() if k.startswith("solver/")}
         self._started = True
         self._prepare()
-        # the forces that start the next step are the saved ones, not a re-evaluation
-        rows = np.searchsorted(g["id"], p.id[: p.n_owned])
-        p.f[: p.n_owned] = g["f"][rows]
-        p.t[: p.n_owned] = g["t"][rows]
+        restore_forces(self.particles, saved)
+
+    @property
+    def next_id(self) -> int:
+        """The id the next added particle gets (ids are consecutive, from 0, over all ranks)."""
+        return self._next_id
 
     def _check_initial_overlaps(self) -> None:
         worst, who = _diag.global_worst_overlap(self)
@@ -866,24 +580,7 @@ class Simulation:
 
     def check_particle_count(self) -> None:
         """No particle may be lost between ranks: owned counts must add up (collective)."""
-        from .errors import LostParticleError
-
-        # one reduction of both counts (a hopper removes grains in hundreds of small batches: summing
-        # their lengths in Python at every rebuild had cost 4 % of its 2-rank run)
-        counts = np.array([self.particles.n_owned, self._n_removed], dtype=np.int64)
-        total, removed = (int(c) for c in all_sum_int_array(self.comm, counts))
-        if total + removed == self._n_expected:
-            return
-        ids = np.concatenate(self.comm.allgather(self.particles.id[: self.particles.n_owned]))
-        gone = np.concatenate(
-            self.comm.allgather(np.concatenate(self._removed_ids or [np.zeros(0, np.int64)]))
-        )
-        missing = np.setdiff1d(np.arange(self._next_id), np.concatenate([ids, gone]))
-        raise LostParticleError(
-            f"{self._n_expected - total - removed} particle(s) lost between ranks at step {self.step_count} "
-            f"(first id {missing[0] if missing.size else '?'}); this is a bug in the exchange, "
-            "please report it"
-        )
+        self.removals.check_count()
 
     def _needs_rebuild(self) -> bool:
         """The list's rebuild test; the last step's deferred flags ride on its reduction
@@ -911,7 +608,7 @@ class Simulation:
         # the load balancer weighs ranks by this time: contacts only (a boundary hook may wait in a
         # collective call, which would make the emptier rank look busier and drain it further)
         self.work.add_time(_time.perf_counter() - t0)
-        self._load_stiffness = None
+        self.stiffness_monitor.load = None
         self._run_hooks("apply_forces")
         return flags
 
@@ -920,7 +617,7 @@ class Simulation:
         enter the free velocity). Returns whether any boundary has such a hook."""
         p = self.particles
         integ.zero_forces(p.f, p.t, p.n)
-        self._load_stiffness = None
+        self.stiffness_monitor.load = None
         if not self._hooks["apply_forces"]:
             return False
         self._run_hooks("apply_forces")
@@ -938,33 +635,19 @@ class Simulation:
         each such particle the mass max(m, h² k) in its solve (mass scaling: static loads and
         contact forces unchanged, the particle's dynamics slowed). DEM-P's step is far below these
         limits and ignores it. Call it on every rank (``rows`` may be empty)."""
-        p = self.particles
-        n = p.n_owned
-        rows = np.asarray(rows, dtype=np.int64)
-        k = np.asarray(k, dtype=float)
-        if rows.shape != k.shape:
-            raise InputError(f"add_load_stiffness: {rows.shape[0]} rows but {k.shape} stiffnesses")
-        if rows.size and (rows.min() < 0 or rows.max() >= n):
-            raise InputError("add_load_stiffness: rows must index owned particles")
-        if not np.all(np.isfinite(k)) or (k.size and k.min() < 0.0):
-            raise InputError("add_load_stiffness: stiffnesses must be finite and ≥ 0 [N/m]")
-        added = np.bincount(rows, weights=k, minlength=n)
-        if self._load_stiffness is None or self._load_stiffness.shape[0] != n:
-            self._load_stiffness = added
-        else:
-            self._load_stiffness += added
+        self.stiffness_monitor.add_load(rows, k)
 
     @property
     def load_stiffness_wanted(self) -> bool:
         """Whether the method steps with the boundaries' load stiffness (DEM-C with
         ``load_mass_scaling``): a boundary may skip computing it when not (DEM-P ignores it)."""
-        return bool(getattr(self.integrator, "wants_load_stiffness", False))
+        return self.stiffness_monitor.wanted
 
     @property
     def load_stiffness(self) -> np.ndarray | None:
         """Per owned particle, the stiffness [N/m] of this step's boundary loads
         (:meth:`add_load_stiffness`), or ``None`` when no boundary declared one."""
-        return self._load_stiffness
+        return self.stiffness_monitor.load
 
     def _contact_forces(self) -> int:
         p = self.particles
@@ -995,8 +678,6 @@ class Simulation:
     def record_wall_loads(self) -> None:
         """Tell every wall how many load rows this step wrote for it (summed lazily, exactly)."""
         self.contact_store.record_wall_loads()
-        for wall in self._wall_list:
-            wall._comm = self.comm
 
     def add_work_time(self, seconds: float) -> None:
         """Account time spent on contacts (the load balancer weighs ranks by it)."""
@@ -1032,8 +713,7 @@ class Simulation:
         self.check_deferred()  # an integrator that skipped update_neighbours left them unchecked
         self.time += self._dt
         self.step_count += 1
-        every, n = self.stiffness_every, self.step_count
-        stiffness_due = every and (n % every == 0 or (n < every and n & (n - 1) == 0))
+        stiffness_due = self.stiffness_monitor.due(self.step_count)
         if self._defer_check and not stiffness_due:
             self._pending_flags = int(flags)
         else:
@@ -1053,30 +733,32 @@ class Simulation:
     def check_stiffness(self) -> float:
         """The step the contact network bears now (:func:`pdem.contact.stability.step_bound`),
         recorded in :attr:`stiffness` (collective; ``nan`` for laws without the bound)."""
-        from .contact.stability import step_bound, supported
+        return self.stiffness_monitor.check()
 
-        if not supported(self.law):
-            return math.nan
-        bound = step_bound(self)
-        rec = self.stiffness
-        rec["checks"] += 1
-        if bound < rec["min_dt"]:
-            rec["min_dt"], rec["step"] = bound, float(self.step_count)
-        if self._dt > bound:
-            rec["exceeded"] += 1
-            if self.stiffness_limit > 0 and self._dt > self.stiffness_limit * bound:
-                raise InstabilityError(
-                    f"the step is too large for the contacts at step {self.step_count} "
-                    f"(t = {self.time:.6g} s): dt = {self._dt:.4g} s is {self._dt / bound:.3g} times the "
-                    "step the contact network bears "
-                    f"now ({bound:.4g} s, from the contacts' stiffness, coordination and friction; the law's "
-                    f"estimate {self.dt_critical:.4g} s does not see them), above run.stiffness_limit = "
-                    f"{self.stiffness_limit:g}. Runs past it can end wrong without blowing up. Take dt ≤ "
-                    f"{0.8 * bound:.3g} s (0.8 of the bound: it moves with the packing; run.dt, or "
-                    f"run.dt_fraction = {0.8 * bound / self.dt_critical:.3g}), or soften the material; "
-                    "run.stiffness_limit = 0 lets the run go on"
-                )
-        return bound
+    @property
+    def stiffness(self) -> dict[str, float]:
+        """The live step bound's record over the run: the smallest bound [s] (``min_dt``), the
+        ``step`` it was met, how many ``checks`` were made and at how many the step ``exceeded`` it."""
+        return self.stiffness_monitor.record
+
+    @property
+    def stiffness_every(self) -> int:
+        """Check the live step bound every this many steps, and at steps 1, 2, 4, … below it (0:
+        never; :class:`pdem.contact.stability.StiffnessMonitor`)."""
+        return self.stiffness_monitor.every
+
+    @stiffness_every.setter
+    def stiffness_every(self, value: int) -> None:
+        self.stiffness_monitor.every = value
+
+    @property
+    def stiffness_limit(self) -> float:
+        """Stop (InstabilityError) when dt exceeds this multiple of the live step bound; 0: never."""
+        return self.stiffness_monitor.limit
+
+    @stiffness_limit.setter
+    def stiffness_limit(self, value: float) -> None:
+        self.stiffness_monitor.limit = value
 
     def advance_walls(self, dt: float) -> None:
         """Move the walls with prescribed motion over [t, t + dt] (positions and velocities)."""
@@ -1169,14 +851,6 @@ class Simulation:
             _diag.raise_for_flags(self, flags)
 
     # ------------------------------------------------------------------ inspection
-    def _gather_by_id(self, local: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Concatenate per-rank arrays (each keyed like ``local``, with ``id``) and order by id."""
-        if self.comm.size > 1:
-            parts = self.comm.allgather(local)
-            local = {k: np.concatenate([q[k] for q in parts]) for k in local}
-        order = np.argsort(local["id"], kind="stable")
-        return {k: v[order] for k, v in local.items()}
-
     def get_particles(self) -> dict[str, np.ndarray]:
         """Copies of the particle arrays of all ranks, ordered by id: id, x, v, w, r, mass, f, t,
         material, motion, group, dof, and every registered field marked ``output``. Under MPI this
@@ -1188,7 +862,7 @@ class Simulation:
         local = {name: getattr(p, name)[:n][live].copy() for name in p.names(output=True)}
         if self.box is not None:  # between rebuilds a particle may be up to skin/2 past a face
             self.box.wrap(local["x"])
-        out = self._gather_by_id(local)
+        out = gather_by_id(self.comm, local)
         out["material"] = out.pop("mat")
         return out
 
@@ -1315,7 +989,7 @@ class Simulation:
     def n_particles(self) -> int:
         """Particles this rank owns, not counting those removed since the last rebuild (they stay
         in the storage until then: ``particles.n_owned`` counts the rows)."""
-        return self.particles.n_owned - self._n_parked
+        return self.particles.n_owned - self.removals.n_parked
 
     def __repr__(self) -> str:
         return (

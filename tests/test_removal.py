@@ -17,6 +17,7 @@ from pdem.api import REMOVED
 from pdem.boundaries.builtin import OutflowBoundary, OutflowParams
 from pdem.geometry import shapes
 from pdem.geometry.walls import RigidBody
+from pdem.state.removal import Removals
 
 R = 0.5e-3
 SIDE = 5.5e-3
@@ -66,14 +67,14 @@ def _scene(law: str, floor: str, seed: int = 3) -> pdem.Simulation:
     return _sink_and_gravity(sim, law)
 
 
-def _old_removal(sim, idx):
+def _old_removal(removals, idx):
     """The behaviour before parking: a rebuild at the start of the next step."""
-    sim.request_rebuild()
+    removals.sim.request_rebuild()
 
 
 def _run(law, floor, steps, old_way, monkeypatch):
     if old_way:
-        monkeypatch.setattr(pdem.Simulation, "_park", _old_removal)
+        monkeypatch.setattr(Removals, "park", _old_removal)
     sim = _scene(law, floor)
     states = []
     for _ in range(4):
@@ -150,7 +151,7 @@ def test_removal_in_a_periodic_box_gives_the_same_bits(law, steps, monkeypatch):
     runs = []
     for old_way in (False, True):
         if old_way:
-            monkeypatch.setattr(pdem.Simulation, "_park", _old_removal)
+            monkeypatch.setattr(Removals, "park", _old_removal)
         sim = scene()
         sim.run(steps=steps)
         d = sim.get_particles()

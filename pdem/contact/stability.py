@@ -57,6 +57,10 @@ The same linearisation, summed over one wall's contacts with the dashpots this t
 (:meth:`ContactLaw.contact_damping`), caps the gain of the velocity servos that hold a wall's load
 (:func:`wall_stiffness`, :func:`servo_gain`; the triaxial platen, the shear box plate, the
 servo-plate plugin): there the dashpots see the wall's velocity directly and matter most.
+
+During a run a :class:`StiffnessMonitor` (``sim.stiffness_monitor``) checks the bound every so many
+steps, keeps its record and stops a run whose step has grown too large for its contacts; it also
+collects the stiffness that boundaries declare for their loads within a step (DEM-C's mass scaling).
 """
 
 from __future__ import annotations
@@ -67,13 +71,14 @@ from typing import Any
 import numpy as np
 
 from .._jit import njit
+from ..errors import InputError, InstabilityError
 from ..geometry._kernels import surface_velocity, wall_contact
 from ..parallel.comm import all_max
 from ..parallel.exact import exact_sums
 
 __all__ = [
-    "SERVO_LOOP_GAIN", "STIFFNESS_LIMIT", "network_bound", "servo_gain", "step_bound", "supported",
-    "wall_stiffness",
+    "SERVO_LOOP_GAIN", "STIFFNESS_LIMIT", "StiffnessMonitor", "network_bound", "servo_gain", "step_bound",
+    "supported", "wall_stiffness",
 ]
 
 #: default ``run.stiffness_limit``: a run stops when dt exceeds this multiple of the bound (the
@@ -434,3 +439,92 @@ def servo_gain(sim: Any, wall: Any, gain: float, area: float) -> tuple[float, fl
     if loop > cap:
         return cap * area / response, loop
     return gain, loop
+
+
+class StiffnessMonitor:
+    """The live step bound of one simulation's run (``sim.stiffness_monitor``), and the stiffness
+    of its boundaries' loads within a step.
+
+    ``every``: check the bound (:func:`step_bound`) every this many steps for penalty laws that
+    support it (0: never), and at steps 1, 2, 4, … below it (a run's first steps are often its
+    impact: a coarse run of ~100 steps saw it only once). ``limit``: stop (InstabilityError) when
+    dt exceeds this multiple of the bound; 0: never. ``record``: the smallest bound [s], the step
+    it was met, how many checks were made and at how many the step exceeded the bound. ``load``:
+    per owned particle, the stiffness [N/m] the boundaries declared for this step's loads
+    (:meth:`add_load`), or None."""
+
+    def __init__(self, sim: Any, every: int = 100, limit: float = STIFFNESS_LIMIT) -> None:
+        self.sim = sim
+        self.every = every
+        self.limit = limit
+        self.record = self.fresh_record()
+        self.load: np.ndarray | None = None
+
+    @staticmethod
+    def fresh_record() -> dict[str, float]:
+        """The record before any check."""
+        return {"min_dt": math.inf, "step": -1.0, "checks": 0.0, "exceeded": 0.0}
+
+    def restore(self, saved: dict[str, Any]) -> None:
+        """Start from a checkpoint's record (``saved``: name → value; names it lacks start afresh)."""
+        self.record = self.fresh_record()
+        for name in self.record:
+            if name in saved:
+                self.record[name] = float(saved[name])
+
+    def due(self, step: int) -> bool:
+        """Whether the bound is checked at the end of step number ``step``."""
+        every, n = self.every, step
+        return bool(every and (n % every == 0 or (n < every and n & (n - 1) == 0)))
+
+    def check(self) -> float:
+        """The step the contact network bears now (:func:`step_bound`), recorded in :attr:`record`
+        (collective; ``nan`` for laws without the bound)."""
+        sim = self.sim
+        if not supported(sim.law):
+            return math.nan
+        bound = step_bound(sim)
+        rec = self.record
+        rec["checks"] += 1
+        if bound < rec["min_dt"]:
+            rec["min_dt"], rec["step"] = bound, float(sim.step_count)
+        dt = sim.dt
+        if dt > bound:
+            rec["exceeded"] += 1
+            if self.limit > 0 and dt > self.limit * bound:
+                raise InstabilityError(
+                    f"the step is too large for the contacts at step {sim.step_count} "
+                    f"(t = {sim.time:.6g} s): dt = {dt:.4g} s is {dt / bound:.3g} times the "
+                    "step the contact network bears "
+                    f"now ({bound:.4g} s, from the contacts' stiffness, coordination and friction; the law's "
+                    f"estimate {sim.dt_critical:.4g} s does not see them), above run.stiffness_limit = "
+                    f"{self.limit:g}. Runs past it can end wrong without blowing up. Take dt ≤ "
+                    f"{0.8 * bound:.3g} s (0.8 of the bound: it moves with the packing; run.dt, or "
+                    f"run.dt_fraction = {0.8 * bound / sim.dt_critical:.3g}), or soften the material; "
+                    "run.stiffness_limit = 0 lets the run go on"
+                )
+        return bound
+
+    @property
+    def wanted(self) -> bool:
+        """Whether the method steps with the boundaries' load stiffness (its integrator's
+        ``wants_load_stiffness``)."""
+        return bool(getattr(self.sim.integrator, "wants_load_stiffness", False))
+
+    def add_load(self, rows: np.ndarray, k: np.ndarray) -> None:
+        """Add stiffnesses ``k`` [N/m] of owned particles ``rows`` to this step's :attr:`load`
+        (``Simulation.add_load_stiffness``)."""
+        n = self.sim.particles.n_owned
+        rows = np.asarray(rows, dtype=np.int64)
+        k = np.asarray(k, dtype=float)
+        if rows.shape != k.shape:
+            raise InputError(f"add_load_stiffness: {rows.shape[0]} rows but {k.shape} stiffnesses")
+        if rows.size and (rows.min() < 0 or rows.max() >= n):
+            raise InputError("add_load_stiffness: rows must index owned particles")
+        if not np.all(np.isfinite(k)) or (k.size and k.min() < 0.0):
+            raise InputError("add_load_stiffness: stiffnesses must be finite and ≥ 0 [N/m]")
+        added = np.bincount(rows, weights=k, minlength=n)
+        if self.load is None or self.load.shape[0] != n:
+            self.load = added
+        else:
+            self.load += added

@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = [
     "SerialComm", "default_comm", "any_rank", "any_ranks", "all_max", "all_min", "all_max_array",
-    "all_sum_int_array",
+    "all_sum_int_array", "gather_by_id",
 ]
 
 
@@ -110,6 +110,16 @@ def all_max_array(comm, values: np.ndarray) -> np.ndarray:
 def all_sum_int_array(comm, values: np.ndarray) -> np.ndarray:
     """Elementwise sum of an int64 array over ranks (integers: exact in any order)."""
     return _allreduce_array(comm, values, "SUM")
+
+
+def gather_by_id(comm, local: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Concatenate per-rank arrays (each keyed like ``local``, with ``id``) and order by id
+    (collective)."""
+    if comm.size > 1:
+        parts = comm.allgather(local)
+        local = {k: np.concatenate([q[k] for q in parts]) for k in local}
+    order = np.argsort(local["id"], kind="stable")
+    return {k: v[order] for k, v in local.items()}
 
 
 def _allreduce_array(comm, values: np.ndarray, op: str) -> np.ndarray:

@@ -26,15 +26,23 @@ ghosts, keep it in checkpoints, write it in snapshots. The built-in fields (SI u
 Plugins register their own fields with :meth:`ParticleStore.register` (through
 ``Simulation.register_field``): they then migrate, are ghosted and checkpointed as declared,
 without any other edit.
+
+:func:`new_particles` checks the arguments of ``Simulation.add_particles`` and makes the new
+spheres' values of every field (masses and inertias from the material's density).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from ..errors import GeometryError, InputError
+
 __all__ = [
+    "new_particles",
     "ParticleStore",
     "Field",
     "BUILTIN_FIELDS",
@@ -63,6 +71,105 @@ def dof_mask(translation: str = "", rotation: str = "") -> int:
                 raise ValueError(f"{what} axes {axes!r}: use letters among x, y, z")
             mask |= 1 << (shift + "xyz".index(a))
     return mask
+
+
+def new_particles(
+    store: ParticleStore,
+    materials: Any,
+    box: Any,
+    first_id: int,
+    positions,
+    radii,
+    material: str | None = None,
+    velocities=None,
+    angular_velocities=None,
+    motion: str | Any = "free",
+    group: int = 0,
+    fixed_translation: str = "",
+    fixed_rotation: str = "",
+    fields: dict[str, Any] | None = None,
+) -> tuple[dict[str, np.ndarray], int]:
+    """The values of every given field of new spheres (``Simulation.add_particles``, whose docstring
+    explains the arguments), checked, with ids from ``first_id`` on; and their ``dof`` mask.
+    ``materials``: the simulation's :class:`~pdem.materials.MaterialTable`; ``box``: its
+    :class:`~pdem.domain.PeriodicBox` (positions are put on its grid and wrapped into it) or None;
+    ``fields``: values of registered fields of ``store``."""
+    x = np.array(positions, dtype=np.float64, ndmin=2)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise GeometryError(f"positions must have shape (n, 3); got {np.shape(positions)}")
+    n = x.shape[0]
+    r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
+    if not np.all(np.isfinite(x)):
+        raise GeometryError("positions contain non-finite values")
+    if box is not None:  # onto the periodic grid and into the box (exact, idempotent)
+        x = x.copy()
+        box.snap_positions(x)
+        box.wrap(x)
+    if not np.all((r > 0) & np.isfinite(r)):
+        bad = r[~((r > 0) & np.isfinite(r))][0]
+        raise GeometryError(f"radius = {bad!r} is invalid; radii must be positive and finite (metres)")
+    if material is None:
+        if len(materials) != 1:
+            raise InputError("add_particles: name the material (several or no materials are defined)")
+        mat_idx = 0
+    else:
+        mat_idx = materials.index(material)
+    if materials[mat_idx].rigid:
+        raise InputError(
+            f"material '{materials[mat_idx].name}' is rigid (Material.rigid_wall): for walls only; "
+            "give the particles an elastic material"
+        )
+    if isinstance(motion, str):
+        if motion not in MOTION_NAMES:
+            raise InputError(f"motion = {motion!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
+        mo = np.full(n, MOTION_NAMES[motion], np.int8)
+    else:
+        names = np.asarray(motion, dtype=object).reshape(-1)
+        if names.shape != (n,):
+            raise InputError(f"motion: give one name or one per particle ({n}); got {names.shape[0]}")
+        bad = sorted({str(m) for m in names if m not in MOTION_NAMES})
+        if bad:
+            raise InputError(f"motion = {bad[0]!r} is invalid; allowed: {sorted(MOTION_NAMES)}")
+        mo = np.array([MOTION_NAMES[m] for m in names], dtype=np.int8)
+    v = (
+        np.zeros((n, 3))
+        if velocities is None
+        else np.broadcast_to(np.asarray(velocities, dtype=float), (n, 3)).copy()
+    )
+    w = (
+        np.zeros((n, 3))
+        if angular_velocities is None
+        else np.broadcast_to(np.asarray(angular_velocities, dtype=float), (n, 3)).copy()
+    )
+    rho = materials[mat_idx].density
+    mass = rho * 4.0 / 3.0 * math.pi * r**3
+    inertia = 0.4 * mass * r**2
+    free = mo == FREE
+    inv_m = np.where(free, 1.0 / mass, 0.0)
+    inv_i = np.where(free, 1.0 / inertia, 0.0)
+    try:
+        dof = dof_mask(fixed_translation, fixed_rotation)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    ids = np.arange(first_id, first_id + n, dtype=np.int64)
+    if ids.size and ids[-1] >= 2**31:
+        raise InputError("more than 2**31 particles are not supported")
+    values = {
+        "id": ids, "x": x, "v": v, "w": w, "r": r, "mass": mass, "inv_m": inv_m, "inv_i": inv_i,
+        "mat": np.full(n, mat_idx, np.int32), "motion": mo,
+        "group": np.broadcast_to(np.asarray(group, dtype=np.int32), (n,)),
+        "dof": np.full(n, dof, np.uint8),
+    }  # fmt: skip
+    for name, val in (fields or {}).items():
+        spec = store.fields.get(name)
+        if spec is None or name in values or name == "x_build":
+            raise InputError(
+                f"add_particles: unknown keyword {name!r}; registered fields: "
+                f"{', '.join(sorted(set(store.fields) - set(values) - {'x_build', 'f', 't'}))}"
+                " (register_field adds one)"
+            )
+        values[name] = np.broadcast_to(np.asarray(val, dtype=spec.dtype), spec.shape(n))
+    return values, dof
 
 
 @dataclass(frozen=True)
