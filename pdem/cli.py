@@ -290,7 +290,8 @@ def cmd_check(argv: list[str]) -> int:
     args = p.parse_args(argv)
     resolved = load_deck(args.deck, args.sets)
     deck = resolved.deck
-    scene = "" if args.deck_only else "; " + Runner(resolved, progress=None, dry=True).check_scene()
+    # progress lines on stderr while a long scene is made (a pour): only after some seconds
+    scene = "" if args.deck_only else "; " + Runner(resolved, progress=sys.stderr, dry=True).check_scene()
     nb = len(resolved.boundaries)
     print(
         f"{args.deck}: valid ({len(deck.stages)} stage(s): {', '.join(s.name for s in deck.stages)}; "

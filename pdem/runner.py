@@ -44,12 +44,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import re
 import shlex
-import shutil
 import sys
+import threading
 import time as _time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -58,31 +58,25 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError, PdemError
-from .io.checkpoint import write_checkpoint
 from .io.frame import Frame, WallState
-from .io.journal import Journal, discard, settle_stale
-from .io.paths import (
-    LOCK,
-    MARKER,
-    OutputLock,
-    entries,
-    first_missing,
-    is_pdem_output,
-    lock_holder,
-    named_as_pdem,
-    output_dir_problem,
-    pdem_entries,
-    record_entries,
-    remove_created,
-    remove_pdem_entries,
-)
+from .io.run_output import RunOutput
 from .plugins import load
 from .simulation import Simulation
 
-__all__ = ["Runner", "StageLimitError", "build_particles", "MAX_STAGE_STEPS"]
+__all__ = [
+    "Runner",
+    "StageLimitError",
+    "StageSettings",
+    "build_particles",
+    "resolve_stages",
+    "MAX_STAGE_STEPS",
+]
 
 #: most steps a stage may take (as the deck check, with the dt known once the scene exists)
 MAX_STAGE_STEPS = 10**10
+
+#: seconds between progress lines while the particles are made or a stage is prepared
+SETUP_PROGRESS_EVERY = 5.0
 
 
 class StageLimitError(PdemError):
@@ -114,6 +108,75 @@ def build_particles(
     return out.positions, out.radii, out.velocities
 
 
+# ---------------------------------------------------------------------------------------- stages
+@dataclass(frozen=True)
+class StageSettings:
+    """The settings one stage runs with, resolved from the deck once, before the run
+    (:func:`resolve_stages`; :attr:`Runner.stages`).
+
+    ``dt``: the stage's own ``dt``, else ``run.dt`` (None: the current step is kept, the law's
+    estimate or the dt of an earlier stage); ``dt_key``: the deck key that gives it
+    (``stages.<name>.dt`` or ``run.dt``); ``output``: ``[output]`` with ``[stages.output]`` on top;
+    ``law_params``: the contact law's parameters, ``[contact]`` with ``[stages.contact]`` on top, and
+    ``contact_given`` whether the stage's table gives the law any value; ``materials``: per material
+    the contact properties that may change between stages (``[stages.materials.NAME]`` where given,
+    else ``[materials.NAME]``); ``sources``: the indices of the ``[[particles]]`` tables inserted at
+    the stage's start.
+    """
+
+    index: int
+    stage: Any
+    dt: float | None
+    dt_key: str
+    output: Any
+    law_params: Any
+    contact_given: bool
+    materials: dict[str, dict[str, Any]]
+    sources: tuple[int, ...]
+
+    @property
+    def name(self) -> str:
+        return self.stage.name
+
+
+def resolve_stages(resolved: Any) -> list[StageSettings]:
+    """Every stage's :class:`StageSettings`, in deck order (validated with the deck: pure, no I/O)."""
+    from .deck.load import stage_contact_values
+
+    deck = resolved.deck
+    stages = list(deck.stages)
+    first = stages[0].name if stages else None
+    keys = Simulation.MUTABLE_MATERIAL_KEYS
+    base_materials = {name: spec.to_material(name) for name, spec in deck.materials.items()}
+    out = []
+    for index, stage in enumerate(stages):
+        values = stage_contact_values(stage.contact, deck.contact.law) if stage.contact else {}
+        params = resolved.law_params
+        if values:
+            params = type(params)(**{**params.model_dump(), **values})
+        materials = {}
+        for name, base in base_materials.items():
+            props = {k: getattr(base, k) for k in keys}
+            if name in stage.materials:
+                props.update(stage.materials[name].values())
+            materials[name] = props
+        sources = tuple(k for k, src in enumerate(deck.particles or []) if (src.stage or first) == stage.name)
+        out.append(
+            StageSettings(
+                index=index,
+                stage=stage,
+                dt=stage.dt if stage.dt is not None else deck.run.dt,
+                dt_key=f"stages.{stage.name}.dt" if stage.dt is not None else "run.dt",
+                output=resolved.output_for(stage.name),
+                law_params=params,
+                contact_given=bool(values),
+                materials=materials,
+                sources=sources,
+            )
+        )
+    return out
+
+
 # ---------------------------------------------------------------------------------------- progress
 @dataclass
 class _Progress:
@@ -136,6 +199,8 @@ class _Progress:
     _check_step: int = 0
     _check_time: float = field(default_factory=_time.perf_counter)
     _stage_start: float = field(default_factory=_time.perf_counter)
+    #: seconds between the lines of a phase before the stepping (None: SETUP_PROGRESS_EVERY)
+    setup_every: float | None = None
 
     @property
     def _parallel(self) -> bool:
@@ -189,6 +254,105 @@ class _Progress:
         if self.stream is not None and getattr(self.stream, "isatty", lambda: False)():
             self.stream.write("\n")
 
+    @contextmanager
+    def phase(self, label: str) -> Iterator[None]:
+        """Progress lines while a phase before the stepping runs (a source making its particles, a
+        stage's preparation): on rank 0, from a timer thread, one every ``setup_every`` seconds
+        (default :data:`SETUP_PROGRESS_EVERY`) once the phase has run that long, with the latest
+        report of the source (:mod:`pdem.sources.progress`: what it does, a fraction done and an
+        ETA where it gives one). A short phase prints nothing. Only rank 0 prints, and nothing is
+        communicated, so the phase may hold collectives."""
+        if not self.enabled or self.stream is None:
+            yield
+            return
+        every = self.setup_every if self.setup_every is not None else SETUP_PROGRESS_EVERY
+        ticker = _PhaseTicker(self.stream, label, every)
+        from .sources.progress import reporting
+
+        with reporting(ticker.report):
+            ticker.start()
+            try:
+                yield
+            finally:
+                ticker.stop()
+
+
+class _PhaseTicker:
+    """The timer thread of :meth:`_Progress.phase`: prints the phase's state every ``every`` s."""
+
+    def __init__(self, stream: TextIO, label: str, every: float) -> None:
+        self.stream, self.label, self.every = stream, label, max(float(every), 1e-3)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._start = _time.perf_counter()
+        self._printed = False
+        self._printed_tty = False
+        # the latest report: (phase, fraction, detail, when) and where the phase's fraction started
+        self._state: tuple[str, float | None, str, float] | None = None
+        self._phase_start: tuple[str, float, float | None] | None = None
+
+    def report(self, phase: str, fraction: float | None, detail: str) -> None:
+        now = _time.perf_counter()
+        with self._lock:
+            if self._phase_start is None or self._phase_start[0] != phase:
+                self._phase_start = (phase, now, fraction)
+            elif self._phase_start[2] is None and fraction is not None:
+                self._phase_start = (phase, now, fraction)
+            self._state = (phase, fraction, detail, now)
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="pdem-progress", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the thread; a phase that printed lines ends with one saying it is done."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if not self._printed:
+            return
+        try:
+            self._print(f"[setup] {self.label}: done ({_time.perf_counter() - self._start:.0f} s)")
+            if self._printed_tty:
+                self.stream.write("\n")
+                self.stream.flush()
+        except (OSError, ValueError):
+            pass
+
+    def _run(self) -> None:
+        due = self._start + self.every
+        while not self._stop.wait(max(due - _time.perf_counter(), 0.0)):
+            try:
+                self._print(self.line(_time.perf_counter()))
+            except (OSError, ValueError):  # a closed or full stream: progress is not worth an error
+                return
+            due += self.every * max(1, math.ceil((_time.perf_counter() - due) / self.every))
+
+    def line(self, now: float) -> str:
+        """The progress line at ``now``: the phase, the source's latest report, the time elapsed."""
+        with self._lock:
+            state, start = self._state, self._phase_start
+        text = f"[setup] {self.label}"
+        if state is not None:
+            phase, fraction, detail, when = state
+            text += f": {phase}" + (f", {detail}" if detail else "")
+            if fraction is not None:
+                fraction = min(max(fraction, 0.0), 1.0)
+                text += f", {100.0 * fraction:.0f}% done"
+                if start is not None and start[2] is not None and fraction > start[2] and fraction < 1.0:
+                    rate = (fraction - start[2]) / max(when - start[1], 1e-9)
+                    eta = max((1.0 - fraction) / rate - (now - when), 0.0)
+                    text += f", ETA {eta:.0f} s"
+        return text + f" ({now - self._start:.0f} s so far)"
+
+    def _print(self, line: str) -> None:
+        tty = getattr(self.stream, "isatty", lambda: False)()
+        self.stream.write(("\r" + line + "\033[K") if tty else line + "\n")
+        self.stream.flush()
+        self._printed = True
+        self._printed_tty = self._printed_tty or tty
+
 
 # ---------------------------------------------------------------------------------------- runner
 class Runner:
@@ -206,6 +370,11 @@ class Runner:
     :meth:`check_scene` will be called (the output path is not looked at).
 
     Nothing is created on disk before :meth:`run` has built the scene and passed its checks.
+
+    ``stages``: every stage's settings, resolved from the deck once (:func:`resolve_stages`);
+    :meth:`start_stage` starts one. ``output``: the output directory and its bookkeeping (lock,
+    marker, journal of a resume, writers, series rows, frame bounds), a
+    :class:`pdem.io.run_output.RunOutput`.
     """
 
     def __init__(
@@ -228,6 +397,8 @@ class Runner:
 
         self.resolved = resolved
         self.deck = resolved.deck
+        #: every stage's settings, resolved once from the deck (:func:`resolve_stages`)
+        self.stages: list[StageSettings] = resolve_stages(resolved)
         self.comm = comm if comm is not None else SerialComm()
         self.root = self.comm.rank == 0  # only rank 0 touches files
         self.max_steps = max_steps
@@ -248,98 +419,45 @@ class Runner:
                 f"than {self.resume_step} (e.g. --steps {self.resume_step + 1000}), or leave it out to run "
                 "every stage"
             )
-        problem = None
-        self._before: set[str] | None = None
-        self._created_root: Path | None = None
-        self._lock = OutputLock(self.out)
-        self._journal: Journal | None = None
-        self._recorded: set[str] = set()
-        self._foreign: set[str] = set()
-        self._lock_made = False
-        if self.root and not dry:
-            problem = output_dir_problem(self.out, "the output directory", "choose another output directory")
-            if problem is None:
-                self._before = entries(self.out)
-                self._created_root = first_missing(self.out)
-                problem = self._output_refusal()
-        problem = self.comm.bcast(problem, root=0)
-        if problem:
-            raise InputError(problem)
         self.deck_text = resolved.resolved_toml()
         if resume is not None and _same_deck(resume[1].get("deck"), self.deck_text):
             self.deck_text = resume[1]["deck"]  # unchanged: keep its text (and header) as it was
         self.progress = _Progress(progress if self.root else None, self.comm, enabled=progress is not None)
+        #: the output directory and its bookkeeping (checked now: refused here, nothing created)
+        self.output = RunOutput(
+            self.out,
+            comm=self.comm,
+            resolved=resolved,
+            deck_text=self.deck_text,
+            stage_names=[st.name for st in self.stages],
+            resume_step=self.resume_step,
+            append=self.append,
+            overwrite=self.overwrite,
+            series_from=self.series_from,
+            notes=self.progress.stream,
+            dry=dry,
+        )
         self.stdout = (stdout if stdout is not None else sys.stdout) if self.root else None
         self.boundaries: dict[str, Any] = {}
-        self.writers: list[Any] = []
-        self._gathered_writers: list[Any] = []
-        self._per_rank_writers: list[Any] = []
-        self._series_writers: dict[Any, Any] = {}
-        self._last_series_step: dict[str, int] = {}
-        self._last_frame: dict[int, int] = {}  # id(writer) -> step of its last frame
-        self.output_parallel: str | None = None
-        self.series: dict[str, list[dict[str, float]]] = {}
         self.stopped_early = False
-        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
-        self._output_open = False
         self._setup_done = False
-        self._contacts_on = False
-        self._contacts_last: int | None = None
-        self._contact_writer: Any = None
         self._thermo_header: str | None = None
+        self._checked_before_insertion = False
 
-    def _output_refusal(self) -> str | None:
-        """Why the existing output directory cannot take this run (rank 0; looks only): another run
-        holds it, or it is not empty and neither continued (a resume's own directory) nor replaceable
-        (``--overwrite`` of a directory pdem made)."""
-        holder = lock_holder(self.out) if self._before is not None else None
-        if holder is not None:
-            what = "this resume" if self.resume is not None else "this run"
-            return (
-                f"output directory {self.out} is in use by {holder}; pdem runs one run at a time per "
-                f"output directory, so {what} was refused and nothing there was touched: wait for that "
-                "run to end (or stop it), or choose another directory with --output DIR"
-            )
-        if not self._before or self.append:
-            return None
-        if not self.overwrite:
-            return (
-                f"output directory {self.out} exists and is not empty; pass --overwrite to replace "
-                "pdem's output there, or choose another with --output DIR"
-            )
-        if not is_pdem_output(self.out):
-            return (
-                f"output directory {self.out} was not made by pdem (it has no {MARKER} "
-                "marker), so --overwrite does not replace it and nothing in it was touched; choose a new "
-                "or empty directory with --output DIR, or empty it yourself (an output of a pdem older "
-                "than its marker, too, must be removed by hand)"
-            )
-        return None
+    @property
+    def series(self) -> dict[str, list[dict[str, float]]]:
+        """Every series row of the run, by stage (:attr:`RunOutput.series`)."""
+        return self.output.series
 
-    def _protected(self) -> set[Path]:
-        """Paths ``--overwrite`` never removes: the deck being run and the files its sources read."""
-        keep: set[Path] = set()
-        if self.resolved.path is not None:
-            keep.add(Path(self.resolved.path))
-        for src in self.deck.particles or []:
-            path = getattr(src, "path", None)
-            if isinstance(path, str | Path) and str(path):
-                keep.add(Path(self.resolved.base_dir) / path)
-        return keep
+    @property
+    def output_parallel(self) -> str | None:
+        """How snapshots are written under MPI, decided when the output opens."""
+        return self.output.output_parallel
 
-    def _record_output(self) -> None:
-        """Add what pdem created in the output directory to its marker (rank 0; cheap when nothing
-        changed: one directory listing)."""
-        if not self.root or not self._lock.held:
-            return
-        now = entries(self.out) or set()
-        new = now - self._recorded - self._foreign
-        if new:
-            try:
-                record_entries(self.out, new, __version__)
-            except OSError:
-                return  # the marker is bookkeeping: a full disk is reported by the writes themselves
-            self._recorded |= new
+    @property
+    def writers(self) -> list[Any]:
+        """The snapshot writers of this rank."""
+        return self.output.writers
 
     def build(self) -> Simulation:
         deck = self.deck
@@ -373,41 +491,52 @@ class Runner:
         return sim
 
     def _insert_particles(self, stage: str | None, first_stage: str) -> None:
-        """Add the particles of every source inserted at the start of ``stage``: each source plugin
-        (entry points of ``pdem.sources``) generates them with seed ``run.seed`` + its index."""
+        """Add the particles of every source inserted at the start of the stage named ``stage``
+        (sources without a ``stage`` key go to ``first_stage``); :meth:`start_stage` does this."""
+        sources = [
+            k for k, params in enumerate(self.deck.particles or []) if (params.stage or first_stage) == stage
+        ]
+        self._insert_sources(sources)
+
+    def _insert_sources(self, sources: Any) -> None:
+        """Add the particles of the ``[[particles]]`` tables ``sources`` (indices): each source plugin
+        (entry points of ``pdem.sources``) generates them with seed ``run.seed`` + its index. A long
+        source (a pour) prints progress lines (:meth:`_Progress.phase`)."""
+        for k in sources:
+            params = self.deck.particles[k]
+            with self.progress.phase(f"particles.{k} (source '{params.source}')"):
+                self._insert_source(k, params)
+
+    def _insert_source(self, k: int, params: Any) -> None:
         from .sources.api import produce
 
         sim = self.sim
-        for k, params in enumerate(self.deck.particles or []):
-            target = params.stage or first_stage
-            if target != stage:
-                continue
-            source = load("sources", params.source)(params)
-            mat = sim.materials[sim.materials.index(params.material)]
-            out = produce(
-                source,
-                base_dir=self.resolved.base_dir,
-                seed=self.deck.run.seed + k,
-                material=mat,
-                where=f"particles.{k}",
-            )
-            vel = (
-                out.velocities
-                if out.velocities is not None
-                else np.broadcast_to(np.asarray(params.velocity or (0, 0, 0), float), out.positions.shape)
-            )
-            motion: Any = params.motion
-            if out.fixed is not None and out.fixed.any():  # e.g. a lattice's fixed_edges
-                motion = np.where(out.fixed, "fixed", params.motion)
-            sim.add_particles(
-                out.positions,
-                out.radii,
-                material=params.material,
-                velocities=vel,
-                motion=motion,
-                fixed_translation=getattr(params, "fixed_translation", ""),
-                fixed_rotation=getattr(params, "fixed_rotation", ""),
-            )
+        source = load("sources", params.source)(params)
+        mat = sim.materials[sim.materials.index(params.material)]
+        out = produce(
+            source,
+            base_dir=self.resolved.base_dir,
+            seed=self.deck.run.seed + k,
+            material=mat,
+            where=f"particles.{k}",
+        )
+        vel = (
+            out.velocities
+            if out.velocities is not None
+            else np.broadcast_to(np.asarray(params.velocity or (0, 0, 0), float), out.positions.shape)
+        )
+        motion: Any = params.motion
+        if out.fixed is not None and out.fixed.any():  # e.g. a lattice's fixed_edges
+            motion = np.where(out.fixed, "fixed", params.motion)
+        sim.add_particles(
+            out.positions,
+            out.radii,
+            material=params.material,
+            velocities=vel,
+            motion=motion,
+            fixed_translation=getattr(params, "fixed_translation", ""),
+            fixed_rotation=getattr(params, "fixed_rotation", ""),
+        )
 
     # ---------------------------------------------------------------------------- measuring
     def measurements(self) -> dict[str, float]:
@@ -439,22 +568,7 @@ class Runner:
         st = self.sim.integrator
         if st is None or not st.stats():  # an explicit method: no solver columns
             return {}
-        log = st.drain_records()
-        if self.root and log:
-            writer = self._series_writers.get(("solver", stage))
-            if writer is None:
-                from .io.series import SeriesWriter
-
-                writer = SeriesWriter(
-                    self.out / f"solver_{stage}.csv",
-                    ["step", "iterations", "residual", "contacts_rank0"],
-                    append=self._series_append,
-                )
-                self._series_writers[("solver", stage)] = writer
-            for step, it, res, nc in log:
-                writer.append(
-                    {"step": int(step), "iterations": int(it), "residual": res, "contacts_rank0": int(nc)}
-                )
+        self.output.write_solver_rows(stage, st.drain_records())
         return {
             "solver_iterations": int(st.last_iterations),
             "solver_residual": float(st.last_residual),
@@ -466,9 +580,8 @@ class Runner:
         (a stage's last step that is also on the series cadence, a resumed run's first step)."""
         sim = self.sim
         sim.check_deferred()
-        if self._last_series_step.get(stage) == sim.step_count:
+        if not self.output.series_due(stage, sim.step_count):
             return
-        self._last_series_step[stage] = sim.step_count
         ke_t, ke_r = sim.kinetic_energy()
         row = {
             "time": sim.time,
@@ -480,35 +593,15 @@ class Runner:
             **self._solver_columns(stage),
             **self.measurements(),
         }
-        self.series.setdefault(stage, []).append(row)
+        self.output.keep_row(stage, row)
         self._boundary_records(stage)
-        if not self.root:
-            return
-        writer = self._series_writers.get(stage)
-        if writer is None:
-            from .io.series import SeriesWriter
-
-            writer = SeriesWriter(self.out / f"series_{stage}.csv", list(row), append=self._series_append)
-            self._series_writers[stage] = writer
-        writer.append(row)
-        self._record_output()
+        self.output.write_row(stage, row)
 
     def _boundary_records(self, stage: str) -> None:
         """Rows the boundaries sampled since the last series row (``Boundary.records``, collective),
         appended by rank 0 to ``<boundary>.<stage>.csv``."""
         for name, b in self.boundaries.items():
-            rows = b.records(self.sim)
-            if not rows or not self.root:
-                continue
-            writer = self._series_writers.get(("records", name, stage))
-            if writer is None:
-                from .io.series import SeriesWriter
-
-                path = self.out / f"{name}.{stage}.csv"
-                writer = SeriesWriter(path, list(rows[0]), append=self._series_append)
-                self._series_writers[("records", name, stage)] = writer
-            for row in rows:
-                writer.append(row)
+            self.output.write_records(name, stage, b.records(self.sim))
 
     def frame(self, stage: str, own: bool = False) -> Frame:
         """The snapshot of every particle (gathered on every rank), or with ``own`` of the particles
@@ -561,11 +654,7 @@ class Runner:
             wlo, whi = w.bounding_box()
             lo = np.minimum(lo, np.where(np.isfinite(wlo), wlo, lo))
             hi = np.maximum(hi, np.where(np.isfinite(whi), whi, hi))
-        if self._bounds is not None:  # grow only, so infinite walls keep their drawn size
-            lo, hi = np.minimum(lo, self._bounds[0]), np.maximum(hi, self._bounds[1])
-        if not np.all(np.isfinite(lo) & np.isfinite(hi)):
-            lo, hi = np.zeros(3), np.ones(3)
-        self._bounds = (lo, hi)
+        lo, hi = self.output.grow_bounds(lo, hi)  # grow only, so infinite walls keep their drawn size
         return Frame(
             time=sim.time, step=sim.step_count, stage=stage, particles=particles, walls=walls, bounds=(lo, hi)
         )
@@ -574,21 +663,8 @@ class Runner:
         """A snapshot for every writer that has none at this step yet (collective)."""
         self.sim.check_deferred()
         step = self.sim.step_count
-        gathered = [w for w in self._gathered_writers if self._last_frame.get(id(w)) != step]
-        per_rank = [w for w in self._per_rank_writers if self._last_frame.get(id(w)) != step]
-        frame = None
-        # every rank decides alike: the writers' last steps are the same everywhere
-        if self._gathered_output and self.comm.bcast(bool(gathered), root=0):
-            frame = self.frame(stage)  # collective
-            for w in gathered:  # rank 0 only
-                w.write(frame)
-                self._last_frame[id(w)] = step
-        if per_rank:
-            piece = self.frame(stage, own=True)  # collective
-            for w in per_rank:
-                w.write(piece)  # collective
-                self._last_frame[id(w)] = step
-        if self._contacts_on and self._contacts_last != step:
+        frame = self.output.write_frame(step, lambda: self.frame(stage), lambda: self.frame(stage, own=True))
+        if self.output.contacts_due(step):
             self._write_contacts(frame)
 
     def _write_contacts(self, frame: Frame | None) -> None:
@@ -598,14 +674,14 @@ class Runner:
         sim = self.sim
         contacts = sim.contacts()  # collective: every rank's contacts
         particles = frame.particles if frame is not None else sim.get_particles()  # collective
-        if self._contact_writer is not None:
-            self._contact_writer.write(contact_lines(contacts, particles, sim.box), sim.time, sim.step_count)
-        self._contacts_last = sim.step_count
+        lines = lambda: contact_lines(contacts, particles, sim.box)  # rank 0 only
+        self.output.write_contacts(lines, sim.time, sim.step_count)
 
     def _checkpoint(self, stage_index: int, stage_start: tuple[float, int], started: bool = True) -> Path:
         sim = self.sim
         sim.check_deferred()  # a checkpoint holds only a checked state
         stages = self.deck.stages
+        bounds = self.output.bounds
         meta = {
             "deck": self.deck_text,
             "deck_path": str(Path(self.resolved.path).resolve()) if self.resolved.path is not None else "",
@@ -619,295 +695,10 @@ class Runner:
             "boundaries": json.dumps({n: b.state() for n, b in self.boundaries.items()}),
             "output": str(self.out.resolve()),
             # the scene box snapshots have grown to, so a resumed run draws infinite walls alike
-            "frame_bounds": json.dumps([b.tolist() for b in self._bounds])
-            if self._bounds is not None
-            else "",
+            "frame_bounds": json.dumps([b.tolist() for b in bounds]) if bounds is not None else "",
         }
         state = sim.state_dict()  # collective
-        path = self.out / "checkpoints" / f"step_{sim.step_count:010d}.h5"
-        if self.root:
-            write_checkpoint(path, state, meta)
-            self._record_output()
-        self.comm.Barrier()
-        return path
-
-    # ---------------------------------------------------------------------------- output
-    def _root_do(self, action) -> Any:
-        """Run ``action`` on rank 0; its result, or its error raised on every rank (collective)."""
-        result, error = None, None
-        if self.root:
-            try:
-                result = action()
-            except PdemError as exc:
-                error = (type(exc), str(exc))
-            except OSError as exc:
-                error = (InputError, f"output directory {self.out}: {exc}")
-        result, error = self.comm.bcast((result, error), root=0)
-        if error is not None:
-            raise error[0](error[1])
-        return result
-
-    def _writer_classes(self) -> list[tuple[str, type]]:
-        classes = [(fmt, load("writers", fmt)) for fmt in self.deck.output.formats]
-        if self.append:
-            bad = [fmt for fmt, cls in classes if not getattr(cls, "supports_append", False)]
-            if bad:
-                raise InputError(
-                    f"output format(s) {', '.join(map(repr, bad))} cannot continue an existing output, so "
-                    f"the run cannot go on in {self.out}; resume into a new directory with --output DIR"
-                )
-        return classes
-
-    def _open_output(self, classes: list[tuple[str, type]], start: Any) -> None:
-        """Create the output directory (or continue the existing one), writers and series (collective).
-        Called once the run has passed its start checks."""
-        self._series_append = self.append or self.series_from is not None
-        self._output_open = True
-        if self.append:
-            kept = self._root_do(lambda: self._continue_output(start))
-        else:
-            kept = self._root_do(lambda: self._new_output(start))
-        self._root_do(self._record_output)
-        for stage, rows in (kept or {}).items():
-            self.series[stage] = rows
-            if rows and "step" in rows[-1]:
-                self._last_series_step[stage] = int(rows[-1]["step"])
-        out_cfg = self.deck.output
-        self.output_parallel = out_cfg.parallel_mode(self.sim.count_particles(), self.comm.size)
-        self._gathered_output = False  # on every rank: frames are gathered collectively
-        for fmt, cls in classes:
-            kwargs: dict[str, Any] = {
-                "fields": out_cfg.fields,
-                "metadata": {"deck": self.deck_text, "pdem_version": __version__},
-            }
-            if self.append:
-                kwargs["append_after"] = (start.step, start.time)
-            if self.output_parallel == "per_rank" and getattr(cls, "supports_per_rank", False):
-                w = _plugin_call(  # on every rank
-                    f"writer '{fmt}' ({_where(cls)})",
-                    lambda cls=cls, kw=kwargs: cls(self.out, comm=self.comm, **kw),
-                )
-                self._per_rank_writers.append(w)
-            else:  # parallel = "auto" gathers frames for writers without per-rank support
-                self._gathered_output = True
-                if not self.root:
-                    continue  # rank 0 decides when a gathered frame is due
-                w = _plugin_call(
-                    f"writer '{fmt}' ({_where(cls)})", lambda cls=cls, kw=kwargs: cls(self.out, **kw)
-                )
-                self._gathered_writers.append(w)
-            if getattr(w, "last_step", None) is not None:
-                self._last_frame[id(w)] = int(w.last_step)
-        self.writers = self._gathered_writers + self._per_rank_writers
-        self._contacts_on = bool(getattr(out_cfg, "contacts", False))
-        if self._contacts_on:
-            from .io.contacts import ContactNetworkWriter
-
-            def make() -> int | None:
-                self._contact_writer = ContactNetworkWriter(
-                    self.out, append_after=(start.step, start.time) if self.append else None
-                )
-                return self._contact_writer.last_step
-
-            self._contacts_last = self._root_do(make)
-
-    def _make_output_dir(self) -> None:
-        """Create the output directory and its missing parents, remembering the outermost one this
-        process created itself (another process may create the same path at the same moment)."""
-        out = Path(os.path.abspath(self.out))
-        missing = []
-        p = out
-        while not os.path.lexists(p) and p.parent != p:
-            missing.append(p)
-            p = p.parent
-        self._created_root = None
-        for path in reversed(missing):
-            try:
-                os.mkdir(path)
-            except FileExistsError:
-                continue
-            if self._created_root is None:
-                self._created_root = path
-        if self._created_root is None:  # it existed (or another process made it): keep its entries
-            self._before = entries(self.out) if self._before is None else self._before
-
-    def _take_lock(self) -> None:
-        """Rank 0: the directory's lock, then settle what a killed resume left (see io.journal)."""
-        self._lock_made = not os.path.lexists(self.out / LOCK)
-        self._lock.acquire("this resume" if self.resume is not None else "this run")
-        note = settle_stale(self.out, self.resume_step)
-        if note and self.progress.stream is not None:
-            self.progress.stream.write(f"pdem: {self.out}: {note}\n")
-
-    def _new_output(self, start: Any) -> dict[str, list]:
-        out = self.out
-        self._make_output_dir()
-        try:
-            self._take_lock()
-        except InputError:
-            if self._created_root is not None:  # an empty folder of ours: leave no trace
-                shutil.rmtree(self._created_root, ignore_errors=True)
-                self._created_root = None
-            self._output_open = False  # nothing of this run's to undo
-            raise
-        if self._created_root is None:
-            present = (entries(out) or set()) - {LOCK}
-            if present and self.overwrite:
-                # --overwrite: pdem's old output goes only now that the run has started well and
-                # holds the lock; whatever pdem did not make (the deck, notes, a user's files) stays
-                if not is_pdem_output(out):
-                    self._output_open = False
-                    raise InputError(self._output_refusal() or f"{out} was not made by pdem")
-                remove_pdem_entries(out, self._protected())
-            elif present - {MARKER}:
-                self._output_open = False  # filled by another process since the start checks
-                raise InputError(
-                    f"output directory {out} is no longer empty (another process wrote there since this "
-                    "run started); choose another with --output DIR"
-                )
-            # what the undo of a failed start keeps: what was there, less a lock file this run made
-            self._before = (entries(out) or set()) - ({LOCK} if self._lock_made else set())
-        else:
-            self._before = None
-        self._foreign = set(self._before or ()) - {LOCK, MARKER}
-        record_entries(out, set(), __version__)
-        (out / "checkpoints").mkdir(exist_ok=True)
-        (out / "deck.resolved.toml").write_text(self.deck_text)
-        if self.series_from is None:
-            return {}
-        return self._seed_series(self.series_from, start)
-
-    def _series_files(self, directory: Path) -> list[tuple[str, Path]]:
-        """``(stage, path)`` of the series, solver and boundary-record CSVs in ``directory``."""
-        out = []
-        for path in sorted(directory.glob("*.csv")):
-            m = re.fullmatch(r"(series|solver)_(.+)\.csv", path.name)
-            if m:
-                out.append((m.group(2), path))
-            elif m := re.fullmatch(r"([A-Za-z_][\w-]*)\.([A-Za-z_][\w-]*)\.csv", path.name):
-                if m.group(1) in self.boundaries:  # <boundary>.<stage>.csv (Boundary.records)
-                    out.append((m.group(2), path))
-        return out
-
-    def _stage_ran(self, stage: str, start: Any) -> bool:
-        """Did ``stage`` start before the checkpoint (so its rows up to it belong to this run)?"""
-        names = [s.name for s in self.deck.stages]
-        return stage in names and start.has_run(names.index(stage))
-
-    def _seed_series(self, source: Path, start: Any) -> dict[str, list]:
-        """Resuming into a new directory: copy the series rows up to the checkpoint from ``source``."""
-        from .io.series import series_rows, truncate_series
-
-        kept: dict[str, list] = {}
-        for stage, path in self._series_files(source):
-            if not self._stage_ran(stage, start):
-                continue
-            target = self.out / path.name
-            shutil.copyfile(path, target)
-            truncate_series(target, start.step)
-            if path.name.startswith("series_"):
-                kept[stage] = series_rows(target)
-        return kept
-
-    def _continue_output(self, start: Any) -> dict[str, list]:
-        """Appending to the checkpoint's own output: drop what the previous run wrote after the
-        checkpoint (series rows, checkpoints, temporary files; writers drop their frames), keep the
-        rest; the rows kept, by stage."""
-        from .io.base import atomic_write_text
-        from .io.series import series_rows, truncate_series
-
-        out = self.out
-        out.mkdir(parents=True, exist_ok=True)
-        self._take_lock()
-        # what pdem did not make stays out of the marker (in a folder without one, an output of an
-        # older pdem, what is named as pdem names its output is taken as pdem's)
-        known = set(entries(out) or ())
-        own = pdem_entries(out) if is_pdem_output(out) else {n for n in known if named_as_pdem(n)}
-        self._foreign = known - own - {LOCK, MARKER}
-        self._journal = Journal(out)
-        self._journal.begin(start.step)  # from here on, what the resume drops is held, not deleted
-        ckdir = out / "checkpoints"
-        ckdir.mkdir(exist_ok=True)
-        for directory in (out, out / "particles", out / "walls", *sorted(out.glob("particles/r*"))):
-            if directory.is_dir():
-                for path in directory.iterdir():  # temporary files of writes a kill interrupted
-                    if re.fullmatch(r"\..+\.[0-9a-f]{8}(\.tmp|\.vtu)", path.name):
-                        discard(out, path)
-        later = []
-        for path in ckdir.iterdir():
-            m = re.fullmatch(r"step_(\d+)\.h5", path.name)
-            if path.name.endswith(".tmp"):
-                discard(out, path)
-            elif m and int(m.group(1)) > start.step:
-                later.append(path)
-        for path in later:
-            discard(out, path)
-        latest = ckdir / "latest.h5"
-        if latest.is_symlink() and not latest.exists():
-            steps = sorted(p.name for p in ckdir.glob("step_*.h5"))
-            tmp = ckdir / "latest.h5.tmp"
-            if steps:
-                os.symlink(steps[-1], tmp)
-                os.replace(tmp, latest)
-            else:
-                latest.unlink()
-        kept: dict[str, list] = {}
-        for stage, path in self._series_files(out):
-            if not self._stage_ran(stage, start):
-                discard(out, path)  # held while the resume is undecided
-                continue
-            truncate_series(path, start.step)
-            if path.name.startswith("series_"):
-                kept[stage] = series_rows(path)
-        resolved = out / "deck.resolved.toml"
-        if resolved.exists() and resolved.read_text() != self.deck_text:
-            resolved.rename(out / f"deck.resolved.until-step-{start.step}.toml")
-        if not resolved.exists():
-            atomic_write_text(resolved, self.deck_text)
-        return kept
-
-    def _undo_output(self) -> None:
-        """The run failed before its first step: remove what it created (rank 0; never what was
-        there before it, never a continued output, nothing in a directory whose lock it does not
-        hold)."""
-        if not self.root or not self._output_open or self.append or not self._lock.held:
-            return
-        remove_created(self.out, self._before, self._created_root)
-
-    def _settle_journal(self, failed: BaseException | None) -> None:
-        """Rank 0, at the end of a resume into its own directory: commit what it wrote, or, when it
-        failed and had replaced a future (later checkpoints, rows, frames), put the directory back as
-        it was before the resume. A failed resume that replaced nothing keeps what it wrote, as a
-        failed run does."""
-        journal, self._journal = self._journal, None
-        if journal is None or not self.root:
-            return
-        try:
-            if failed is None or isinstance(failed, StageLimitError) or not journal.replaced_anything:
-                journal.commit()
-                return
-            journal.rollback()
-        except OSError as exc:  # never hide the run's own error behind the bookkeeping's
-            if self.progress.stream is not None:
-                self.progress.stream.write(f"pdem: warning: could not settle {journal.path}: {exc}\n")
-            return
-        if self.progress.stream is not None:
-            self.progress.stream.write(
-                f"pdem: the resume failed, so {self.out} was put back as it was before it (the later "
-                "checkpoints, rows and snapshots it was replacing are kept); to keep a failing attempt's "
-                "output, resume into a new directory with --output DIR\n"
-            )
-
-    def _finish_output(self, failed: BaseException | None) -> None:
-        """Rank 0, last: the journal settled, the marker brought up to date, the lock released."""
-        if not self.root:
-            return
-        try:
-            self._settle_journal(failed)
-            if failed is None or self._setup_done:
-                self._record_output()
-        finally:
-            self._lock.release()
+        return self.output.write_checkpoint(sim.step_count, state, meta)
 
     # ---------------------------------------------------------------------------- running
     def check_scene(self) -> str:
@@ -916,10 +707,7 @@ class Runner:
         estimate, initial overlaps between grains and with walls, the packing files of later
         stages), writing nothing. A one-line description of the scene."""
         sim = self.build()
-        stages = list(self.deck.stages)
-        self._check_dt_before_insertion(0)
-        self._insert_particles(stages[0].name, stages[0].name)
-        self._enter_stage(0, stages[0])
+        self.start_stage(0)
         self._check_stages(0)
         self._check_later_files(0)
         self._check_measured(0)
@@ -930,14 +718,15 @@ class Runner:
 
     def _check_dt_before_insertion(self, start_index: int) -> None:
         """Refuse, before any source makes its grains (a pour can take minutes), a stage dt above
-        the law's stability estimate for the *largest* grains the deck's sources can make: the
-        estimate grows with the radius, so such a dt is above it for any grains they make. Sources
-        that cannot tell their largest radius beforehand are left to the check after insertion."""
+        the law's stability estimate for the *largest* grains a source present in that stage can
+        make: the estimate grows with the radius, so such a dt is above it for any grains the source
+        makes. Sources that cannot tell their largest radius beforehand are left to the check after
+        insertion."""
         if self.deck.run.force_dt:
             return
         sim = self.sim
-        radii, mats, masses = [], [], []
-        for params in self.deck.particles or []:
+        limits: dict[int, tuple[float, float]] = {}  # source index -> (estimate, its largest radius)
+        for k, params in enumerate(self.deck.particles or []):
             try:
                 r = load("sources", params.source)(params).r_max()
             except PdemError:
@@ -946,39 +735,67 @@ class Runner:
                 r = None
             if r is None or not math.isfinite(r) or r <= 0:
                 continue
-            k = sim.materials.index(params.material)
-            radii.append(r)
-            mats.append(k)
-            masses.append(4.0 / 3.0 * math.pi * r**3 * sim.materials[k].density)
-        if not radii:
-            return
-        with np.errstate(all="ignore"):
-            crit = sim.law.critical_dt(
-                sim.materials, np.asarray(radii), np.asarray(mats, dtype=np.int64), np.asarray(masses)
-            )
-        if not math.isfinite(crit):
-            return
-        for index, stage in enumerate(self.deck.stages):
-            dt = self._stage_dt(stage)
-            if index >= start_index and dt is not None and dt > crit:
-                raise InputError(
-                    f"{self._dt_key(index, stage)}: dt = {dt:.4g} s for stage '{stage.name}' exceeds the "
-                    f"stability estimate of law '{sim.law.name}' even for the largest grains the deck's "
-                    f"sources make (radius {max(radii):.4g} m: {crit:.4g} s), so for any grains they "
-                    f"make; use dt ≤ {crit:.4g} s (practice: 0.1–0.3 of the estimate for the smallest "
-                    "grains, which `pdem check` prints), or set run.force_dt = true to run anyway"
+            m = sim.materials.index(params.material)
+            mass = 4.0 / 3.0 * math.pi * r**3 * sim.materials[m].density
+            with np.errstate(all="ignore"):
+                crit = sim.law.critical_dt(
+                    sim.materials, np.asarray([r]), np.asarray([m], dtype=np.int64), np.asarray([mass])
                 )
+            limits[k] = (float(crit), r)
+        present: list[int] = []  # the sources whose grains are there during the stage
+        for st in self.stages:
+            present += st.sources
+            known = [(limits[k], k) for k in present if k in limits]
+            if st.index >= start_index and known:
+                (crit, r), k = min(known)
+                self._check_stage_dt(st, crit, largest=(f"particles.{k}", r))
+
+    def _check_stage_dt(
+        self, st: StageSettings, crit: float, largest: tuple[str, float] | None = None
+    ) -> None:
+        """The check of a stage's dt (its own, else ``run.dt``) against the law's stability estimate
+        ``crit`` [s]: above it (and without ``run.force_dt``) an :class:`~pdem.errors.InputError`
+        naming the key that gives the dt (``stages.<name>.dt`` or ``run.dt``), its value, the limit
+        and the remedy. ``largest``: ``(source key, radius)``, ``crit`` is the estimate for the
+        largest grains that source can make (checked before they are made), not for the particles
+        present. A stage without a dt of its own or from ``run.dt``, and a law without a finite
+        estimate, pass."""
+        dt = st.dt
+        if dt is None or self.deck.run.force_dt or not math.isfinite(crit) or not dt > crit:
+            return
+        law = self.sim.law.name
+        if largest is None:
+            limit = f"the stability estimate {crit:.4g} s of law '{law}' for these particles"
+            practice = "practice: 0.1–0.3 of it"
+        else:
+            limit = (
+                f"the stability estimate of law '{law}' even for the largest grains source {largest[0]} "
+                f"makes (radius {largest[1]:.4g} m: {crit:.4g} s), so for any grains it makes"
+            )
+            practice = "practice: 0.1–0.3 of the estimate for the smallest grains, which `pdem check` prints"
+        raise InputError(
+            f"{st.dt_key}: dt = {dt:.4g} s for stage '{st.name}' exceeds {limit}; use dt ≤ {crit:.4g} s "
+            f"({practice}), or set run.force_dt = true to run anyway"
+        )
+
+    def _stability_estimate(self) -> float:
+        """The law's stability estimate [s] for the particles present now, as the simulation's
+        preparation computes it (collective)."""
+        from .parallel.comm import all_min
+
+        sim = self.sim
+        p = sim.particles
+        return all_min(self.comm, sim.law.critical_dt(sim.materials, p.r, p.mat, p.mass))
 
     def _check_measured(self, start_index: int) -> None:
         """Every quantity a stage ends on (and every thermo column) is one the boundaries measure:
         a boundary plugin that does not declare its keys is only known once built (collective)."""
         measured = sorted(self.measurements())
         wanted = []
-        for index, stage in enumerate(self.deck.stages):
-            if index >= start_index and stage.end.quantity is not None:
-                wanted.append((f"stages.{stage.name}.end.quantity", stage.end.quantity))
-            out = self.resolved.output_for(stage.name)
-            for k, key in enumerate(getattr(out, "thermo", None) or ()):
+        for st in self.stages:
+            if st.index >= start_index and st.stage.end.quantity is not None:
+                wanted.append((f"stages.{st.name}.end.quantity", st.stage.end.quantity))
+            for k, key in enumerate(getattr(st.output, "thermo", None) or ()):
                 if "." in key:
                     wanted.append((f"output.thermo.{k}", key))
         for where, key in wanted:
@@ -1006,27 +823,26 @@ class Runner:
                 path = Path(self.resolved.base_dir) / spec["path"]
                 if path.is_file() and path.stat().st_size < _READ_AHEAD_BELOW:
                     try:
-                        read_spheres(path)
+                        with self.progress.phase(f"particles.{k}: reading {path.name} (stage '{stage}')"):
+                            read_spheres(path)
                     except InputError as exc:
                         raise InputError(f"particles.{k}.path (stage '{stage}'): {exc}") from None
 
     def run(self) -> dict[str, Any]:
         from .deck.resume import ResumePoint
 
-        deck = self.deck
+        t_begin = _time.perf_counter()
         sim = self.build()
-        stages = list(deck.stages)
-        first = stages[0].name
+        stages = self.stages
         start_index = 0
         started = False
         stage_start: tuple[float, int] | None = None
         if self.resume is None:
-            self._check_dt_before_insertion(0)
-            self._insert_particles(first, first)
             start = ResumePoint(0, False, 0, 0.0)
         else:
             state, meta = self.resume
-            sim.load_state(state)
+            with self.progress.phase(f"loading the checkpoint at step {self.resume_step}"):
+                sim.load_state(state)
             start = ResumePoint.from_checkpoint(state, meta)
             start_index, started = start.stage_index, start.started
             stage_start = (float(meta["stage_start_time"]), int(meta["stage_start_step"]))
@@ -1035,54 +851,63 @@ class Runner:
                 b.restore(saved.get(name, {}))
             if meta.get("frame_bounds"):
                 lo, hi = json.loads(meta["frame_bounds"])
-                self._bounds = (np.asarray(lo, dtype=float), np.asarray(hi, dtype=float))
+                self.output.bounds = (np.asarray(lo, dtype=float), np.asarray(hi, dtype=float))
         self._resume_dt = float(self.resume[0]["scalars/dt"]) if self.resume is not None else None
         # ---- checks that need the scene, before anything is written
-        classes = self._writer_classes()
+        classes = self.output.writer_classes(self.deck.output.formats)
         if start_index < len(stages):
-            stage = stages[start_index]
-            if not (self.resume is not None and started):
-                if start_index > 0:
-                    self._insert_particles(stage.name, first)
+            resumed_here = self.resume is not None and started
+            # a resume has the particles of the stages before its checkpoint (the first's included)
+            self.start_stage(
+                start_index, insert=not resumed_here and (self.resume is None or start_index > 0)
+            )
+            if not resumed_here:
                 stage_start = (sim.time, sim.step_count)
-            self._enter_stage(start_index, stage)
             self._check_stages(start_index)
             self._check_later_files(start_index)
             self._check_measured(start_index)
         t_start = _time.perf_counter()
         steps_start = sim.step_count
         try:
-            self._open_output(classes, start)
+            with self.progress.phase(f"opening the output in {self.out}"):
+                self.output.open(
+                    classes,
+                    start,
+                    out_cfg=self.deck.output,
+                    count_particles=sim.count_particles,
+                    boundary_names=list(self.boundaries),
+                )
             if start_index >= len(stages):
                 self._setup_done = True  # a finished run: nothing left to step
             for index in range(start_index, len(stages)):
-                stage = stages[index]
                 resumed_here = self.resume is not None and index == start_index and started
                 if index != start_index:
-                    self._insert_particles(stage.name, first)
+                    self.start_stage(index)
                     stage_start = (sim.time, sim.step_count)
-                    self._enter_stage(index, stage)
-                if not self._run_stage(index, stage, stage_start, resumed_here):
+                if not self._run_stage(index, stages[index].stage, stage_start, resumed_here):
                     self.stopped_early = True
                     break
         except BaseException as exc:
             self._close()
-            if not self._setup_done and not self._journal:
-                self._undo_output()
+            if not self._setup_done and not self.output.continuing:
+                self.output.undo()
             self._finish_output(exc)
             raise
         self._close()
-        wall = _time.perf_counter() - t_start
+        t_end = _time.perf_counter()
+        stepping = t_end - t_start
         summary: dict[str, Any] = {
             "pdem_version": __version__,
             "steps": sim.step_count,
             "time": sim.time,
-            "wall_time_s": wall,
+            "wall_time_s": t_end - t_begin,  # the whole run: setup (a pour included) and stepping
+            "setup_time_s": t_start - t_begin,  # building the scene, making the particles, the checks
+            "stepping_time_s": stepping,  # the stages' steps and their output
             "particles": sim.count_particles(),
             "dt": sim.dt,
             "dt_critical": sim.dt_critical if math.isfinite(sim.dt_critical) else None,
             "steps_run": sim.step_count - steps_start,
-            "steps_per_second": (sim.step_count - steps_start) / max(wall, 1e-9),
+            "steps_per_second": (sim.step_count - steps_start) / max(stepping, 1e-9),
             "completed": not self.stopped_early,
             "output_parallel": self.output_parallel,
             "results": {},
@@ -1118,11 +943,13 @@ class Runner:
         return summary
 
     def _close(self) -> None:
-        for w in self.writers:
-            w.close()
-        for w in self._series_writers.values():
-            w.close()
+        self.output.close()
         self.progress.done()
+
+    def _finish_output(self, failed: BaseException | None) -> None:
+        """Rank 0, last: the output's journal settled (a stage that reached its cap keeps what the
+        resume wrote), its marker brought up to date, its lock released."""
+        self.output.finish(failed, stepped=self._setup_done, keep=isinstance(failed, StageLimitError))
 
     def _merged_series(self) -> dict[str, np.ndarray]:
         """Every stage's series rows in stage order, with a ``stage`` column (the stage's index), so
@@ -1131,77 +958,68 @@ class Runner:
 
         return merge_series(self.series, [s.name for s in self.deck.stages])
 
-    def _stage_dt(self, stage: Any) -> float | None:
-        """The dt a stage runs with: its own, else ``run.dt``; None keeps the current step (the law's
-        estimate, or the dt of an earlier stage that set its own)."""
-        return stage.dt if stage.dt is not None else self.deck.run.dt
+    def start_stage(self, index: int, *, insert: bool = True) -> StageSettings:
+        """Start stage ``index`` of the built simulation (:meth:`build`): insert the particles of the
+        sources placed at its start (``insert=False``: they are there already, e.g. a resume inside
+        the stage), then enter it: the stage's materials and contact settings, boundaries on or off,
+        its dt, and the preparation for stepping (initial overlaps, neighbour lists, first forces).
 
-    def _dt_key(self, index: int, stage: Any) -> str:
-        return f"stages.{stage.name}.dt" if stage.dt is not None else "run.dt"
+        The stage's dt is checked against the law's stability estimate before it is set; the first
+        stage this runner starts with insertion is checked before any source makes its grains (a
+        pour can take minutes), for the largest grains the sources can make. Errors name the deck
+        key. Returns the stage's :class:`StageSettings`. Used by :meth:`run` for every stage and by
+        :meth:`check_scene` (and ``pdem advise``'s probe) for the first."""
+        st = self.stages[index]
+        if insert:
+            if not self._checked_before_insertion:
+                self._checked_before_insertion = True
+                self._check_dt_before_insertion(index)
+            self._insert_sources(st.sources)
+        self._enter_stage(st)
+        return st
 
-    def _enter_stage(self, index: int, stage: Any) -> None:
-        """Enter a stage: boundaries on or off, its dt, preparation (checks dt against the law's
-        stability estimate and initial overlaps: errors name the deck key)."""
+    def _enter_stage(self, st: StageSettings) -> None:
+        """Enter a stage: its materials and contact settings, boundaries on or off, its dt (checked
+        first against the law's stability estimate, naming the key), preparation (initial overlaps:
+        errors name the deck key)."""
         sim = self.sim
-        sim.set_stage(stage.name)
-        self._stage_materials(stage)
-        self._stage_contact(index, stage)
-        dt = self._stage_dt(stage)
-        try:
-            if dt is not None and sim.dt != dt:
-                sim.dt = dt  # checked against the law's stability estimate once prepared
+        sim.set_stage(st.name)
+        self._stage_materials(st)
+        self._stage_contact(st)
+        if st.dt is not None:
+            self._check_stage_dt(st, self._stability_estimate())
+            if sim.dt != st.dt:
+                sim.dt = st.dt
+        with self.progress.phase(f"stage '{st.name}': preparing (neighbour lists, first forces)"):
             sim.prepare()
-        except InputError as exc:
-            if "stability estimate" in str(exc) and dt is not None:
-                raise type(exc)(f"{self._dt_key(index, stage)}: {exc}") from None
-            raise
 
-    def _stage_contact(self, index: int, stage: Any) -> None:
+    def _stage_contact(self, st: StageSettings) -> None:
         """The law's solver settings for this stage: ``[contact]`` with ``[stages.contact]`` on top
         (validated with the deck; a stage without the table gets ``[contact]`` back)."""
-        from .deck.load import stage_contact_values
-
         law = self.sim.law
-        values = stage_contact_values(stage.contact, self.deck.contact.law) if stage.contact else {}
-        params = self.resolved.law_params
-        if values:
-            params = type(params)(**{**params.model_dump(), **values})
+        params = st.law_params
         if getattr(params, "solver", None) == "gauss_seidel" and self.sim.comm.size > 1:
             raise InputError(
-                f"stages.{stage.name}.contact.solver: 'gauss_seidel' runs on one rank only (it sweeps the "
+                f"stages.{st.name}.contact.solver: 'gauss_seidel' runs on one rank only (it sweeps the "
                 "contacts in one sequence, so results would depend on the partition); use 'jacobi' or "
                 "'apgd' under MPI"
             )
-        if values or law.params.model_dump() != params.model_dump():
+        if st.contact_given or law.params.model_dump() != params.model_dump():
             law.params = params
 
-    def _stage_materials(self, stage: Any) -> None:
+    def _stage_materials(self, st: StageSettings) -> None:
         """The materials' contact properties for this stage: ``[stages.materials.NAME]`` where given,
         else ``[materials.NAME]`` (a stage's values hold for that stage only). Also on a resume."""
-        keys = self.sim.MUTABLE_MATERIAL_KEYS
-        for name, spec in self.deck.materials.items():
-            base = spec.to_material(name)
-            values = {k: getattr(base, k) for k in keys}
-            if name in stage.materials:
-                values.update(stage.materials[name].values())
+        for name, values in st.materials.items():
             self.sim.set_material(name, **values)
 
     def _check_stages(self, start_index: int) -> None:
         """Before anything is written: every stage still to run has a dt within the law's stability
         estimate (as known from the particles now) and a length below :data:`MAX_STAGE_STEPS`."""
         sim = self.sim
-        crit = sim.dt_critical
-        for index, stage in enumerate(self.deck.stages):
-            if index < start_index:
-                continue
-            dt = self._stage_dt(stage)
-            if dt is not None and not self.deck.run.force_dt and math.isfinite(crit) and dt > crit:
-                raise InputError(
-                    f"{self._dt_key(index, stage)}: dt = {dt:.4g} s for stage '{stage.name}' exceeds the "
-                    f"stability estimate {crit:.4g} s of law '{sim.law.name}' for these particles; use "
-                    f"dt ≤ {crit:.4g} s (practice: 0.1–0.3 of it), or set run.force_dt = true to run anyway"
-                )
-            self._stage_target(stage, dt if dt is not None else sim.dt)
+        for st in self.stages[start_index:]:
+            self._check_stage_dt(st, sim.dt_critical)
+            self._stage_target(st.stage, st.dt if st.dt is not None else sim.dt)
 
     def _stage_target(self, stage: Any, dt: float, done: int = 0, elapsed: float = 0.0) -> int | None:
         """Steps from the stage's start at which its ``steps``/``time`` end it (None: neither given).
@@ -1241,7 +1059,7 @@ class Runner:
         """Run one (entered) stage; False if ``max_steps`` stopped the run."""
         sim = self.sim
         end = stage.end
-        out = self.resolved.output_for(stage.name)
+        out = self.stages[index].output
         every_steps = out.every_steps
         every_time = out.every_time
         series_every = out.series_every_steps

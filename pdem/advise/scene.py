@@ -6,7 +6,7 @@ The deck-level facts need no particles: counts come from the same estimate as th
 What the boundaries impose (speeds, stresses, loading rates) and the area a device packs the grains
 into come from the boundary contract's hooks (:meth:`~pdem.boundaries.api.Boundary.loading`,
 :meth:`~pdem.boundaries.api.Boundary.extent`, …), never from a boundary's ``type``.
-The probe builds the first stage's scene exactly as ``pdem check`` does (:meth:`Runner.check_scene`,
+The probe builds the first stage's scene exactly as ``pdem check`` does (:meth:`Runner.start_stage`,
 nothing written) and steps it for a few hundred steps within a wall-time budget.
 """
 
@@ -22,7 +22,6 @@ import numpy as np
 from ..boundaries.api import Boundary, Loading, SceneFacts
 from ..errors import InputError
 from . import rules
-
 
 
 @dataclass
@@ -482,8 +481,7 @@ def _probe(resolved: Any, budget: float, steps: int, report: Any) -> dict[str, A
     runner = Runner(resolved, progress=None, dry=True)
     try:
         sim = runner.build()
-        runner._insert_particles(first.name, first.name)
-        runner._enter_stage(0, first)
+        runner.start_stage(0)
     except InputError as exc:
         msg = {"ran": False, "done": True, "reason": f"the scene check refused the deck: {exc}"}
         report(msg)

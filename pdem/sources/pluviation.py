@@ -9,12 +9,14 @@ settled packing whose density depends on friction and restitution, as in a real 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 
 import numpy as np
 
 from ..errors import GeometryError
 from ..materials import Material
+from .progress import report
 from .random_fill import random_fill
 from .regions import BoxRegion, CylinderRegion, spatial_order
 from .sizes import SizeDistribution
@@ -45,6 +47,7 @@ def pluviate(
     RMS, not the maximum: without rolling resistance a few surface spheres keep rolling for a long
     time); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
     is raised. ``progress(t, v_rms)`` is called at each check. Output is spatially ordered.
+    Inside a run, the pour reports its progress (:mod:`pdem.sources.progress`).
     """
     from ..geometry.shapes import Cylinder, Plane
     from ..simulation import Simulation
@@ -80,11 +83,16 @@ def pluviate(
     sim.dt = dt
     d_mean = 2.0 * float(np.mean(r))
     v_rest = rest_speed if rest_speed is not None else 0.01 * math.sqrt(gravity * d_mean)
+    report("settling", None, f"{n} spheres falling from a {height:.3g} m column")
+    wall0 = time.perf_counter()
     while True:
         sim.run(steps=check_every)
         v_rms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", sim.particles.v, sim.particles.v))))
         if progress is not None:
             progress(sim.time, v_rms)
+        report(
+            "settling", None, _settling_detail(sim.time, v_rms, v_rest, max_time, time.perf_counter() - wall0)
+        )
         if v_rms < v_rest:
             break
         if sim.time > max_time:
@@ -95,3 +103,12 @@ def pluviate(
     p = sim.get_particles()
     order = spatial_order(p["x"], 2.0 * sizes.r_max)
     return p["x"][order], p["r"][order]
+
+
+def _settling_detail(t: float, v_rms: float, v_rest: float, max_time: float, wall: float) -> str:
+    """The progress line of a settling pour: it ends when the RMS speed falls below the rest speed,
+    which cannot be foreseen, or gives up at ``max_time``, whose wall time can."""
+    text = f"t = {t:.3g} s simulated, RMS speed {v_rms:.3g} m/s (at rest below {v_rest:.3g} m/s)"
+    if t > 0 and wall > 0 and max_time > t:
+        text += f"; gives up at max_time = {max_time:g} s, at most {(max_time - t) * wall / t:.0f} s from now"
+    return text

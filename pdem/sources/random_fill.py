@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from pdem._jit import njit
 from pdem.errors import GeometryError, InputError
 
+from .progress import report
 from .regions import Region, spatial_order
 from .sizes import SizeDistribution
 
@@ -226,6 +227,7 @@ def random_fill(
         count, fails, _ = _rsa_kernel(
             kind, params, radii, g, u, pos, count, fails, int(max_attempts), head, nxt, lo, cell, dims
         )
+        report("placing spheres (random sequential addition)", count / n_tot, f"{count} of {n_tot} placed")
         if fails >= max_attempts:
             placed_vol = float(np.sum(4.0 / 3.0 * math.pi * radii[:count] ** 3))
             want = (
