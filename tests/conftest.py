@@ -4,9 +4,19 @@ The MPI tests run 3-4 ranks on 2-core machines. MPICH's ranks busy-poll while th
 oversubscribed rank waits for a descheduled one at every exchange; letting idle ranks sleep a
 microsecond (MPIR_CVAR_CH4_PROGRESS_THROTTLE) made a 4-rank DEM-C hopper run 1.4-1.6x faster on
 such a machine. It changes timing only, never results. The launched processes inherit it.
+
+The ``run_pdem`` fixture runs pdem's command line in-process (``pdem.cli.main``) and returns its exit
+code and what it printed to stdout and stderr; ``run_pdem_guarded`` does the same within a 60 s
+time limit and fails the test if a RuntimeWarning is issued.
 """
 
+from __future__ import annotations
+
 import os
+import signal
+import warnings
+from collections.abc import Callable, Iterable
+from typing import NamedTuple
 
 import pytest
 
@@ -25,3 +35,59 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+class PdemResult(NamedTuple):
+    """What an in-process pdem command returned and printed; unpacks as ``code, out, err``."""
+
+    code: int
+    out: str
+    err: str
+
+
+@pytest.fixture
+def run_pdem(capsys) -> Callable[..., PdemResult]:
+    """``run_pdem(args, *, time_limit=None, forbid_runtime_warnings=False)`` runs
+    ``pdem.cli.main([str(a) for a in args])`` and returns its exit code with the stdout and stderr
+    captured since they were last read. ``time_limit`` (seconds) raises TimeoutError in a command
+    that runs longer (SIGALRM: main thread only); ``forbid_runtime_warnings`` records warnings and
+    fails the test if any RuntimeWarning (numpy's overflow, invalid value...) was issued."""
+    import pdem.cli
+
+    def run(
+        args: Iterable, *, time_limit: float | None = None, forbid_runtime_warnings: bool = False
+    ) -> PdemResult:
+        def _alarm(signum, frame):
+            raise TimeoutError(f"pdem did not finish within {time_limit:g} s")
+
+        argv = [str(a) for a in args]
+        old = None
+        if time_limit is not None:
+            old = signal.signal(signal.SIGALRM, _alarm)
+            signal.setitimer(signal.ITIMER_REAL, time_limit)
+        try:
+            with warnings.catch_warnings(record=forbid_runtime_warnings) as caught:
+                if forbid_runtime_warnings:
+                    warnings.simplefilter("always")
+                code = pdem.cli.main(argv)
+        finally:
+            if time_limit is not None:
+                signal.setitimer(signal.ITIMER_REAL, 0)
+                signal.signal(signal.SIGALRM, old)
+        out, err = capsys.readouterr()
+        if forbid_runtime_warnings:
+            runtime = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+            assert not runtime, f"numpy/runtime warnings reached the user: {runtime}"
+        return PdemResult(code, out, err)
+
+    return run
+
+
+@pytest.fixture
+def run_pdem_guarded(run_pdem) -> Callable[..., PdemResult]:
+    """``run_pdem`` within a 60 s time limit, failing the test if a RuntimeWarning is issued."""
+
+    def run(args: Iterable) -> PdemResult:
+        return run_pdem(args, time_limit=60, forbid_runtime_warnings=True)
+
+    return run

@@ -44,11 +44,6 @@ STOP = 30  # the run is stopped here: checkpoints at step 20 (end of "drop") and
 EARLIER = "step_0000000020.h5"
 
 
-def pdem(args, capsys) -> tuple[int, str]:
-    code = main([str(a) for a in args])
-    return code, capsys.readouterr().err
-
-
 def tree(directory: Path) -> dict[str, str]:
     """Every entry under ``directory``: the SHA-256 of a file's bytes, a link's target."""
     out = {}
@@ -156,11 +151,11 @@ DAMAGE = [
 
 
 @pytest.mark.parametrize(("damage", "fragments"), DAMAGE)
-def test_damaged_checkpoint_is_refused_and_nothing_changes(runs, tmp_path, capsys, damage, fragments):
+def test_damaged_checkpoint_is_refused_and_nothing_changes(runs, tmp_path, run_pdem, damage, fragments):
     out, latest = copy_run(runs, tmp_path)
     damage(latest.resolve())
     before = tree(tmp_path)
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 2, err
     assert "Traceback" not in err and err.startswith("pdem: error: ")
     assert str(latest) in err, err  # the checkpoint named
@@ -169,29 +164,29 @@ def test_damaged_checkpoint_is_refused_and_nothing_changes(runs, tmp_path, capsy
     assert f"pdem resume {out / 'checkpoints' / EARLIER}" in err, err  # the remedy: the earlier one
     assert tree(tmp_path) == before
     # elsewhere too: --output DIR is not created
-    code, err = pdem(["resume", latest, "--quiet", "--output", tmp_path / "elsewhere"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet", "--output", tmp_path / "elsewhere"])
     assert code == 2, err
     assert tree(tmp_path) == before
 
 
-def test_the_suggested_earlier_checkpoint_resumes(runs, tmp_path, capsys):
+def test_the_suggested_earlier_checkpoint_resumes(runs, tmp_path, run_pdem):
     """The remedy works: the step-20 checkpoint of the damaged run's folder continues the run to
     the uninterrupted run's state (the damaged later checkpoint is replaced)."""
     out, latest = copy_run(runs, tmp_path)
     flip_bit_in_x(latest.resolve())
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 2
     command = err[err.index("pdem resume ") :].split(" (step")[0]
-    code, err = pdem([*command.split()[1:], "--quiet"], capsys)
+    code, _, err = run_pdem([*command.split()[1:], "--quiet"])
     assert code == 0, err
     assert compare(final_state(runs["full"]), final_state(out)) is None
 
 
-def test_no_earlier_checkpoint_says_rerun(runs, tmp_path, capsys):
+def test_no_earlier_checkpoint_says_rerun(runs, tmp_path, run_pdem):
     out, latest = copy_run(runs, tmp_path)
     (out / "checkpoints" / EARLIER).unlink()
     negative_step(latest.resolve())
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 2
     assert "no earlier checkpoint" in err and "rerun the deck from the start" in err, err
 
@@ -302,13 +297,13 @@ FORMAT_1_DAMAGE = [
 
 
 @pytest.mark.parametrize(("edit", "fragments"), FORMAT_1_DAMAGE)
-def test_format_1_is_checked_structurally(runs, tmp_path, capsys, edit, fragments):
+def test_format_1_is_checked_structurally(runs, tmp_path, run_pdem, edit, fragments):
     out, latest = copy_run(runs, tmp_path)
     as_format_1(latest.resolve())
     with h5py.File(latest, "r+") as fh:
         edit(fh)
     before = tree(tmp_path)
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 2, err
     for fragment in fragments:
         assert fragment in err, (fragment, err)
@@ -316,12 +311,12 @@ def test_format_1_is_checked_structurally(runs, tmp_path, capsys, edit, fragment
     assert tree(tmp_path) == before
 
 
-def test_format_1_shape_mismatch(runs, tmp_path, capsys):
+def test_format_1_shape_mismatch(runs, tmp_path, run_pdem):
     _, latest = copy_run(runs, tmp_path)
     as_format_1(latest.resolve())
     fewer_velocity_rows(latest.resolve())
     before = tree(tmp_path)
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 2, err
     assert "'particles/v'" in err and "(63, 3)" in err and "64 particles" in err, err
     assert tree(tmp_path) == before
@@ -329,13 +324,13 @@ def test_format_1_shape_mismatch(runs, tmp_path, capsys):
 
 # ------------------------------------------------------------------------------ intact checkpoints
 @pytest.mark.parametrize("fmt", [CHECKPOINT_FORMAT, 1])
-def test_intact_checkpoint_resumes_bitwise(runs, tmp_path, capsys, fmt):
+def test_intact_checkpoint_resumes_bitwise(runs, tmp_path, run_pdem, fmt):
     out, latest = copy_run(runs, tmp_path)
     if fmt == 1:
         as_format_1(latest.resolve())
     state, meta = read_checkpoint(latest)
     assert meta[FORMAT_ATTR] == fmt and int(state["scalars/step"]) == STOP
-    code, err = pdem(["resume", latest, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet"])
     assert code == 0, err
     assert compare(final_state(runs["full"]), final_state(out)) is None
     with h5py.File(out / "checkpoints" / "latest.h5", "r") as fh:  # new checkpoints: current format
@@ -344,24 +339,24 @@ def test_intact_checkpoint_resumes_bitwise(runs, tmp_path, capsys, fmt):
 
 
 # ------------------------------------------------------------------------------ run.max_overlap
-def test_max_overlap_can_be_set_on_resume(runs, tmp_path, capsys):
+def test_max_overlap_can_be_set_on_resume(runs, tmp_path, run_pdem):
     out, latest = copy_run(runs, tmp_path)
     # a tiny limit is applied: the grains resting on the floor already overlap it by more
     before = tree(tmp_path)
-    code, err = pdem(["resume", latest, "--quiet", "--set", "run.max_overlap=1e-6"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet", "--set", "run.max_overlap=1e-6"])
     assert code == 2, err
     assert "limit 1e-06" in err and "cannot be changed" not in err, err
     assert tree(tmp_path) == before
     # a larger one: the run goes on as before (the limit decides when a run stops, not how it moves)
-    code, err = pdem(["resume", latest, "--quiet", "--set", "run.max_overlap=0.3"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet", "--set", "run.max_overlap=0.3"])
     assert code == 0, err
     assert compare(final_state(runs["full"]), final_state(out)) is None
     _, meta = read_checkpoint(out / "checkpoints" / "latest.h5")
     assert tomllib.loads(meta["deck"])["run"]["max_overlap"] == 0.3
 
 
-def test_refused_resume_change_lists_max_overlap(runs, tmp_path, capsys):
+def test_refused_resume_change_lists_max_overlap(runs, tmp_path, run_pdem):
     _, latest = copy_run(runs, tmp_path)
-    code, err = pdem(["resume", latest, "--quiet", "--set", "materials.glass.friction=0.9"], capsys)
+    code, _, err = run_pdem(["resume", latest, "--quiet", "--set", "materials.glass.friction=0.9"])
     assert code == 2, err
     assert "materials.glass.friction" in err and "run.max_overlap" in err, err

@@ -61,12 +61,6 @@ def write(tmp_path: Path, text: str, name: str = "deck.toml") -> Path:
     return path
 
 
-def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 # Each case: (description, text replacement (old, new) applied to SMALL or a whole text, expected fragments)
 MALFORMED = [
     ("invalid TOML", ("[run]", "[run"), ["line"]),
@@ -126,12 +120,12 @@ MALFORMED = [
 
 
 @pytest.mark.parametrize("name, change, fragments", MALFORMED, ids=[m[0] for m in MALFORMED])
-def test_malformed_deck_exit_2_without_traceback(tmp_path, capsys, name, change, fragments):
+def test_malformed_deck_exit_2_without_traceback(tmp_path, run_pdem, name, change, fragments):
     old, new = change
     assert old in SMALL, f"test case '{name}' does not apply"
     deck = write(tmp_path, SMALL.replace(old, new, 1))
     for cmd in (["check", deck], [deck, "--output", tmp_path / "out"]):
-        code, _, err = run_cli(cmd, capsys)
+        code, _, err = run_pdem(cmd)
         assert code == 2, (name, err)
         assert err.startswith("pdem: error:"), err
         assert "Traceback" not in err
@@ -150,44 +144,44 @@ def test_malformed_deck_real_process(tmp_path):
     assert "Traceback" not in proc.stderr and "did you mean 'density'" in proc.stderr
 
 
-def test_bad_set_override(tmp_path, capsys):
+def test_bad_set_override(tmp_path, run_pdem):
     deck = write(tmp_path, SMALL)
-    code, _, err = run_cli(["check", deck, "--set", "run.dtt=1e-6"], capsys)
+    code, _, err = run_pdem(["check", deck, "--set", "run.dtt=1e-6"])
     assert code == 2 and "dtt" in err
-    code, _, err = run_cli(["check", deck, "--set", "run.dt"], capsys)
+    code, _, err = run_pdem(["check", deck, "--set", "run.dt"])
     assert code == 2 and "--set" in err
 
 
-def test_existing_output_not_overwritten(tmp_path, capsys):
+def test_existing_output_not_overwritten(tmp_path, run_pdem):
     deck = write(tmp_path, SMALL)
     out = tmp_path / "out"
     out.mkdir()
     (out / "precious.txt").write_text("keep me")
-    code, _, err = run_cli([deck, "--output", out, "--steps", "5", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--steps", "5", "--quiet"])
     assert code == 2 and "--overwrite" in err
     assert (out / "precious.txt").read_text() == "keep me"
     # --overwrite replaces only pdem's output: a folder pdem did not make is refused untouched
-    code, _, err = run_cli([deck, "--output", out, "--steps", "5", "--quiet", "--overwrite"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--steps", "5", "--quiet", "--overwrite"])
     assert code == 2 and "not made by pdem" in err, err
     assert sorted(p.name for p in out.iterdir()) == ["precious.txt"]
     # in pdem's own output folder it replaces pdem's files and keeps the user's
     made = tmp_path / "made"
-    assert run_cli([deck, "--output", made, "--steps", "5", "--quiet"], capsys)[0] == 0
+    assert run_pdem([deck, "--output", made, "--steps", "5", "--quiet"])[0] == 0
     (made / "precious.txt").write_text("keep me")
-    code, _, err = run_cli([deck, "--output", made, "--steps", "3", "--quiet", "--overwrite"], capsys)
+    code, _, err = run_pdem([deck, "--output", made, "--steps", "3", "--quiet", "--overwrite"])
     assert code == 0, err
     assert (made / "precious.txt").read_text() == "keep me"
     assert not (made / "checkpoints" / "step_0000000005.h5").exists()
 
 
-def test_instability_exit_3(tmp_path, capsys):
+def test_instability_exit_3(tmp_path, run_pdem):
     # the live step bound would stop this at step 1 (its own exit-3 test is in test_stiffness_bound):
     # switched off, the blow-up itself is caught
     text = SMALL.replace("dt = 2e-6", "dt = 6e-5\nforce_dt = true\nstiffness_limit = 0").replace(
         "velocity = [0.0, 0.0, -0.2]", "velocity = [0.0, 0.0, -3.0]"
     )
     deck = write(tmp_path, text)
-    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "out", "--quiet"])
     assert code == 3, err
     assert "unstable" in err and "Traceback" not in err
     # what was written before the failure stays readable
@@ -197,21 +191,21 @@ def test_instability_exit_3(tmp_path, capsys):
         assert len(fh["frames"]) >= 1
 
 
-def test_plugins_and_schema(tmp_path, capsys):
-    code, out, _ = run_cli(["plugins"], capsys)
+def test_plugins_and_schema(tmp_path, run_pdem):
+    code, out, _ = run_pdem(["plugins"])
     assert code == 0
     for name in ("hertz_mindlin", "hopper", "box", "hdf5", "vtk"):
         assert name in out
     assert "(from pdem)" in out
-    code, _, _ = run_cli(["schema", "--output", tmp_path / "s.json"], capsys)
+    code, _, _ = run_pdem(["schema", "--output", tmp_path / "s.json"])
     schema = json.loads((tmp_path / "s.json").read_text())
     assert code == 0 and "properties" in schema and "materials" in schema["properties"]
 
 
-def test_run_writes_outputs(tmp_path, capsys):
+def test_run_writes_outputs(tmp_path, run_pdem):
     deck = write(tmp_path, SMALL)
     out = tmp_path / "out"
-    code, stdout, _ = run_cli([deck, "--output", out, "--quiet"], capsys)
+    code, stdout, _ = run_pdem([deck, "--output", out, "--quiet"])
     assert code == 0
     for name in (
         "deck.resolved.toml",
@@ -232,14 +226,14 @@ def test_run_writes_outputs(tmp_path, capsys):
     assert resolved["run"]["max_overlap"] == 0.25  # defaults are filled in
 
 
-def test_resume_is_bitwise_identical(tmp_path, capsys):
+def test_resume_is_bitwise_identical(tmp_path, run_pdem):
     """N steps + checkpoint + resume + N steps == 2N steps, crossing a stage boundary."""
     deck = write(tmp_path, SMALL)
     full, part = tmp_path / "full", tmp_path / "part"
-    assert run_cli([deck, "--output", full, "--quiet"], capsys)[0] == 0
-    assert run_cli([deck, "--output", part, "--quiet", "--steps", "170"], capsys)[0] == 0
-    code, _, err = run_cli(
-        ["resume", part / "checkpoints" / "latest.h5", "--output", tmp_path / "resumed", "--quiet"], capsys
+    assert run_pdem([deck, "--output", full, "--quiet"])[0] == 0
+    assert run_pdem([deck, "--output", part, "--quiet", "--steps", "170"])[0] == 0
+    code, _, err = run_pdem(
+        ["resume", part / "checkpoints" / "latest.h5", "--output", tmp_path / "resumed", "--quiet"]
     )
     assert code == 0, err
     a, _ = read_checkpoint(full / "checkpoints" / "latest.h5")
@@ -250,7 +244,7 @@ def test_resume_is_bitwise_identical(tmp_path, capsys):
             assert np.array_equal(a[key], b[key]), key
 
 
-def test_resume_may_change_the_dem_c_solver_settings_but_not_its_law(tmp_path, capsys):
+def test_resume_may_change_the_dem_c_solver_settings_but_not_its_law(tmp_path, run_pdem):
     """A DEM-C run goes on from a checkpoint with a higher iteration cap and a tighter tolerance
     (numerics: LawParams.resumable), which the continued run uses; its cone (the friction law
     solved) is part of the scene and is refused, naming the key (exit 2)."""
@@ -259,34 +253,34 @@ def test_resume_may_change_the_dem_c_solver_settings_but_not_its_law(tmp_path, c
     text = SMALL.replace('law = "hertz_mindlin"', 'law = "complementarity"\nmax_iterations = 20')
     deck = write(tmp_path, text.replace("dt = 2e-6", "dt = 1e-4").replace("steps = 300", "steps = 30"))
     part = tmp_path / "part"
-    assert run_cli([deck, "--output", part, "--quiet", "--steps", "20"], capsys)[0] == 0
+    assert run_pdem([deck, "--output", part, "--quiet", "--steps", "20"])[0] == 0
     ckpt = part / "checkpoints" / "latest.h5"
-    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", 'contact.cone="relaxed"'], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--set", 'contact.cone="relaxed"'])
     assert code == 2 and "contact.cone: cannot be changed on resume" in err, err
-    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", "contact.max_iterations=300",
-                            "--set", "contact.tolerance=1e-9"], capsys)  # fmt: skip
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--set", "contact.max_iterations=300",
+                             "--set", "contact.tolerance=1e-9"])  # fmt: skip
     assert code == 0, err
     solver = json.loads((part / "summary.json").read_text())["solver"]
     assert solver["max_iterations"] == 300 and solver["tolerance"] == 1e-9
     assert solver["mean_iterations"] > 20  # the steps after the checkpoint ran past the old cap
 
 
-def test_resume_needs_only_the_checkpoint(tmp_path, capsys):
+def test_resume_needs_only_the_checkpoint(tmp_path, run_pdem):
     """The deck file may change or disappear: the checkpoint holds the resolved deck. A change of
     the scene asked for with --set is refused, naming the key (exit 2, nothing written)."""
     deck = write(tmp_path, SMALL)
     part = tmp_path / "part"
-    assert run_cli([deck, "--output", part, "--quiet", "--steps", "20"], capsys)[0] == 0
+    assert run_pdem([deck, "--output", part, "--quiet", "--steps", "20"])[0] == 0
     deck.write_text(SMALL.replace("friction = 0.5", "friction = 0.4"))
     ckpt = part / "checkpoints" / "latest.h5"
     before = sorted(str(p) for p in tmp_path.rglob("*"))
-    code, _, err = run_cli(["resume", ckpt, "--quiet", "--set", "materials.glass.friction=0.4"], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--set", "materials.glass.friction=0.4"])
     assert code == 2, err
     assert "materials.glass.friction: cannot be changed on resume" in err, err
     assert "(from --set materials.glass.friction=0.4)" in err and "Traceback" not in err
     assert sorted(str(p) for p in tmp_path.rglob("*")) == before
     deck.unlink()
-    code, _, err = run_cli(["resume", ckpt, "--quiet", "--steps", "40"], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--steps", "40"])
     assert code == 0, err
     assert int(read_checkpoint(part / "checkpoints" / "latest.h5")[0]["scalars/step"]) == 40
 

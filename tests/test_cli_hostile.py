@@ -40,12 +40,6 @@ def write_deck(directory: Path, text: str = TINY, name: str = "deck.toml") -> Pa
     return path
 
 
-def run_cli(args: list, capsys) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def tree(directory: Path) -> list[str]:
     """Every path under ``directory`` (relative, sorted), to check that nothing was added."""
     return sorted(str(p.relative_to(directory)) for p in directory.rglob("*"))
@@ -84,12 +78,12 @@ def _assert_refused_output(code: int, err: str, target: Path) -> None:
 
 
 @pytest.mark.parametrize("kind", BAD_TARGETS)
-def test_run_refuses_bad_output_target(tmp_path, capsys, kind):
+def test_run_refuses_bad_output_target(tmp_path, run_pdem, kind):
     deck = write_deck(tmp_path)
     target = _bad_target(kind, tmp_path)
     before = tree(tmp_path)
     for extra in ([], ["--overwrite"]):  # --overwrite never replaces a file either
-        code, _, err = run_cli([deck, "--output", target, "--quiet", *extra], capsys)
+        code, _, err = run_pdem([deck, "--output", target, "--quiet", *extra])
         _assert_refused_output(code, err, target)
         assert tree(tmp_path) == before
     if kind == "regular_file":
@@ -102,20 +96,20 @@ def test_run_refuses_bad_output_target(tmp_path, capsys, kind):
 
 
 @pytest.mark.parametrize("kind", BAD_TARGETS)
-def test_resume_refuses_bad_output_target(tmp_path, capsys, checkpoint, kind):
+def test_resume_refuses_bad_output_target(tmp_path, run_pdem, checkpoint, kind):
     target = _bad_target(kind, tmp_path)
     before = tree(tmp_path)
     ckpt_dir_before = tree(checkpoint.parent.parent)
-    code, _, err = run_cli(["resume", checkpoint, "--output", target, "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", checkpoint, "--output", target, "--quiet"])
     _assert_refused_output(code, err, target)
     assert tree(tmp_path) == before and tree(checkpoint.parent.parent) == ckpt_dir_before
 
 
-def test_deck_output_directory_that_is_a_file(tmp_path, capsys):
+def test_deck_output_directory_that_is_a_file(tmp_path, run_pdem):
     """The same rule for output.directory from the deck (no --output): the message names the key."""
     deck = write_deck(tmp_path)
     (tmp_path / "taken").write_text("x")
-    code, _, err = run_cli([deck, "--set", f'output.directory="{tmp_path / "taken"}"', "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--set", f'output.directory="{tmp_path / "taken"}"', "--quiet"])
     assert code == 2 and "output.directory" in err and "regular file" in err, err
     assert (tmp_path / "taken").read_text() == "x"
 
@@ -134,16 +128,14 @@ def test_bad_output_target_real_process(tmp_path):
 
 
 # ------------------------------------------------------------------------------ 2. file modes
-def test_output_files_follow_the_umask(tmp_path, capsys):
+def test_output_files_follow_the_umask(tmp_path, run_pdem):
     """Index files written atomically (XDMF, PVD, PVTU-less VTU, metadata) get 0666 minus the umask
     like every other output file, not mkstemp's 0600."""
     deck = write_deck(tmp_path)
     out = tmp_path / "out"
     old = os.umask(0o027)
     try:
-        code, _, err = run_cli(
-            [deck, "--output", out, "--quiet", "--set", 'output.formats=["hdf5", "vtk"]'], capsys
-        )
+        code, _, err = run_pdem([deck, "--output", out, "--quiet", "--set", 'output.formats=["hdf5", "vtk"]'])
     finally:
         os.umask(old)
     assert code == 0, err
@@ -172,19 +164,19 @@ def test_negative_steps_refused(tmp_path, capsys, checkpoint, command):
     assert tree(tmp_path) == before
 
 
-def test_zero_steps_writes_the_initial_state_and_resumes(tmp_path, capsys):
+def test_zero_steps_writes_the_initial_state_and_resumes(tmp_path, run_pdem):
     """--steps 0 is meaningful (kept): the scene is built, its initial state written with a
     checkpoint, and resuming from it gives the uninterrupted run bit for bit."""
     deck = write_deck(tmp_path)
-    code, out, err = run_cli([deck, "--output", tmp_path / "zero", "--steps", "0", "--quiet"], capsys)
+    code, out, err = run_pdem([deck, "--output", tmp_path / "zero", "--steps", "0", "--quiet"])
     assert code == 0, err
     assert "stopped early" in out and "0 steps" in out
     summary = json.loads((tmp_path / "zero" / "summary.json").read_text())
     assert summary["steps"] == 0 and summary["particles"] == 64 and not summary["completed"]
     ckpt = tmp_path / "zero" / "checkpoints" / "latest.h5"
-    code, _, err = run_cli(["resume", ckpt, "--output", tmp_path / "resumed", "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--output", tmp_path / "resumed", "--quiet"])
     assert code == 0, err
-    code, _, err = run_cli([deck, "--output", tmp_path / "whole", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "whole", "--quiet"])
     assert code == 0, err
     from pdem.io.checkpoint import read_checkpoint
 
@@ -196,19 +188,19 @@ def test_zero_steps_writes_the_initial_state_and_resumes(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------ 4. decomposition
-def test_decomposition_must_match_the_rank_count(tmp_path, capsys):
+def test_decomposition_must_match_the_rank_count(tmp_path, run_pdem):
     deck = write_deck(tmp_path)
     out = tmp_path / "out"
-    code, _, err = run_cli([deck, "--output", out, "--quiet", "--set", "run.decomposition=[2, 1, 1]"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet", "--set", "run.decomposition=[2, 1, 1]"])
     assert code == 2, err
     for fragment in ("run.decomposition", "[2, 1, 1]", "1 rank", "mpiexec -n 2", "remove run.decomposition"):
         assert fragment in err, (fragment, err)
     assert not out.exists()
     # pdem check cannot know the rank count: nothing wrong there
-    code, stdout, err = run_cli(["check", deck, "--set", "run.decomposition=[2, 1, 1]"], capsys)
+    code, stdout, err = run_pdem(["check", deck, "--set", "run.decomposition=[2, 1, 1]"])
     assert code == 0 and "valid" in stdout, err
     # a matching grid runs
-    code, _, err = run_cli([deck, "--output", out, "--quiet", "--set", "run.decomposition=[1, 1, 1]"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet", "--set", "run.decomposition=[1, 1, 1]"])
     assert code == 0, err
 
 
@@ -228,60 +220,58 @@ def test_decomposition_mismatch_under_mpi(tmp_path):
     assert "Traceback" not in proc.stderr and not out.exists()
 
 
-def test_decomposition_entries_must_be_positive(tmp_path, capsys):
+def test_decomposition_entries_must_be_positive(tmp_path, run_pdem):
     """[0, 1, 1] or [-1, -1, 1] (product 1!) is a deck error, found by pdem check too."""
     deck = write_deck(tmp_path)
     for dims, index in (("[0, 1, 1]", 0), ("[-1, -1, 1]", 0)):
-        code, _, err = run_cli(["check", deck, "--set", f"run.decomposition={dims}"], capsys)
+        code, _, err = run_pdem(["check", deck, "--set", f"run.decomposition={dims}"])
         assert code == 2 and f"run.decomposition.{index}: must be >= 1" in err, err
 
 
-def test_decomposition_in_the_deck_file(tmp_path, capsys):
+def test_decomposition_in_the_deck_file(tmp_path, run_pdem):
     """Given in the deck rather than by --set: the same check, the same message."""
     deck = write_deck(tmp_path, TINY.replace("dt = 2e-6", "dt = 2e-6\ndecomposition = [1, 1, 2]"))
-    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "out", "--quiet"])
     assert code == 2 and "run.decomposition = [1, 1, 2]" in err, err
     assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------------------ 5. absurd step counts
-def test_absurd_step_count_refused(tmp_path, capsys):
+def test_absurd_step_count_refused(tmp_path, run_pdem):
     deck = write_deck(tmp_path, TIMED)
-    code, _, err = run_cli(["check", deck, "--set", "run.dt=1e-300"], capsys)
+    code, _, err = run_pdem(["check", deck, "--set", "run.dt=1e-300"])
     assert code == 2, err
     for fragment in ("stages.0.end.time", "time = 4e-05", "dt = 1e-300", "run.dt", "4e+295 steps", "1e+10"):
         assert fragment in err, (fragment, err)
     # a stage's own dt, and max_time: both named
-    code, _, err = run_cli(
-        ["check", deck, "--set", "stages.0.dt=1e-20", "--set", "stages.0.end.max_time=1.0"], capsys
+    code, _, err = run_pdem(
+        ["check", deck, "--set", "stages.0.dt=1e-20", "--set", "stages.0.end.max_time=1.0"]
     )
     assert code == 2 and "stages.0.dt" in err and "stages.0.end.max_time" in err, err
     # the run is refused the same way before anything is written
-    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--set", "run.dt=1e-300", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "out", "--set", "run.dt=1e-300", "--quiet"])
     assert code == 2 and "stages.0.end.time" in err and not (tmp_path / "out").exists()
 
 
-def test_long_stage_bounded_by_steps_or_time_is_fine(tmp_path, capsys):
+def test_long_stage_bounded_by_steps_or_time_is_fine(tmp_path, run_pdem):
     """Only the stage's bound counts: a huge max_time is harmless when steps or time end it first."""
     deck = write_deck(tmp_path, TINY)  # ends after 20 steps
-    code, _, err = run_cli(
-        ["check", deck, "--set", "run.dt=1e-300", "--set", "stages.0.end.max_time=1.0"], capsys
-    )
+    code, _, err = run_pdem(["check", deck, "--set", "run.dt=1e-300", "--set", "stages.0.end.max_time=1.0"])
     assert code == 0, err
     deck = write_deck(tmp_path, TIMED, "timed.toml")  # ends at 4e-5 s = 20 steps
-    code, _, err = run_cli(["check", deck, "--set", "stages.0.end.max_time=1e300"], capsys)
+    code, _, err = run_pdem(["check", deck, "--set", "stages.0.end.max_time=1e300"])
     assert code == 0, err
 
 
 # ------------------------------------------------------------------------------ 6. title
-def test_title_length_capped(tmp_path, capsys):
+def test_title_length_capped(tmp_path, run_pdem):
     long_title = "x" * 1001
     deck = write_deck(tmp_path, TINY.replace('title = "tiny lattice"', f'title = "{long_title}"'))
-    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "out", "--quiet"])
     assert code == 2 and "title" in err and "1,001 characters" in err and "1,000" in err, err
     assert len(err) < 1000 and not (tmp_path / "out").exists()  # the title itself is not echoed
     ok = write_deck(tmp_path, TINY.replace('title = "tiny lattice"', f'title = "{"y" * 1000}"'), "ok.toml")
-    code, _, err = run_cli(["check", ok], capsys)
+    code, _, err = run_pdem(["check", ok])
     assert code == 0, err
 
 
@@ -295,10 +285,10 @@ def _plot_series_module():
     return module
 
 
-def test_series_count_columns_are_integers(tmp_path, capsys):
+def test_series_count_columns_are_integers(tmp_path, run_pdem):
     deck = write_deck(tmp_path)
     out = tmp_path / "out"
-    code, _, err = run_cli([deck, "--output", out, "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet"])
     assert code == 0, err
     with open(out / "series_drop.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -315,16 +305,16 @@ def test_series_count_columns_are_integers(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------ 8. pdem schema
-def test_schema_refuses_to_overwrite(tmp_path, capsys):
+def test_schema_refuses_to_overwrite(tmp_path, run_pdem):
     target = tmp_path / "deck.schema.json"
     target.write_text("precious")
-    code, _, err = run_cli(["schema", "--output", target], capsys)
+    code, _, err = run_pdem(["schema", "--output", target])
     assert code == 2 and str(target) in err and "--overwrite" in err, err
     assert target.read_text() == "precious"
-    code, _, err = run_cli(["schema", "--output", target, "--overwrite"], capsys)
+    code, _, err = run_pdem(["schema", "--output", target, "--overwrite"])
     assert code == 0, err
     assert "properties" in json.loads(target.read_text())
-    code, _, err = run_cli(["schema", "--output", tmp_path], capsys)
+    code, _, err = run_pdem(["schema", "--output", tmp_path])
     assert code == 2 and "is a directory" in err, err
-    code, _, err = run_cli(["schema", "--output", tmp_path / "missing" / "s.json"], capsys)
+    code, _, err = run_pdem(["schema", "--output", tmp_path / "missing" / "s.json"])
     assert code == 2 and "cannot write" in err and not (tmp_path / "missing").exists(), err

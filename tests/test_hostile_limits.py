@@ -13,13 +13,11 @@ import os
 import signal
 import subprocess
 import sys
-import warnings
 from pathlib import Path
 
 import pytest
 from decks import TINY_LATTICE
 
-from pdem.cli import main
 from pdem.deck import validate_deck
 from pdem.deck.schema import MAX_NAME_LENGTH, MAX_STAGES
 from pdem.errors import DeckError, InputError, OutputError
@@ -50,23 +48,6 @@ def tree(directory: Path) -> list[str]:
     return sorted(str(p.relative_to(directory)) for p in directory.rglob("*"))
 
 
-def run_cli(args: list, capsys) -> tuple[int, str, str]:
-    """pdem's main() with a time limit; RuntimeWarnings are recorded and must not be issued."""
-    old = signal.signal(signal.SIGALRM, _alarm)
-    signal.alarm(60)
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            code = main([str(a) for a in args])
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
-    out, err = capsys.readouterr()
-    runtime = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
-    assert not runtime, f"numpy/runtime warnings reached the user: {runtime}"
-    return code, out, err
-
-
 def refused(code: int, err: str, *fragments: str, limit: int = 2000) -> None:
     """Exit code 2, one pdem message of bounded length holding every fragment, no traceback."""
     assert code == 2, err[-3000:]
@@ -77,76 +58,84 @@ def refused(code: int, err: str, *fragments: str, limit: int = 2000) -> None:
         assert fragment in err, (fragment, err[:3000])
 
 
-def check_refused(tmp_path: Path, capsys, text: str, *fragments: str, sets: tuple = (), limit=2000) -> str:
+def check_refused(
+    tmp_path: Path, run_pdem_guarded, text: str, *fragments: str, sets: tuple = (), limit=2000
+) -> str:
     """``pdem check --deck-only`` and a real run refuse the deck alike, and the run leaves nothing."""
     deck = write_deck(tmp_path, text)
     sets_args = [a for s in sets for a in ("--set", s)]
-    code, _, err = run_cli(["check", "--deck-only", deck, *sets_args], capsys)
+    code, _, err = run_pdem_guarded(["check", "--deck-only", deck, *sets_args])
     refused(code, err, *fragments, limit=limit)
     before = tree(tmp_path)
-    code, _, err_run = run_cli([deck, "--output", tmp_path / "out", "--quiet", *sets_args], capsys)
+    code, _, err_run = run_pdem_guarded([deck, "--output", tmp_path / "out", "--quiet", *sets_args])
     refused(code, err_run, *fragments, limit=limit)
     assert tree(tmp_path) == before and not (tmp_path / "out").exists()
     return err
 
 
 # ------------------------------------------------------------------------------------ 1. nesting depth
-def test_table_500_deep_refused(tmp_path, capsys):
+def test_table_500_deep_refused(tmp_path, run_pdem_guarded):
     header = "[x" + "".join(f".a{i}" for i in range(500)) + "]\nk = 1\n"
-    err = check_refused(tmp_path, capsys, TINY + header, "line 29", "64", "x.a0.a1")
+    err = check_refused(tmp_path, run_pdem_guarded, TINY + header, "line 29", "64", "x.a0.a1")
     assert "a499" not in err  # the key path is quoted, truncated
 
 
-def test_arrays_10000_deep_refused(tmp_path, capsys):
+def test_arrays_10000_deep_refused(tmp_path, run_pdem_guarded):
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY + "zz = " + "[" * 10_000 + "]" * 10_000 + "\n",
         "line 29",
         "nested more than 64 deep",
     )
 
 
-def test_inline_tables_3000_deep_refused(tmp_path, capsys):
+def test_inline_tables_3000_deep_refused(tmp_path, run_pdem_guarded):
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY + "zz = " + "{a = " * 3000 + "1" + "}" * 3000 + "\n",
         "line 29",
         "nested more than 64 deep",
     )
 
 
-def test_nesting_the_parser_accepts_is_refused_with_its_key_path(tmp_path, capsys):
+def test_nesting_the_parser_accepts_is_refused_with_its_key_path(tmp_path, run_pdem_guarded):
     """80 levels (a 40-part header and a 40-part dotted key): parsed, then refused by the depth
     check, which names the deepest key path (its first and last parts)."""
     header = "[deep" + "".join(f".h{i}" for i in range(39)) + "]\n"
     key = ".".join(f"k{i}" for i in range(40)) + " = 1\n"
     err = check_refused(
-        tmp_path, capsys, TINY + header + key, "80 levels deep", "more than the 64", "deep.h0.h1", "k38.k39"
+        tmp_path,
+        run_pdem_guarded,
+        TINY + header + key,
+        "80 levels deep",
+        "more than the 64",
+        "deep.h0.h1",
+        "k38.k39",
     )
     assert "h20" not in err  # the middle of the path is left out
 
 
-def test_long_dotted_key_refused_before_parsing(tmp_path, capsys):
+def test_long_dotted_key_refused_before_parsing(tmp_path, run_pdem_guarded):
     """Python's TOML parser takes memory quadratic in a dotted key's length; refused before it."""
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY + "x." + ".".join(["a"] * 3000) + " = 1\n",
         "a dotted key of more than 64 parts",
         "line 29",
     )
 
 
-def test_deep_override_values_and_paths_refused(tmp_path, capsys):
+def test_deep_override_values_and_paths_refused(tmp_path, run_pdem_guarded):
     deck = write_deck(tmp_path)
     for text, fragment in (
         ("run.dt=" + "[" * 10_000 + "]" * 10_000, "nested more than 64 deep"),
         ("run.dt={" + ".".join(["a"] * 3000) + " = 1}", "a dotted key of more than 64 parts"),
         (".".join(["a"] * 3000) + "=1", "3,000 levels deep"),
     ):
-        code, _, err = run_cli(["check", "--deck-only", deck, "--set", text], capsys)
+        code, _, err = run_pdem_guarded(["check", "--deck-only", deck, "--set", text])
         refused(code, err, fragment)
 
 
@@ -173,10 +162,10 @@ def test_deep_arrays_in_a_fresh_process(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr and "nested more than 64" in r.stderr, r.stderr
 
 
-def test_integers_outside_the_toml_range(tmp_path, capsys):
+def test_integers_outside_the_toml_range(tmp_path, run_pdem_guarded):
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY.replace("steps = 20", "steps = " + "9" * 400),
         "stages.0.end.steps",
         "about 400 digits",
@@ -184,7 +173,7 @@ def test_integers_outside_the_toml_range(tmp_path, capsys):
     )
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY.replace("steps = 20", "steps = " + "9" * 5000),
         "more than 4,300 digits",
         "64-bit",
@@ -220,11 +209,11 @@ SPECIAL = {
 
 
 @pytest.mark.parametrize("kind", list(SPECIAL))
-def test_packing_path_that_is_not_a_file(tmp_path, capsys, kind):
+def test_packing_path_that_is_not_a_file(tmp_path, run_pdem_guarded, kind):
     path = _special(kind, tmp_path)
     err = check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY + FILE_SOURCE.format(path=path),
         "particles.1.path",
         SPECIAL[kind],
@@ -247,11 +236,11 @@ def test_read_spheres_names_what_the_path_is(tmp_path, kind):
         signal.signal(signal.SIGALRM, old)
 
 
-def test_packing_path_too_long_for_the_file_system(tmp_path, capsys):
+def test_packing_path_too_long_for_the_file_system(tmp_path, run_pdem_guarded):
     name = "p" * 300 + ".txt"
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY + FILE_SOURCE.format(path=name),
         "particles.1.path",
         "too long for the file system",
@@ -260,11 +249,11 @@ def test_packing_path_too_long_for_the_file_system(tmp_path, capsys):
 
 
 # -------------------------------------------------------------------------------- 3. names in file names
-def test_stage_name_of_300_characters_refused(tmp_path, capsys):
+def test_stage_name_of_300_characters_refused(tmp_path, run_pdem_guarded):
     name = "s" * 300
     err = check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY.replace('name = "drop"', f'name = "{name}"'),
         "stages.0.name",
         "300 characters long",
@@ -274,11 +263,11 @@ def test_stage_name_of_300_characters_refused(tmp_path, capsys):
     assert name not in err  # quoted, not written out
 
 
-def test_boundary_and_material_names_limited(tmp_path, capsys):
+def test_boundary_and_material_names_limited(tmp_path, run_pdem_guarded):
     long = "b" * 300
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY.replace("[boundaries.floor]", f"[boundaries.{long}]"),
         "boundaries.",
         "boundary name",
@@ -286,19 +275,19 @@ def test_boundary_and_material_names_limited(tmp_path, capsys):
         "<boundary>.<stage>.csv",
     )
     text = TINY.replace("[materials.glass]", f"[materials.{'g' * 300}]").replace('"glass"', f'"{"g" * 300}"')
-    check_refused(tmp_path, capsys, text, "material name", "300 characters long")
+    check_refused(tmp_path, run_pdem_guarded, text, "material name", "300 characters long")
     text = TINY.replace("[materials.glass]", '[materials."gl\\nass"]').replace('"glass"', '"gl\\nass"')
-    check_refused(tmp_path, capsys, text, "control characters", "gl\\nass")
+    check_refused(tmp_path, run_pdem_guarded, text, "control characters", "gl\\nass")
 
 
-def test_names_at_the_limit_run_and_name_their_files(tmp_path, capsys):
+def test_names_at_the_limit_run_and_name_their_files(tmp_path, run_pdem_guarded):
     stage, wall = "s" * MAX_NAME_LENGTH, "w" * MAX_NAME_LENGTH
     text = TINY.replace('name = "drop"', f'name = "{stage}"').replace(
         "[boundaries.floor]", f"[boundaries.{wall}]"
     )
     text = text.replace("[output]", f'[output]\nthermo_every = 10\nthermo = ["step", "{wall}.fz"]')
     deck = write_deck(tmp_path, text)
-    code, _, err = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    code, _, err = run_pdem_guarded([deck, "--output", tmp_path / "out", "--quiet"])
     assert code == 0, err
     assert (tmp_path / "out" / f"series_{stage}.csv").is_file()
 
@@ -315,37 +304,43 @@ def _stages(n: int) -> str:
     return head + "".join(f'[[stages]]\nname = "s{i}"\n[stages.end]\nsteps = 1\n' for i in range(n))
 
 
-def test_stage_count_limited(tmp_path, capsys):
+def test_stage_count_limited(tmp_path, run_pdem_guarded):
     check_refused(
-        tmp_path, capsys, _stages(MAX_STAGES + 1), "stages: 1,001 stages", f"more than the {MAX_STAGES:,}"
+        tmp_path,
+        run_pdem_guarded,
+        _stages(MAX_STAGES + 1),
+        "stages: 1,001 stages",
+        f"more than the {MAX_STAGES:,}",
     )
-    code, _, err = run_cli(
-        ["check", "--deck-only", write_deck(tmp_path, _stages(MAX_STAGES), "ok.toml")], capsys
+    code, _, err = run_pdem_guarded(
+        ["check", "--deck-only", write_deck(tmp_path, _stages(MAX_STAGES), "ok.toml")]
     )
     assert code == 0, err
 
 
-def test_boundary_count_limited(tmp_path, capsys):
+def test_boundary_count_limited(tmp_path, run_pdem_guarded):
     extra = "".join(
         f'[boundaries.w{i}]\ntype = "plane"\nmaterial = "glass"\npoint = [0, 0, -{i + 1}]\n'
         "normal = [0, 0, 1]\n"
         for i in range(256)
     )
-    check_refused(tmp_path, capsys, TINY + extra, "boundaries: 257 boundaries", "more than the 256")
+    check_refused(tmp_path, run_pdem_guarded, TINY + extra, "boundaries: 257 boundaries", "more than the 256")
 
 
-def test_thermo_columns_limited(tmp_path, capsys):
+def test_thermo_columns_limited(tmp_path, run_pdem_guarded):
     columns = ", ".join(['"step"'] * 101)
     text = TINY.replace("[output]", f"[output]\nthermo_every = 10\nthermo = [{columns}]")
-    check_refused(tmp_path, capsys, text, "output.thermo", "101 thermo columns", "more than the 100")
+    check_refused(
+        tmp_path, run_pdem_guarded, text, "output.thermo", "101 thermo columns", "more than the 100"
+    )
     text = TINY.replace("[output]", '[output]\nthermo_every = 10\nthermo = ["step", "ke", "step"]')
-    check_refused(tmp_path, capsys, text, "output.thermo", "more than once: 'step'")
+    check_refused(tmp_path, run_pdem_guarded, text, "output.thermo", "more than once: 'step'")
 
 
-def test_output_of_a_stage_limited(tmp_path, capsys):
+def test_output_of_a_stage_limited(tmp_path, run_pdem_guarded):
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY,
         "output.every_steps",
         "1,000,000,000 snapshots",
@@ -355,7 +350,7 @@ def test_output_of_a_stage_limited(tmp_path, capsys):
     )
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY,
         "stages.0.output.every_time",
         "snapshots",
@@ -363,7 +358,7 @@ def test_output_of_a_stage_limited(tmp_path, capsys):
     )
     check_refused(
         tmp_path,
-        capsys,
+        run_pdem_guarded,
         TINY,
         "output.checkpoint_every_steps",
         "checkpoints",
@@ -377,30 +372,39 @@ def test_output_of_a_stage_limited(tmp_path, capsys):
     # a stage that may end earlier is not counted: its length is not known before the run
     deck = write_deck(tmp_path, TINY, "open.toml")
     sets = ("stages.0.end.steps=1000000000", "stages.0.end.kinetic_energy_below=1e-9", "output.every_steps=1")
-    code, _, err = run_cli(["check", "--deck-only", deck, *[a for s in sets for a in ("--set", s)]], capsys)
+    code, _, err = run_pdem_guarded(["check", "--deck-only", deck, *[a for s in sets for a in ("--set", s)]])
     assert code == 0, err
 
 
-def test_array_entries_limited(tmp_path, capsys):
+def test_array_entries_limited(tmp_path, run_pdem_guarded):
     text = TINY.replace("[output]", "[output]\nformats = [" + ", ".join(['"x"'] * 100_001) + "]")
-    check_refused(tmp_path, capsys, text, "output.formats", "100,001 entries", "more than the 100,000")
+    check_refused(
+        tmp_path, run_pdem_guarded, text, "output.formats", "100,001 entries", "more than the 100,000"
+    )
 
 
 # ------------------------------------------------------------------------ 5. bounded quotes of bad input
-def test_many_problems_listed_up_to_a_limit(tmp_path, capsys):
+def test_many_problems_listed_up_to_a_limit(tmp_path, run_pdem_guarded):
     text = TINY.replace("[output]", "[output]\nformats = [" + ", ".join(['"x"'] * 5000) + "]")
-    err = check_refused(tmp_path, capsys, text, "unknown output format 'x'", "more problems", limit=20_000)
+    err = check_refused(
+        tmp_path, run_pdem_guarded, text, "unknown output format 'x'", "more problems", limit=20_000
+    )
     assert err.count("\n") <= 105
 
 
-def test_huge_key_value_and_override_are_quoted_briefly(tmp_path, capsys):
+def test_huge_key_value_and_override_are_quoted_briefly(tmp_path, run_pdem_guarded):
     marker = "END-OF-THE-HUGE-INPUT"
     huge = "k" * 2_000_000 + marker
     check_refused(
-        tmp_path, capsys, TINY.replace("[run]", f"[run]\n{huge} = 1"), "run.", "unknown key", "characters)"
+        tmp_path,
+        run_pdem_guarded,
+        TINY.replace("[run]", f"[run]\n{huge} = 1"),
+        "run.",
+        "unknown key",
+        "characters)",
     )
     text = TINY.replace('material = "glass"\nradius', f'material = "{huge}"\nradius')
-    check_refused(tmp_path, capsys, text, "particles.0.material", "unknown material", "characters)")
+    check_refused(tmp_path, run_pdem_guarded, text, "particles.0.material", "unknown material", "characters)")
     deck = write_deck(tmp_path)
     for text in (
         f"run.dt=[{huge}",
@@ -409,41 +413,45 @@ def test_huge_key_value_and_override_are_quoted_briefly(tmp_path, capsys):
         f'contact.law="{huge}"',
         f'title="{huge}"',
     ):
-        code, _, err = run_cli(["check", "--deck-only", deck, "--set", text], capsys)
+        code, _, err = run_pdem_guarded(["check", "--deck-only", deck, "--set", text])
         refused(code, err, "characters)")
         assert marker not in err
 
 
-def _packing_case(tmp_path: Path, content: bytes, capsys) -> str:
+def _packing_case(tmp_path: Path, content: bytes, run_pdem_guarded) -> str:
     (tmp_path / "pack.txt").write_bytes(content)
     deck = write_deck(tmp_path, TINY + FILE_SOURCE.format(path="pack.txt"))
-    code, _, err = run_cli(["check", deck], capsys)  # the scene check reads the packing file
+    code, _, err = run_pdem_guarded(["check", deck])  # the scene check reads the packing file
     refused(code, err, "pack.txt", limit=600)
     before = tree(tmp_path)
-    code, _, err_run = run_cli([deck, "--output", tmp_path / "out", "--quiet"], capsys)
+    code, _, err_run = run_pdem_guarded([deck, "--output", tmp_path / "out", "--quiet"])
     refused(code, err_run, "pack.txt", limit=600)
     assert tree(tmp_path) == before
     return err
 
 
-def test_packing_line_of_20_mb(tmp_path, capsys):
-    err = _packing_case(tmp_path, b"x y z diameter\n0.01 0 0.002 " + b"1" * 20_000_000 + b"\n", capsys)
+def test_packing_line_of_20_mb(tmp_path, run_pdem_guarded):
+    err = _packing_case(
+        tmp_path, b"x y z diameter\n0.01 0 0.002 " + b"1" * 20_000_000 + b"\n", run_pdem_guarded
+    )
     assert "line 2 is longer than 10,000 characters" in err
 
 
-def test_packing_token_quoted_briefly(tmp_path, capsys):
-    err = _packing_case(tmp_path, b"x y z diameter\n0.01 0 0.002 " + b"7" * 5000 + b"a\n", capsys)
+def test_packing_token_quoted_briefly(tmp_path, run_pdem_guarded):
+    err = _packing_case(tmp_path, b"x y z diameter\n0.01 0 0.002 " + b"7" * 5000 + b"a\n", run_pdem_guarded)
     assert "cannot read '777" in err and "(5,001 characters)" in err
 
 
-def test_system_file_as_packing_is_named_not_printed(tmp_path, capsys):
+def test_system_file_as_packing_is_named_not_printed(tmp_path, run_pdem_guarded):
     secret = "root:x:0:0:root:/root:/bin/bash" + "-" * 100 + "SECRET-AFTER-80-CHARACTERS"
-    err = _packing_case(tmp_path, (secret + "\ndaemon:x:1:1::/usr/sbin:/usr/sbin/nologin\n").encode(), capsys)
+    err = _packing_case(
+        tmp_path, (secret + "\ndaemon:x:1:1::/usr/sbin:/usr/sbin/nologin\n").encode(), run_pdem_guarded
+    )
     assert "is not a packing file" in err and "root:x:0:0" in err and "SECRET" not in err
 
 
-def test_binary_file_as_packing(tmp_path, capsys):
-    err = _packing_case(tmp_path, bytes(range(256)) * 1000, capsys)
+def test_binary_file_as_packing(tmp_path, run_pdem_guarded):
+    err = _packing_case(tmp_path, bytes(range(256)) * 1000, run_pdem_guarded)
     assert "binary data" in err
 
 
@@ -463,24 +471,26 @@ def test_binary_file_as_packing(tmp_path, capsys):
         ("boundaries.floor.normal=[0, 0, 1e300]", "boundaries.floor.normal.2"),
     ],
 )
-def test_impossible_values_refused_with_the_key(tmp_path, capsys, setting, key):
+def test_impossible_values_refused_with_the_key(tmp_path, run_pdem_guarded, setting, key):
     deck = write_deck(tmp_path)
     before = tree(tmp_path)
     run = [deck, "--output", tmp_path / "out", "--quiet", "--set", "run.force_dt=true"]
     for args in (["check", deck], run):
-        code, _, err = run_cli([*args, "--set", setting], capsys)
+        code, _, err = run_pdem_guarded([*args, "--set", setting])
         refused(code, err, key)
     assert tree(tmp_path) == before
 
 
-def test_impossible_values_in_a_packing_file(tmp_path, capsys):
-    err = _packing_case(tmp_path, b"x y z diameter\n0.01 0 0.002 2e-300\n", capsys)
+def test_impossible_values_in_a_packing_file(tmp_path, run_pdem_guarded):
+    err = _packing_case(tmp_path, b"x y z diameter\n0.01 0 0.002 2e-300\n", run_pdem_guarded)
     assert "line 2" in err and "outside [1e-10, 1e+10] m" in err
-    err = _packing_case(tmp_path, b"x y z diameter vx vy vz\n0.01 0 0.002 0.001 1e200 0 0\n", capsys)
+    err = _packing_case(
+        tmp_path, b"x y z diameter vx vy vz\n0.01 0 0.002 0.001 1e200 0 0\n", run_pdem_guarded
+    )
     assert "line 2" in err and "velocity component" in err
 
 
-def test_values_at_the_limits_run_without_warnings(tmp_path, capsys):
+def test_values_at_the_limits_run_without_warnings(tmp_path, run_pdem_guarded):
     """Just inside the limits a short run ends with pdem's own verdict (here: it runs, or the step is
     too large for such stiff grains), and no raw numpy warning."""
     deck = write_deck(tmp_path)
@@ -489,7 +499,7 @@ def test_values_at_the_limits_run_without_warnings(tmp_path, capsys):
         "boundaries.floor.point=[0, 0, -1e99]",
         "materials.glass.density=1e20",
     ):
-        code, _, err = run_cli(
+        code, _, err = run_pdem_guarded(
             [
                 deck,
                 "--output",
@@ -500,10 +510,9 @@ def test_values_at_the_limits_run_without_warnings(tmp_path, capsys):
                 "--set",
                 setting,
             ],
-            capsys,
         )
         assert code == 0 and "Traceback" not in err, (setting, err)
     sets = ("stages.0.end.steps=5", "materials.glass.youngs_modulus=1e100", "run.force_dt=true")
     args = [deck, "--output", tmp_path / "stiff", "--quiet", *[a for s in sets for a in ("--set", s)]]
-    code, _, err = run_cli(args, capsys)
+    code, _, err = run_pdem_guarded(args)
     assert code == 3 and "Traceback" not in err, err

@@ -33,12 +33,6 @@ SET_ARGS = [a for s in SETS for a in ("--set", s)]
 IGNORED = {".pdem-lock"}  # the lock file's content names the last process that held it
 
 
-def pdem(*args, capsys=None) -> tuple[int, str]:
-    code = main([str(a) for a in args])
-    err = capsys.readouterr().err if capsys is not None else ""
-    return code, err
-
-
 def _h5_digest(path: Path) -> str:
     """A digest of an HDF5 file's groups, datasets and attributes (not of its byte layout)."""
     h = hashlib.sha256()
@@ -80,7 +74,7 @@ def tree(directory: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def full(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("safety") / "full"
-    assert pdem(HOPPER, *SET_ARGS, "--output", out, "--quiet")[0] == 0
+    assert main([str(HOPPER), *SET_ARGS, "--output", str(out), "--quiet"]) == 0
     return out
 
 
@@ -92,7 +86,7 @@ def _tiny(tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("where", ["deck_inside", "home_like", "cwd"])
-def test_overwrite_refuses_a_folder_pdem_did_not_make(tmp_path, capsys, monkeypatch, where):
+def test_overwrite_refuses_a_folder_pdem_did_not_make(tmp_path, run_pdem, monkeypatch, where):
     folder = tmp_path / "ow"
     folder.mkdir()
     deck = _tiny(folder if where == "deck_inside" else tmp_path)
@@ -108,16 +102,15 @@ def test_overwrite_refuses_a_folder_pdem_did_not_make(tmp_path, capsys, monkeypa
         monkeypatch.chdir(folder)
         out = "."
     before = tree(tmp_path)
-    code, err = pdem(deck, *SET_ARGS, "--steps", "10", "--output", out, "--overwrite", "--quiet",
-                     capsys=capsys)
+    code, _, err = run_pdem([deck, *SET_ARGS, "--steps", "10", "--output", out, "--overwrite", "--quiet"])
     assert code == 2, err
     assert "not made by pdem" in err and "nothing in it was touched" in err, err
     assert tree(tmp_path) == before
 
 
-def test_overwrite_replaces_only_pdem_output(tmp_path, capsys):
+def test_overwrite_replaces_only_pdem_output(tmp_path, run_pdem):
     folder = tmp_path / "run"
-    assert pdem(HOPPER, *SET_ARGS, "--steps", "300", "--output", folder, "--quiet")[0] == 0
+    assert run_pdem([HOPPER, *SET_ARGS, "--steps", "300", "--output", folder, "--quiet"])[0] == 0
     assert (folder / MARKER).is_file()
     listed = set(json.loads((folder / MARKER).read_text())["entries"])
     assert {"checkpoints", "particles.h5", "series_fill.csv", "summary.json"} <= listed
@@ -126,8 +119,7 @@ def test_overwrite_replaces_only_pdem_output(tmp_path, capsys):
     (folder / "notes.txt").write_text("mine\n")
     (folder / "plot.png").write_bytes(b"\x89PNG fake")
     old_summary = (folder / "summary.json").read_text()
-    code, err = pdem(deck, *SET_ARGS, "--steps", "200", "--output", folder, "--overwrite", "--quiet",
-                     capsys=capsys)
+    code, _, err = run_pdem([deck, *SET_ARGS, "--steps", "200", "--output", folder, "--overwrite", "--quiet"])
     assert code == 0, err
     assert deck.read_text() == HOPPER.read_text()
     assert (folder / "notes.txt").read_text() == "mine\n" and (folder / "plot.png").exists()
@@ -138,11 +130,11 @@ def test_overwrite_replaces_only_pdem_output(tmp_path, capsys):
     assert not listed & {"deck.toml", "notes.txt", "plot.png"}
 
 
-def test_overwrite_without_flag_still_refused(tmp_path, capsys):
+def test_overwrite_without_flag_still_refused(tmp_path, run_pdem):
     folder = tmp_path / "run"
-    assert pdem(HOPPER, *SET_ARGS, "--steps", "50", "--output", folder, "--quiet")[0] == 0
+    assert run_pdem([HOPPER, *SET_ARGS, "--steps", "50", "--output", folder, "--quiet"])[0] == 0
     before = tree(tmp_path)
-    code, err = pdem(HOPPER, *SET_ARGS, "--steps", "50", "--output", folder, "--quiet", capsys=capsys)
+    code, _, err = run_pdem([HOPPER, *SET_ARGS, "--steps", "50", "--output", folder, "--quiet"])
     assert code == 2 and "--overwrite" in err, err
     assert tree(tmp_path) == before
 
@@ -165,7 +157,7 @@ def _wait_for(pred, proc: subprocess.Popen, timeout: float = 120.0) -> None:
         time.sleep(0.1)
 
 
-def test_one_run_per_output_directory(tmp_path, capsys, full):
+def test_one_run_per_output_directory(tmp_path, run_pdem, full):
     out = tmp_path / "live"
     proc = _start(out)
     try:
@@ -179,21 +171,20 @@ def test_one_run_per_output_directory(tmp_path, capsys, full):
             [HOPPER, *SET_ARGS, "--output", out, "--overwrite", "--quiet"],
             ["resume", out / "checkpoints" / "step_0000000500.h5", "--quiet"],
         ):
-            code, err = pdem(*args, capsys=capsys)
+            code, _, err = run_pdem(args)
             assert code == 2, err
             assert "in use by process" in err and str(proc.pid) in err, err
         assert time.monotonic() - t0 < 30  # refused at once, not after building the scene
         assert proc.poll() is None  # the live run goes on
         # a resume elsewhere from the live run's checkpoint is fine
-        code, err = pdem("resume", out / "checkpoints" / "step_0000000500.h5", "--output",
-                         tmp_path / "copy", "--steps", "600", "--quiet", capsys=capsys)
+        code, _, err = run_pdem(["resume", out / "checkpoints" / "step_0000000500.h5", "--output",
+                                 tmp_path / "copy", "--steps", "600", "--quiet"])
         assert code == 0, err
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     assert lock_holder(out) is None  # a killed run leaves no lock behind
-    code, err = pdem(HOPPER, *SET_ARGS, "--steps", "20", "--output", out, "--overwrite", "--quiet",
-                     capsys=capsys)
+    code, _, err = run_pdem([HOPPER, *SET_ARGS, "--steps", "20", "--output", out, "--overwrite", "--quiet"])
     assert code == 0, err
 
 
@@ -216,35 +207,35 @@ def test_two_runs_started_together_on_one_new_folder(tmp_path):
 
 
 # ------------------------------------------------------------------------------ resume failures
-def test_failed_resume_leaves_every_file_as_it_was(tmp_path, capsys, full):
+def test_failed_resume_leaves_every_file_as_it_was(tmp_path, run_pdem, full):
     out = tmp_path / "run"
     shutil.copytree(full, out, symlinks=True)
     before = tree(out)
     assert any(k.startswith("checkpoints/step_000000600") for k in before)
     # an unstable step from the checkpoint at 3,000: the run fails (exit 3) after writing rows
-    code, err = pdem("resume", out / "checkpoints" / "step_0000003000.h5", "--set", "run.dt=2e-4",
-                     "--set", "run.force_dt=true", capsys=capsys)
+    code, _, err = run_pdem(["resume", out / "checkpoints" / "step_0000003000.h5", "--set", "run.dt=2e-4",
+                             "--set", "run.force_dt=true"])
     assert code == 3, err
     assert "put back as it was" in err, err
     assert tree(out) == before
     assert not (out / ".pdem-journal").exists()
     # and the directory still resumes bitwise: the later checkpoints are the uninterrupted run's
-    code, err = pdem("resume", out / "checkpoints" / "step_0000005000.h5", "--quiet", capsys=capsys)
+    code, _, err = run_pdem(["resume", out / "checkpoints" / "step_0000005000.h5", "--quiet"])
     assert code == 0, err
     assert (out / "summary.json").read_text().count('"resumed_from_step": 5000') == 1
 
 
-def test_refused_resume_leaves_every_file_as_it_was(tmp_path, capsys, full):
+def test_refused_resume_leaves_every_file_as_it_was(tmp_path, run_pdem, full):
     out = tmp_path / "run"
     shutil.copytree(full, out, symlinks=True)
     before = tree(out)
-    code, err = pdem("resume", out / "checkpoints" / "step_0000003000.h5",
-                     "--set", "materials.glass.density=1", capsys=capsys)
+    code, _, err = run_pdem(["resume", out / "checkpoints" / "step_0000003000.h5",
+                             "--set", "materials.glass.density=1"])
     assert code == 2, err
     assert tree(out) == before
 
 
-def test_resume_killed_mid_way_is_settled_by_the_next(tmp_path, capsys, full):
+def test_resume_killed_mid_way_is_settled_by_the_next(tmp_path, run_pdem, full):
     """A resume killed with SIGKILL leaves a journal; the next resume from an earlier checkpoint undoes
     the killed attempt first, and the run then ends as the uninterrupted one did."""
     out = tmp_path / "run"
@@ -262,7 +253,7 @@ def test_resume_killed_mid_way_is_settled_by_the_next(tmp_path, capsys, full):
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     assert (out / ".pdem-journal").is_dir()
-    code, err = pdem("resume", out / "checkpoints" / "step_0000001000.h5", capsys=capsys)
+    code, _, err = run_pdem(["resume", out / "checkpoints" / "step_0000001000.h5"])
     assert code == 0, err
     assert "interrupted resume from step 2000 was undone" in err, err
     assert not (out / ".pdem-journal").exists()
@@ -273,13 +264,13 @@ def test_resume_killed_mid_way_is_settled_by_the_next(tmp_path, capsys, full):
 
 # ------------------------------------------------------------------------------ early refusals, JSON
 @pytest.mark.parametrize("command", ["run", "check"])
-def test_step_refused_before_the_pour(tmp_path, capsys, command):
+def test_step_refused_before_the_pour(tmp_path, run_pdem, command):
     """The triaxial's pour takes minutes; a step above the stability estimate for any grains its
     sources make is refused before it, naming the key."""
     deck = ROOT / "inputs" / "triaxial.toml"
     args = [deck, "--set", "run.dt=1"] + (["--output", tmp_path / "o", "--quiet"] if command == "run" else [])
     t0 = time.monotonic()
-    code, err = pdem(*(["check"] if command == "check" else []), *args, capsys=capsys)
+    code, _, err = run_pdem([*(["check"] if command == "check" else []), *args])
     assert code == 2, err
     assert time.monotonic() - t0 < 20
     assert "run.dt" in err and "dt = 1 s" in err and "force_dt" in err, err

@@ -49,14 +49,6 @@ FILL_STEPS = 1924  # the fill ends at t = 0.03 s
 SET_ARGS = [a for s in SETS for a in ("--set", s)]
 
 
-def pdem(*args, capsys=None) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    if capsys is None:
-        return code, "", ""
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def final_state(out: Path) -> dict:
     state, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
     return state
@@ -78,7 +70,7 @@ def xdmf_times(path: Path) -> list[tuple[float, int]]:
 def full(tmp_path_factory) -> Path:
     """The uninterrupted run."""
     out = tmp_path_factory.mktemp("resume") / "full"
-    assert pdem(HOPPER, *SET_ARGS, "--output", out, "--quiet")[0] == 0
+    assert main([str(HOPPER), *SET_ARGS, "--output", str(out), "--quiet"]) == 0
     return out
 
 
@@ -122,31 +114,31 @@ def assert_one_series(out: Path, full: Path, resumed_from: int, stops: tuple[int
         pytest.param(6524, id="discharge-grains-below-the-plug"),
     ],
 )
-def test_resume_after_steps_appends_to_one_series(tmp_path, full, stop):
+def test_resume_after_steps_appends_to_one_series(tmp_path, full, run_pdem, stop):
     out = tmp_path / "run"
-    assert pdem(HOPPER, *SET_ARGS, "--output", out, "--quiet", "--steps", stop)[0] == 0
+    assert run_pdem([HOPPER, *SET_ARGS, "--output", out, "--quiet", "--steps", stop])[0] == 0
     state = final_state(out)
     assert int(state["scalars/step"]) == stop
     if stop > FILL_STEPS:  # the plug is open and grains are where it was
         x = state["particles/x"]
         assert np.any(x[:, 2] < 0.0), "no grain below the orifice plane yet"
-    code = pdem("resume", out / "checkpoints" / "latest.h5", "--quiet")[0]
+    code = run_pdem(["resume", out / "checkpoints" / "latest.h5", "--quiet"])[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
     assert_one_series(out, full, stop, stops=(stop,))
 
 
-def test_resume_from_an_earlier_checkpoint_drops_the_later_output(tmp_path, full):
+def test_resume_from_an_earlier_checkpoint_drops_the_later_output(tmp_path, full, run_pdem):
     """Resuming a finished run from its step-3000 checkpoint replaces what came after it."""
     out = tmp_path / "run"
     shutil.copytree(full, out, symlinks=True)
-    code = pdem("resume", out / "checkpoints" / "step_0000003000.h5", "--quiet")[0]
+    code = run_pdem(["resume", out / "checkpoints" / "step_0000003000.h5", "--quiet"])[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
     assert_one_series(out, full, 3000)
 
 
-def test_resume_after_kill_9(tmp_path, full):
+def test_resume_after_kill_9(tmp_path, full, run_pdem):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "pdem.cli", str(HOPPER), *SET_ARGS, "--output", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -159,25 +151,22 @@ def test_resume_after_kill_9(tmp_path, full):
     finally:
         proc.wait()
     assert proc.returncode == -signal.SIGKILL
+    # latest.h5 names the newest complete checkpoint: step_0000005000.h5, or the one before it when
+    # the kill came between writing that file and pointing latest.h5 at it
+    latest = out / "checkpoints" / "latest.h5"
+    resumed = int(read_checkpoint(latest)[0]["scalars/step"])
     steps = sorted(int(p.name[5:15]) for p in (out / "checkpoints").glob("step_*.h5"))
-    assert FILL_STEPS < steps[-1] < int(final_state(full)["scalars/step"])
-    code = pdem("resume", out / "checkpoints" / "latest.h5", "--quiet")[0]
+    assert resumed in steps[-2:] and FILL_STEPS < resumed < int(final_state(full)["scalars/step"])
+    code = run_pdem(["resume", latest, "--quiet"])[0]
     assert code == 0
     assert compare(final_state(full), final_state(out)) is None
-    assert_one_series(out, full, steps[-1])
+    assert_one_series(out, full, resumed)
 
 
-def test_resume_after_max_time_with_a_larger_cap(tmp_path, full, capsys):
+def test_resume_after_max_time_with_a_larger_cap(tmp_path, full, run_pdem):
     out = tmp_path / "run"
-    code, _, err = pdem(
-        HOPPER,
-        *SET_ARGS,
-        "--set",
-        "stages.discharge.end.max_time=0.05",
-        "--output",
-        out,
-        "--quiet",
-        capsys=capsys,
+    code, _, err = run_pdem(
+        [HOPPER, *SET_ARGS, "--set", "stages.discharge.end.max_time=0.05", "--output", out, "--quiet"]
     )
     assert code == 3, err
     latest = out / "checkpoints" / "latest.h5"
@@ -185,31 +174,31 @@ def test_resume_after_max_time_with_a_larger_cap(tmp_path, full, capsys):
     assert command in err and "hopper.discharged_mass > 0.0003 (now " in err, err
     stopped = int(read_checkpoint(latest)[0]["scalars/step"])
     # the message's own command, run as it is printed
-    code, _, err = pdem(*command.split()[1:], "--quiet", capsys=capsys)
+    code, _, err = run_pdem([*command.split()[1:], "--quiet"])
     assert code == 0, err
     assert compare(final_state(full), final_state(out)) is None
     assert_one_series(out, full, stopped, stops=(stopped,))
 
 
-def test_resume_a_completed_run(tmp_path, full, capsys):
+def test_resume_a_completed_run(tmp_path, full, run_pdem):
     out = tmp_path / "run"
     shutil.copytree(full, out, symlinks=True)
-    code, stdout, err = pdem("resume", out / "checkpoints" / "latest.h5", "--quiet", capsys=capsys)
+    code, stdout, err = run_pdem(["resume", out / "checkpoints" / "latest.h5", "--quiet"])
     assert code == 0, err
     assert "nothing left to run" in stdout
     assert compare(final_state(full), final_state(out)) is None
     assert_one_series(out, full, int(final_state(full)["scalars/step"]))
 
 
-def test_third_stage_with_its_own_dt_runs_and_extends_a_completed_run(tmp_path, full, capsys):
+def test_third_stage_with_its_own_dt_runs_and_extends_a_completed_run(tmp_path, full, run_pdem):
     """A third stage that sets dt = 1e-5 re-prepares the simulation after the plug was removed (it
     used to fail on the switched-off plug); the same stage added on resume gives the same result."""
     third = ["--set", "stages.2.name=rest", "--set", "stages.2.dt=1e-5", "--set", "stages.2.end.steps=300"]
-    code, _, err = pdem(HOPPER, *SET_ARGS, *third, "--output", tmp_path / "three", "--quiet", capsys=capsys)
+    code, _, err = run_pdem([HOPPER, *SET_ARGS, *third, "--output", tmp_path / "three", "--quiet"])
     assert code == 0, err
     out = tmp_path / "extended"
     shutil.copytree(full, out, symlinks=True)
-    code, _, err = pdem("resume", out / "checkpoints" / "latest.h5", *third, "--quiet", capsys=capsys)
+    code, _, err = run_pdem(["resume", out / "checkpoints" / "latest.h5", *third, "--quiet"])
     assert code == 0, err
     a, b = final_state(tmp_path / "three"), final_state(out)
     assert float(a["scalars/dt"]) == 1e-5

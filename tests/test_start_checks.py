@@ -89,13 +89,8 @@ def tree(directory: Path) -> dict[str, bytes | None]:
     }
 
 
-def run(args, capsys) -> tuple[int, str]:
-    code = main([str(a) for a in args])
-    return code, capsys.readouterr().err
-
-
 @pytest.mark.parametrize("case, extra, fragments", CASES, ids=[c[0] for c in CASES])
-def test_refused_at_start_leaves_nothing(tmp_path, capsys, case, extra, fragments):
+def test_refused_at_start_leaves_nothing(tmp_path, run_pdem, case, extra, fragments):
     deck = tmp_path / "deck.toml"
     deck.write_text(FILE_DECK)
     pack = tmp_path / "pack.txt"
@@ -105,41 +100,41 @@ def test_refused_at_start_leaves_nothing(tmp_path, capsys, case, extra, fragment
         good_packing(pack)
     # pdem check finds it without writing anything
     before = tree(tmp_path)
-    code, err = run(["check", deck, *extra], capsys)
+    code, _, err = run_pdem(["check", deck, *extra])
     assert code == 2, err
     assert "Traceback" not in err and all(f in err for f in fragments), err
     assert tree(tmp_path) == before
     # a run: no output directory is created
     out = tmp_path / "out"
-    code, err = run([deck, "--output", out, "--quiet", *extra], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet", *extra])
     assert code == 2, err
     assert all(f in err for f in fragments), err
     assert tree(tmp_path) == before and not out.exists()
     # an existing empty directory stays empty; a nested new one is not created either
     out.mkdir()
-    code, err = run([deck, "--output", out, "--quiet", *extra], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet", *extra])
     assert code == 2 and list(out.iterdir()) == [], err
-    code, err = run([deck, "--output", tmp_path / "a" / "b", "--quiet", *extra], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "a" / "b", "--quiet", *extra])
     assert code == 2 and not (tmp_path / "a").exists(), err
     # an old run's output that --overwrite would replace is kept when the new run is refused
     old = tmp_path / "old"
     old.mkdir()
     (old / "summary.json").write_text("{}")
-    code, err = run([deck, "--output", old, "--quiet", "--overwrite", *extra], capsys)
+    code, _, err = run_pdem([deck, "--output", old, "--quiet", "--overwrite", *extra])
     assert code == 2 and tree(old) == {"summary.json": b"{}"}, err
     # the corrected run works without --overwrite
     good_packing(pack)
-    code, err = run([deck, "--output", out, "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", out, "--quiet"])
     assert code == 0, err
     assert (out / "checkpoints" / "latest.h5").exists()
 
 
-def test_refused_resume_leaves_nothing(tmp_path, capsys):
+def test_refused_resume_leaves_nothing(tmp_path, run_pdem):
     deck = tmp_path / "deck.toml"
     deck.write_text(FILE_DECK)
     good_packing(tmp_path / "pack.txt")
     run_dir = tmp_path / "run"
-    code, err = run([deck, "--output", run_dir, "--quiet", "--steps", "10"], capsys)
+    code, _, err = run_pdem([deck, "--output", run_dir, "--quiet", "--steps", "10"])
     assert code == 0, err
     ckpt = run_dir / "checkpoints" / "latest.h5"
     before = tree(tmp_path)
@@ -152,20 +147,20 @@ def test_refused_resume_leaves_nothing(tmp_path, capsys):
         ["--set", "stages.drop.name=fall"],  # a started stage keeps its name
     ):
         for output in ([], ["--output", tmp_path / "copy"]):
-            code, err = run(["resume", ckpt, "--quiet", *args, *output], capsys)
+            code, _, err = run_pdem(["resume", ckpt, "--quiet", *args, *output])
             assert code == 2, (args, err)
             assert "Traceback" not in err
             assert tree(tmp_path) == before, args  # no '<out>-resumed-N', the run's own output intact
     assert not list(tmp_path.glob("run-resumed*"))
     # refused messages name the key and what may change
-    code, err = run(["resume", ckpt, "--quiet", "--set", "run.gravity=[0, 0, -1]"], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--set", "run.gravity=[0, 0, -1]"])
     assert "run.gravity: cannot be changed on resume" in err and "stages.<name>.end" in err, err
-    code, err = run(["resume", ckpt, "--quiet", "--steps", "10"], capsys)
+    code, _, err = run_pdem(["resume", ckpt, "--quiet", "--steps", "10"])
     assert "--steps 10" in err and "step 10 already" in err, err
     # a checkpoint that is not one: exit 2
-    code, err = run(["resume", tmp_path / "pack.txt", "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", tmp_path / "pack.txt", "--quiet"])
     assert code == 2 and "checkpoint" in err, err
-    code, err = run(["resume", tmp_path / "missing.h5", "--quiet"], capsys)
+    code, _, err = run_pdem(["resume", tmp_path / "missing.h5", "--quiet"])
     assert code == 2 and "does not exist" in err, err
 
 
@@ -178,7 +173,7 @@ def test_check_reports_the_scene(tmp_path, capsys):
     assert code == 0 and "3 particles at the start" in out and "stability estimate" in out, out
 
 
-def test_later_stage_packing_file_checked_at_start(tmp_path, capsys):
+def test_later_stage_packing_file_checked_at_start(tmp_path, run_pdem):
     """A packing file inserted at a later stage is read when the run starts: a bad one stops the
     run before it writes anything (not when its stage comes)."""
     deck = tmp_path / "deck.toml"
@@ -188,12 +183,12 @@ def test_later_stage_packing_file_checked_at_start(tmp_path, capsys):
     good_packing(tmp_path / "pack.txt")
     bad_packing("nan_in_file", tmp_path / "later.txt")
     for args in (["check", deck], [deck, "--output", tmp_path / "out", "--quiet"]):
-        code, err = run(args, capsys)
+        code, _, err = run_pdem(args)
         assert code == 2 and "particles.1.path (stage 'rest')" in err and "later.txt" in err, err
     assert not (tmp_path / "out").exists()
 
 
-def test_failure_after_output_opened_removes_what_the_run_created(tmp_path, capsys, monkeypatch):
+def test_failure_after_output_opened_removes_what_the_run_created(tmp_path, run_pdem, monkeypatch):
     """The safety net: a failure between creating the output and the first step (here the first
     snapshot) removes what this run created, and only that."""
     import pdem.runner
@@ -207,17 +202,17 @@ def test_failure_after_output_opened_removes_what_the_run_created(tmp_path, caps
     deck.write_text(FILE_DECK)
     good_packing(tmp_path / "pack.txt")
     before = tree(tmp_path)
-    code, err = run([deck, "--output", tmp_path / "new" / "out", "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", tmp_path / "new" / "out", "--quiet"])
     assert code == 1 and "injected" in err, err
     assert tree(tmp_path) == before  # 'new' and 'new/out' were made by the run: both gone
     keep = tmp_path / "keep"
     keep.mkdir()
     (keep / "notes.txt").write_text("mine")
-    code, err = run([deck, "--output", keep, "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", keep, "--quiet"])
     assert code == 2 and "not empty" in err
     empty = tmp_path / "empty"
     empty.mkdir()
-    code, err = run([deck, "--output", empty, "--quiet"], capsys)
+    code, _, err = run_pdem([deck, "--output", empty, "--quiet"])
     assert code == 1 and list(empty.iterdir()) == [], err
 
 
@@ -250,7 +245,7 @@ def test_python_api_runner(tmp_path):
     assert summary["steps"] == 20 and summary["completed"]
 
 
-def test_stage_too_long_at_the_automatic_dt(tmp_path, capsys):
+def test_stage_too_long_at_the_automatic_dt(tmp_path, run_pdem):
     """Without dt in the deck the step count is known only once the scene exists: a stage of 1e4 s
     at a dt of ~1e-9 s (0.1 µm grains) is refused at the start, before anything is written (it used
     to run for ever, or overflow int())."""
@@ -259,7 +254,7 @@ def test_stage_too_long_at_the_automatic_dt(tmp_path, capsys):
     deck.write_text(text)
     write_spheres_text(tmp_path / "pack.txt", np.array([[0.0, 0.0, 2e-7]]), np.array([1e-7]))
     for args in (["check", deck], [deck, "--output", tmp_path / "out", "--quiet"]):
-        code, err = run(args, capsys)
+        code, _, err = run_pdem(args)
         assert code == 2 and "stages.drop.end.time" in err and "above the limit" in err, err
     assert not (tmp_path / "out").exists()
 
