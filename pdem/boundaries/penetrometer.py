@@ -357,6 +357,8 @@ class Penetrometer(Boundary):
         if stage in (p.off_stages or ()):  # said off: the body is gone from then on
             self.phase = "off"
             self.set_active(sim, False)
+            if isinstance(getattr(self, "motion", None), RigidBody):  # a dropped body stays put while off
+                self.motion.hold()
         elif stage == p.penetration_stage:
             self.set_active(sim, True)
             if resumed is not None and resumed.get("phase") in ("push", "drop"):
@@ -375,6 +377,8 @@ class Penetrometer(Boundary):
         else:
             self.phase = "off"
             self.set_active(sim, False)
+            if isinstance(getattr(self, "motion", None), RigidBody):  # a dropped body stays put while off
+                self.motion.hold()
 
     def _grains(self, sim: Any):
         prt = sim.particles

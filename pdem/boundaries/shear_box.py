@@ -305,6 +305,11 @@ class ShearBox(Boundary):
             self.shearing = True
             self.height0 = self.height()
         super().on_stage(sim, stage)
+        if isinstance(self.plate_motion, RigidBody):  # a free plate stays put while the box is off
+            if self.active:
+                self.plate_motion.release()
+            else:
+                self.plate_motion.hold()
 
     def _check_gap(self, sim: Any) -> None:
         """Grains not wider than the gap would leak between the halves: an error, said early."""

@@ -366,6 +366,8 @@ class TriaxialCell(Boundary):
             self._tie(sim)
         if not self.active:
             self.phase = "off"
+            if isinstance(self.top.motion, RigidBody):  # a free top plate stays put while the cell is off
+                self.top.motion.hold()
             return
         control = p.control
         if control == "auto":
