@@ -52,7 +52,8 @@ class RunResult:
         if self.record is None:
             return None
         if kind == "run" and self.summary is not None:
-            return float(self.summary.get("wall_time_s", math.nan))
+            # the stepping (stepping_time_s; summaries before it had only wall_time_s, which was that)
+            return float(self.summary.get("stepping_time_s", self.summary.get("wall_time_s", math.nan)))
         return self.record.process_wall_s
 
     def value(self, q: Quantity) -> float | None:
