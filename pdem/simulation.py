@@ -970,7 +970,7 @@ class Simulation:
     def solver_stats(self) -> dict[str, float]:
         """The time integrator's statistics: for DEM-C the last step's ``iterations`` and
         ``residual`` [m/s], and over the run ``steps``, ``unconverged_steps``, ``mean_iterations``,
-        ``max_residual`` (every step's values: ``sim.integrator.log``); empty for DEM-P."""
+        ``max_residual`` (every step's values: ``sim.integrator.drain_records()``); empty for DEM-P."""
         return self.integrator.stats() if self.integrator is not None else {}
 
     def kinetic_energy(self) -> tuple[float, float]:
