@@ -723,6 +723,8 @@ class Stepper(Integrator):
             if wall.active and getattr(wall.motion, "moved_by_load", False):
                 wall.motion.implicit = True  # moved after the solve, not by advance_walls
                 out.append((k, wall))
+            elif getattr(wall.motion, "implicit", False):
+                wall.motion.implicit = False  # off (or held): advance_walls moves it, as under DEM-P
         return out
 
     def _body_rows(self, n_tot: int) -> tuple[np.ndarray, np.ndarray]:
