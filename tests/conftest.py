@@ -6,7 +6,7 @@ microsecond (MPIR_CVAR_CH4_PROGRESS_THROTTLE) made a 4-rank DEM-C hopper run 1.4
 such a machine. It changes timing only, never results. The launched processes inherit it.
 
 The ``run_pdem`` fixture runs pdem's command line in-process (``pdem.cli.main``) and returns its exit
-code and what it printed to stdout and stderr; ``run_pdem_guarded`` does the same within a 60 s
+code and what it printed to stdout and stderr; ``run_pdem_guarded`` does the same within a 180 s
 time limit and fails the test if a RuntimeWarning is issued.
 """
 
@@ -85,7 +85,7 @@ def run_pdem(capsys) -> Callable[..., PdemResult]:
 
 @pytest.fixture
 def run_pdem_guarded(run_pdem) -> Callable[..., PdemResult]:
-    """``run_pdem`` within a 60 s time limit, failing the test if a RuntimeWarning is issued."""
+    """``run_pdem`` within a 180 s time limit, failing the test if a RuntimeWarning is issued."""
 
     def run(args: Iterable) -> PdemResult:
         # the limit catches a hang; it leaves room for a first kernel compilation on a loaded machine
