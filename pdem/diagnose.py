@@ -361,7 +361,7 @@ def overlap_message(sim: Any, worst: float, who: str, detail: dict[str, Any], dr
             at_target = float(np.interp(0.8 * lim * r, d, force))
             if at_target > 0.0 and load > at_target:
                 factor = load / at_target
-                hertz = sim.law.name == "hertz_mindlin" and sim.coefficients[detail["mats"]][0] == 0.0
+                hertz = type(sim.law).hertz_from_materials(sim.law.params)  # E sets the stiffness
                 stiffer = (
                     f" (contacts about {factor:.2g} times stiffer"
                     f"{f', youngs_modulus × {factor:.2g},' if hertz else ''} hold that load at "
