@@ -1084,6 +1084,7 @@ class Runner:
         )
         quantity_start: float | None = None
         frac_quantity: float | None = None
+        first_step = True
         while True:
             in_stage = sim.step_count - stage_start[1]
             done = target_steps is not None and in_stage >= target_steps
@@ -1128,7 +1129,14 @@ class Runner:
             # runs the boundaries' hooks; the step's stability check rides on the next step's list
             # test (one collective a step less on several ranks), or comes first in whatever reads
             # or writes the state before it (series, frames, checkpoints, measurements, thermo)
-            sim.step(defer_check=True)
+            if first_step:  # a first run compiles the method's step kernels here (~30 s for DEM-C)
+                label = f"stage '{stage.name}': first step (kernels compile on a first run)"
+                with self.progress.phase(label):
+                    sim.step(defer_check=True)
+                self.progress.stage_start(sim.step_count)  # rates and ETAs from the compiled steps
+                first_step = False
+            else:
+                sim.step(defer_check=True)
             in_stage = sim.step_count - stage_start[1]
             if series_dt is not None:
                 if _intervals(sim.time, stage_start[0], series_dt, sim.dt) > _intervals(
