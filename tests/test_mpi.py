@@ -5,6 +5,8 @@ These launch ``mpiexec`` (the ``mpich`` wheel provides it) with several ranks, o
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 import sys
@@ -19,6 +21,72 @@ ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
 pytestmark = pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
 
+# counts what crossed ranks, in every launched rank (a sitecustomize.py put first on PYTHONPATH): per
+# rank, the neighbour-list rebuilds, the particles that arrived from another rank at a rebuild, and
+# the rebuilds whose pair list held a pair with a ghost
+_CROSSING_HOOK = textwrap.dedent(
+    """
+    import atexit, json, os
+    from pdem.neighbor import list as _nl
+    _st = {"size": 1, "rank": 0, "rebuilds": 0, "arrivals": 0, "ghost_pair_rebuilds": 0}
+    _rebuild = _nl.NeighbourList.rebuild
+    def rebuild(self):
+        p = self.sim.particles
+        before = set(p.id[: p.n_owned].tolist())
+        _rebuild(self)
+        n = p.n_owned
+        if _st["rebuilds"]:
+            _st["arrivals"] += sum(1 for i in p.id[:n].tolist() if i not in before)
+        cs = self.sim.contact_store
+        _st["ghost_pair_rebuilds"] += bool(((cs.pi >= n) | (cs.pj >= n)).any())
+        _st["rebuilds"] += 1
+        _st["size"], _st["rank"] = self.sim.comm.size, self.sim.comm.rank
+    _nl.NeighbourList.rebuild = rebuild
+    @atexit.register
+    def _dump():
+        if _st["rebuilds"]:
+            name = f"{_st['size']}_{_st['rank']}_{os.getpid()}.json"
+            with open(os.path.join(os.environ["PDEM_TEST_CROSSING"], name), "w") as f:
+                json.dump(_st, f)
+    """
+)
+
+
+def _run_counting_crossings(cmd, tmp_path):
+    """Run ``cmd`` (tools/determinism.py) with the crossing counter; its process and the counts,
+    summed over the ranks of each rank count (a 4-rank count run twice, 4 and 4:2x2x1, sums both)."""
+    hook, counts = tmp_path / "hook", tmp_path / "crossings"
+    hook.mkdir()
+    counts.mkdir()
+    (hook / "sitecustomize.py").write_text(_CROSSING_HOOK)
+    path = os.pathsep.join(filter(None, [str(hook), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path, "PDEM_TEST_CROSSING": str(counts)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env=env)
+    print(proc.stdout, proc.stderr)
+    per_size: dict[int, dict[str, int]] = {}
+    for f in counts.glob("*.json"):
+        st = json.loads(f.read_text())
+        tot = per_size.setdefault(
+            st["size"], {"ranks": 0, "rebuilds": 0, "arrivals": 0, "ghost_pair_rebuilds": 0}
+        )
+        tot["ranks"] += 1
+        tot["rebuilds"] = max(tot["rebuilds"], st["rebuilds"])
+        tot["arrivals"] += st["arrivals"]
+        tot["ghost_pair_rebuilds"] = max(tot["ghost_pair_rebuilds"], st["ghost_pair_rebuilds"])
+    print(per_size)
+    return proc, per_size
+
+
+def _assert_crossed(per_size, sizes, min_rebuilds=5):
+    """On every multi-rank count: several rebuilds, particles that changed rank, and ghost pairs at
+    half the rebuilds or more (of the rank that had them most often)."""
+    for k in sizes:
+        c = per_size[k]
+        assert c["rebuilds"] >= min_rebuilds, (k, c)
+        assert c["arrivals"] > 0, (k, c)
+        assert c["ghost_pair_rebuilds"] >= c["rebuilds"] // 2, (k, c)
+
+
 # a short hopper: 300 beads, a short fill, then the plug opens and beads leave through the outflow
 HOPPER_SETS = [
     "particles.0.n=300",
@@ -31,10 +99,23 @@ HOPPER_SETS = [
 # the DEM-P runs take 0.35 of the Rayleigh time (the live bound of this small hopper is ~0.46):
 # determinism does not need the default's accuracy, and 5,000 steps then reach mid-discharge
 HOPPER_DT = ["run.dt_fraction=0.35"]
+# the determinism tests' fill: the beads start low in the cone (inside its walls) already falling, so
+# they pile on the plug within a 0.01 s fill and, with the outflow 1 mm under the orifice, leave
+# through it from the first 0.015 s of the discharge
+LOW_FILL = [
+    "particles.0.region.base_center=[0.0, 0.0, 0.006]",
+    "particles.0.region.radius=0.009",
+    "particles.0.region.height=0.014",
+    "particles.0.velocity=[0.0, 0.0, -0.5]",
+    "stages.fill.end.time=0.01",
+    "boundaries.hopper.outflow_depth=0.001",
+]
 
 
-def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
-    """tools/determinism.py: the hopper (grains crossing subdomains, leaving through the sink)."""
+def test_hopper_identical_on_1_2_3_ranks(tmp_path):
+    """tools/determinism.py: the hopper (grains crossing subdomains, leaving through the sink). 2 and
+    3 ranks split it in slabs (3: an interior subdomain with two neighbours); 4 ranks took the same
+    paths and are left out."""
     cmd = [
         sys.executable,
         str(ROOT / "tools" / "determinism.py"),
@@ -43,18 +124,17 @@ def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
         "1",
         "2",
         "3",
-        "4",
         "--steps",
-        "5000",
+        "1200",
         "--keep",
         str(tmp_path),
     ]
-    for s in HOPPER_SETS + HOPPER_DT:
+    for s in HOPPER_SETS + HOPPER_DT + LOW_FILL:
         cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    print(proc.stdout, proc.stderr)
+    proc, crossed = _run_counting_crossings(cmd, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 3
+    assert proc.stdout.count("bitwise identical") == 2
+    _assert_crossed(crossed, (2, 3))
     # the scene really flowed out: fewer beads than inserted
     last = [ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0]
     assert int(last.split(":")[1].split()[0]) < 300
@@ -63,7 +143,7 @@ def test_hopper_identical_on_1_2_3_4_ranks(tmp_path):
 # DEM-C hopper scenes: restitution and rolling and spinning friction on every contact, so that the
 # bounce test and the rolling rows of cross-rank contacts are exercised. Each solver iteration
 # exchanges ghost velocities, and with 3-4 ranks oversubscribed on 2 cores every exchange waits for
-# a descheduled rank: the tests cap the iterations (20-25, most steps reach the cap, so each rank
+# a descheduled rank: the tests cap the iterations (15-20, most steps reach the cap, so each rank
 # count runs the same number of sweeps through every path) to keep the exchanges few
 DEM_C_SETS = HOPPER_SETS + [
     "contact.law=complementarity",
@@ -75,30 +155,32 @@ DEM_C_SETS = HOPPER_SETS + [
 ]
 
 
-def _dem_c_hopper(ranks, steps, sets=(), keep=None):
+def _dem_c_hopper(ranks, steps, tmp_path, sets=()):
     """tools/determinism.py on the DEM-C hopper: its output, after checking that every rank count
     matched the first bit for bit and that the hopper is mid-discharge."""
     cmd = [sys.executable, str(ROOT / "tools" / "determinism.py"), str(ROOT / "inputs" / "hopper.toml"),
-           "--ranks", *map(str, ranks), "--steps", str(steps)]  # fmt: skip
-    if keep is not None:
-        cmd += ["--keep", str(keep)]
-    for s in [*DEM_C_SETS, *sets]:
+           "--ranks", *map(str, ranks), "--steps", str(steps), "--keep", str(tmp_path)]  # fmt: skip
+    for s in [*DEM_C_SETS, *LOW_FILL, *sets]:
         cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    print(proc.stdout, proc.stderr)
+    proc, crossed = _run_counting_crossings(cmd, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert proc.stdout.count("bitwise identical") == len(ranks) - 1
+    _assert_crossed(crossed, [k for k in ranks if k > 1])
     left = int([ln for ln in proc.stdout.splitlines() if ln.startswith("1 rank")][0].split(":")[1].split()[0])
     assert 0 < left < 300  # mid-discharge: grains are flowing through the orifice
+    for k in ranks:  # real solves: most discharge steps iterate to the cap
+        log = np.genfromtxt(tmp_path / f"ranks{k}" / "solver_discharge.csv", delimiter=",", names=True)
+        assert np.median(log["iterations"]) > 10, (k, log["iterations"])
     return proc
 
 
-def test_dem_c_jacobi_identical_on_1_to_4_ranks(tmp_path):
+def test_dem_c_jacobi_identical_on_1_2_3_ranks(tmp_path):
     """DEM-C with the distributed projected Jacobi solver: the same hopper, mid-discharge, is
-    bitwise identical on 1, 2, 3 and 4 ranks (one ghost-velocity exchange per iteration), with
-    restitution and rolling friction on (with them off the kernels take a subset of the same path:
-    the regression checksum with restitution off is the stored one of before)."""
-    _dem_c_hopper((1, 2, 3, 4), 620, ["contact.complementarity.max_iterations=20"])
+    bitwise identical on 1, 2 and 3 ranks (one ghost-velocity exchange per iteration; 4 ranks took
+    the same paths as 3), with restitution and rolling friction on (with them off the kernels take a
+    subset of the same path: the regression checksum with restitution off is the stored one of
+    before)."""
+    _dem_c_hopper((1, 2, 3), 160, tmp_path, ["contact.complementarity.max_iterations=20"])
 
 
 def test_dem_c_apgd_identical_on_1_2_3_ranks(tmp_path):
@@ -107,8 +189,10 @@ def test_dem_c_apgd_identical_on_1_2_3_ranks(tmp_path):
     steer APGD (step size, line search, restart, stop) are exact and count each cross-rank contact
     once."""
     _dem_c_hopper(
-        (1, 2, 3), 620, ["contact.complementarity.solver=apgd", "contact.complementarity.max_iterations=25"],
-        keep=tmp_path,
+        (1, 2, 3),
+        160,
+        tmp_path,
+        ["contact.complementarity.solver=apgd", "contact.complementarity.max_iterations=15"],
     )
     for stage in ("fill", "discharge"):
         logs = [
@@ -132,12 +216,15 @@ def test_dem_c_apgd_identical_on_1_2_3_ranks(tmp_path):
 # cross both periodic faces and touch images across them
 PERIODIC_DECK = ROOT / "inputs" / "examples" / "periodic_column_collapse.toml"
 PERIODIC_STEPS = 1000
+# the determinism test's run: 250 steps, about 20 rebuilds with beads changing rank (it asserts both)
+PERIODIC_DETERMINISM_STEPS = 250
 
 
 def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
-    """tools/determinism.py: periodic x and y; the default grids split x (2, 3, 4 subdomains, the
-    periodic face between two ranks, or the same rank on both sides when split in two), and a 2x2x1
-    grid splits y as well (edges and corners forwarded across both periodic faces)."""
+    """tools/determinism.py: periodic x and y; the default grids split x (2 and 3 subdomains, the
+    periodic face between two ranks, or the same rank on both sides when split in two; 4 slabs took
+    the same paths as 3), and a 2x2x1 grid splits y as well (edges and corners forwarded across both
+    periodic faces)."""
     cmd = [
         sys.executable,
         str(ROOT / "tools" / "determinism.py"),
@@ -146,18 +233,17 @@ def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
         "1",
         "2",
         "3",
-        "4",
         "4:2x2x1",
         "--steps",
-        str(PERIODIC_STEPS),
+        str(PERIODIC_DETERMINISM_STEPS),
         "--keep",
         str(tmp_path),
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    print(proc.stdout, proc.stderr)
+    proc, crossed = _run_counting_crossings(cmd, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 4
-    assert "400 particles at step 1000" in proc.stdout
+    assert proc.stdout.count("bitwise identical") == 3
+    assert f"400 particles at step {PERIODIC_DETERMINISM_STEPS}" in proc.stdout
+    _assert_crossed(crossed, (2, 3, 4))
 
 
 _FAIL = textwrap.dedent(
@@ -207,8 +293,8 @@ def test_failure_on_one_rank_ends_every_rank(tmp_path):
 
 
 def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
-    """n -> m resume: 2 ranks to step 2500, checkpoint, 3 ranks to 5000 (mid-discharge at the
-    determinism tests' step) == 1 rank to 5000, bitwise."""
+    """n -> m resume: 2 ranks to step 2500, checkpoint, 3 ranks to 5000 (mid-discharge)
+    == 1 rank to 5000, bitwise."""
     sys.path.insert(0, str(ROOT / "tools"))
     from determinism import compare
 

@@ -607,15 +607,18 @@ def test_file_source_spatial_order_makes_results_independent_of_row_order(tmp_pa
     from pdem.cli import main
     from pdem.io.checkpoint import read_checkpoint
 
-    x, r = random_fill(BoxRegion((0, 0, 0), (0.01, 0.01, 0.008)), Uniform(0.45e-3, 0.55e-3), n=200, seed=4)
+    # a dense packing (solid fraction ≈ 0.3) with random velocities of up to 1 m/s: most grains
+    # collide within the run's 150 steps, so the order of the contact sums matters
+    x, r = random_fill(BoxRegion((0, 0, 0), (0.006, 0.006, 0.006)), Uniform(0.45e-3, 0.55e-3), n=120, seed=4)
+    v = np.random.default_rng(3).uniform(-1.0, 1.0, (len(r), 3))
     perm = np.random.default_rng(9).permutation(len(r))
-    write_spheres_text(tmp_path / "a.txt", x, r)
-    write_spheres_text(tmp_path / "b.txt", x[perm], r[perm])
+    write_spheres_text(tmp_path / "a.txt", x, r, v)
+    write_spheres_text(tmp_path / "b.txt", x[perm], r[perm], v[perm])
     states = {}
     for name in ("a", "b"):
         for order in ("spatial", "file"):
             deck = tmp_path / f"{name}_{order}.toml"
-            deck.write_text(_FILE_DECK.format(path=f"{name}.txt", order=order))
+            deck.write_text(_FILE_DECK.format(path=f"{name}.txt", order=order).replace("400", "150"))
             out = tmp_path / f"out_{name}_{order}"
             assert main([str(deck), "--output", str(out), "--quiet"]) == 0
             state, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
@@ -623,7 +626,6 @@ def test_file_source_spatial_order_makes_results_independent_of_row_order(tmp_pa
     sa, sb = states["a", "spatial"], states["b", "spatial"]
     for k in sa:
         assert np.array_equal(sa[k], sb[k]), k
-    # the packing moved (the run is not trivial) and file order really differs
+    # the grains interacted (contacts spin them: measured, 93 of the 120) and file order really differs
+    assert np.count_nonzero(np.abs(sa["w"]).max(axis=1)) > 60
     assert not np.array_equal(states["a", "file"]["x"], states["b", "file"]["x"])
-    moved = np.abs(sa["v"]).max()
-    assert moved > 1e-3
