@@ -92,3 +92,20 @@ def run_pdem_guarded(run_pdem) -> Callable[..., PdemResult]:
         return run_pdem(args, time_limit=180, forbid_runtime_warnings=True)
 
     return run
+
+
+@pytest.fixture(scope="session")
+def small_packing() -> Callable[[], tuple]:
+    """``small_packing()`` gives (positions, radii) of the 300 beads poured into the small triaxial
+    cell's mould (tests/data/make_triaxial_small_packing.py), a fresh copy at each call."""
+    from pathlib import Path
+
+    from pdem.sources.files import read_spheres
+
+    d = read_spheres(Path(__file__).with_name("data") / "triaxial_small_packing.txt")
+
+    def copy() -> tuple:
+        return d["positions"].copy(), d["radii"].copy()
+
+    return copy
+

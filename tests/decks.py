@@ -49,3 +49,10 @@ SHORT_HOPPER_SETS = [
     "stages.discharge.end.above=0.0003",
     "output.checkpoint_every_steps=1000",
 ]
+
+# tests/data/triaxial_small.toml with its 300 beads read from the shared packing
+# (tests/data/make_triaxial_small_packing.py) instead of poured again: ``--set`` arguments
+TRIAXIAL_SMALL_PACKED = [
+    "--set",
+    "particles.0={source = 'file', material = 'glass', path = 'triaxial_small_packing.txt'}",
+]

@@ -127,7 +127,7 @@ def test_bad_stiffness_declarations_are_errors():
         sim.add_load_stiffness([0], [1.0, 2.0])
 
 
-def test_membrane_grains_are_scaled_at_the_dem_c_step_and_the_run_stays_bounded():
+def test_membrane_grains_are_scaled_at_the_dem_c_step_and_the_run_stays_bounded(small_packing):
     """The triaxial membrane (300 poured beads, σ3 = 20 kPa at once) at DEM-C's automatic step for
     these grains, h = 1e-4 s: the membrane declares its stiffness (h² k/m ≈ 10 on its stiffest
     grains), the step scales them, and 400 steps of consolidation run and settle, every grain below
@@ -135,11 +135,7 @@ def test_membrane_grains_are_scaled_at_the_dem_c_step_and_the_run_stays_bounded(
     platens and the run stops on an overlap (or, if it goes on, runs 10× faster)."""
     from pdem.boundaries.triaxial import TriaxialCell, TriaxialParams
     from pdem.errors import InstabilityError
-    from pdem.sources import CylinderRegion, Uniform, pluviate
-
-    mat = pdem.Material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
-                        friction=0.3)  # fmt: skip
-    x, r = pluviate(CylinderRegion((0, 0, 0), 3.5e-3, 0.03), Uniform(0.45e-3, 0.55e-3), 300, mat, seed=5)
+    x, r = small_packing()
     speeds = {}
     for scaling in (True, False):
         sim = pdem.Simulation(law="complementarity", solver="apgd", max_iterations=80, tolerance=1e-6,
@@ -208,14 +204,10 @@ MPI_SCRIPT = textwrap.dedent(
 
 
 @pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
-def test_scaled_masses_are_bitwise_identical_on_1_2_3_ranks(tmp_path):
+def test_scaled_masses_are_bitwise_identical_on_1_2_3_ranks(tmp_path, small_packing):
     """Ghost copies take their owners' scaled masses (forwarded every scaled step): a DEM-C
     triaxial consolidation and shear with scaled membrane grains is bitwise the same on 1–3 ranks."""
-    from pdem.sources import CylinderRegion, Uniform, pluviate
-
-    mat = pdem.Material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
-                        friction=0.3)  # fmt: skip
-    x, r = pluviate(CylinderRegion((0, 0, 0), 3.5e-3, 0.03), Uniform(0.45e-3, 0.55e-3), 300, mat, seed=5)
+    x, r = small_packing()
     pack = tmp_path / "pack.npz"
     np.savez(pack, x=x, r=r)
     script = tmp_path / "scaled.py"

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from decks import TRIAXIAL_SMALL_PACKED
 
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
 pytestmark = pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
@@ -123,13 +124,8 @@ TRIAXIAL = textwrap.dedent(
 )
 
 
-def _triaxial_on(tmp_path, ranks_list, *args):
-    import pdem
-    from pdem.sources import CylinderRegion, Uniform, pluviate
-
-    mat = pdem.Material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
-                        friction=0.3)
-    x, r = pluviate(CylinderRegion((0, 0, 0), 3.5e-3, 0.03), Uniform(0.45e-3, 0.55e-3), 300, mat, seed=5)
+def _triaxial_on(tmp_path, ranks_list, packing, *args):
+    x, r = packing
     pack = tmp_path / "pack.npz"
     np.savez(pack, x=x, r=r)
     script = tmp_path / "triaxial.py"
@@ -147,19 +143,19 @@ def _triaxial_on(tmp_path, ranks_list, *args):
     return res[1]
 
 
-def test_triaxial_identical_on_1_2_3_ranks(tmp_path):
+def test_triaxial_identical_on_1_2_3_ranks(tmp_path, small_packing):
     """The membrane's outermost grains are a global maximum and its forces act on owned grains, and
     the platen servo's gain is capped (max_speed = 1 m/s: its loop gain from the stiffness and
     dashpots of the platen's contacts, exact sums over ranks) in most steps: the triaxial test is
     bitwise identical on any number of ranks."""
-    res = _triaxial_on(tmp_path, (1, 2, 3), "1.0")
+    res = _triaxial_on(tmp_path, (1, 2, 3), small_packing(), "1.0")
     assert np.count_nonzero(res["loop"] > 1.0) > 300  # the cap acted
 
 
 def test_triaxial_deck_identical_on_1_and_4_ranks(tmp_path):
-    """The whole small triaxial deck through the CLI (pluviation, a mould stage at its own friction,
-    seating, consolidation with the pressure ramp, shear): the final checkpoint on 4 ranks is
-    bitwise the serial one."""
+    """The whole small triaxial deck through the CLI (its beads read from a file, a mould stage at
+    its own friction, seating, consolidation with the pressure ramp, shear): the final checkpoint on
+    4 ranks is bitwise the serial one."""
     root = Path(__file__).resolve().parents[1]
     sys.path.insert(0, str(root / "tools"))
     from determinism import compare
@@ -170,7 +166,8 @@ def test_triaxial_deck_identical_on_1_and_4_ranks(tmp_path):
     states = {}
     for ranks in (1, 4):
         out = tmp_path / f"r{ranks}"
-        cmd = [sys.executable, "-m", "pdem", str(deck), "--output", str(out), "--quiet"]
+        cmd = [sys.executable, "-m", "pdem", str(deck), "--output", str(out), "--quiet",
+               *TRIAXIAL_SMALL_PACKED]  # fmt: skip
         if ranks > 1:
             cmd = [MPIEXEC, "-n", str(ranks), *cmd]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)

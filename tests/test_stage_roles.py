@@ -201,11 +201,8 @@ MAT = dict(density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
 
 
 @pytest.fixture(scope="module")
-def packing():
-    from pdem.sources import CylinderRegion, Uniform, pluviate
-
-    mat = pdem.Material("glass", **MAT)
-    return pluviate(CylinderRegion((0, 0, 0), 3.5e-3, 0.03), Uniform(0.45e-3, 0.55e-3), 300, mat, seed=5)
+def packing(small_packing):
+    return small_packing()
 
 
 def _cell(packing, **extra):

@@ -11,10 +11,10 @@ import math
 
 import numpy as np
 import pytest
+from decks import TRIAXIAL_SMALL_PACKED
 
 import pdem
 from pdem.boundaries.triaxial import TriaxialCell, TriaxialParams
-from pdem.sources import CylinderRegion, Uniform, pluviate
 
 R0 = 3.5e-3
 SIGMA3 = 20e3
@@ -22,10 +22,8 @@ MAT = dict(density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
 
 
 @pytest.fixture(scope="module")
-def packing():
-    mat = pdem.Material("glass", **MAT)
-    x, r = pluviate(CylinderRegion((0, 0, 0), R0, 0.03), Uniform(0.45e-3, 0.55e-3), 300, mat, seed=5)
-    return x, r
+def packing(small_packing):
+    return small_packing()
 
 
 def _cell(packing, law="hertz_mindlin", rate=2.0, smoothing=0.1, mat=MAT, **extra):
@@ -363,7 +361,7 @@ def test_resume_at_every_stage_is_bitwise(tmp_path):
     sets = ["--set", "stages.0.end.steps=100", "--set", "stages.1.end.steps=300",
             "--set", "stages.2.end.steps=200", "--set", "boundaries.cell.ramp_time=0.0002",
             "--set", "output.checkpoint_every_steps=200",
-            "--set", "output.series_every_steps=50"]  # fmt: skip
+            "--set", "output.series_every_steps=50", *TRIAXIAL_SMALL_PACKED]  # fmt: skip
     assert main([str(deck), "--output", str(tmp_path / "full"), "--quiet", *sets]) == 0
     ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
     # settle, consolidate (in its ramp), the first step of shear (its grid and mean diameter not
@@ -410,7 +408,8 @@ def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
     deck = root / "tests" / "data" / "triaxial_small.toml"
     sets = ["--set", 'contact.law="complementarity"', "--set", "run.dt=1e-4",
             "--set", "stages.0.end.steps=40", "--set", "stages.1.end.steps=120",
-            "--set", "stages.2.end.steps=80", "--set", "output.checkpoint_every_steps=40"]  # fmt: skip
+            "--set", "stages.2.end.steps=80", "--set", "output.checkpoint_every_steps=40",
+            *TRIAXIAL_SMALL_PACKED]  # fmt: skip
     assert main([str(deck), "--output", str(tmp_path / "full"), "--quiet", *sets]) == 0
     ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
     assert int(ref["scalars/step"]) == 240
@@ -484,7 +483,7 @@ def test_tied_membrane_ends_resume_bitwise(tmp_path):
     from determinism import compare
 
     deck = root / "tests" / "data" / "triaxial_small.toml"
-    tied = ["--set", "boundaries.cell.membrane_ends=tied", "--quiet"]
+    tied = ["--set", "boundaries.cell.membrane_ends=tied", "--quiet", *TRIAXIAL_SMALL_PACKED]
     assert main([str(deck), "--output", str(tmp_path / "full"), *tied]) == 0
     ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
     for stop in (600, 1300):  # consolidation (the rings sized), shear
