@@ -109,3 +109,51 @@ def small_packing() -> Callable[[], tuple]:
 
     return copy
 
+
+def pytest_configure(config):
+    """Once per session (in the controlling process when the tests run in parallel): compile the
+    kernels into the numba cache before any test runs, unless this cache was warmed already or
+    ``PDEM_TEST_WARM=0`` (tests/warm_kernels.py)."""
+    if hasattr(config, "workerinput") or os.environ.get("PDEM_TEST_WARM") == "0":
+        return
+    if config.getoption("collectonly", False) or config.getoption("help", False):
+        return
+    _warm_kernels()
+
+
+def _warm_kernels() -> None:
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from pdem import _jit
+
+    marker = Path(_jit.cache_dir) / "warmed-by-tests"
+    if marker.exists():
+        return
+    here = Path(__file__).resolve().parent
+    script = str(here / "warm_kernels.py")
+    t0 = time.perf_counter()
+    print("\ncompiling pdem's kernels into the numba cache (once per kernel version)...", flush=True)
+    with tempfile.TemporaryDirectory(prefix="pdem-warm-") as tmp:
+        sys.path.insert(0, str(here))
+        from decks import TINY_LATTICE
+
+        (Path(tmp) / "tiny.toml").write_text(TINY_LATTICE)
+        pipes = dict(stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        serial = [subprocess.Popen([sys.executable, script, part, tmp], **pipes)
+                  for part in ("dem_p", "dem_c")]
+        outs = [(p, p.communicate()[0]) for p in serial]
+        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+        if mpiexec:
+            p = subprocess.Popen([mpiexec, "-n", "2", sys.executable, script, "mpi", tmp], **pipes)
+            outs.append((p, p.communicate()[0]))
+    failed = [out for p, out in outs if p.returncode != 0]
+    if failed:  # the tests then compile what they need themselves, and show what went wrong
+        print("warming the kernel cache failed:\n" + "\n".join(o[-2000:] for o in failed), flush=True)
+        return
+    marker.write_text(f"{time.perf_counter() - t0:.0f} s\n")
+    print(f"kernels compiled in {time.perf_counter() - t0:.0f} s", flush=True)
