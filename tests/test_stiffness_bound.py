@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from decks import TRIAXIAL_SMALL_PACKED
 
 import pdem
 from pdem.contact.stability import network_bound, step_bound, supported
@@ -402,6 +403,7 @@ def test_supported_laws():
 # ---------------------------------------------------------------------------------------------
 
 DECK = Path(__file__).parent / "data" / "triaxial_small.toml"  # 300 beads, E = 5e7 Pa, dt = 2e-6 s
+RUN = [DECK, *TRIAXIAL_SMALL_PACKED]  # the deck with its beads read from the shared packing
 
 
 def _pdem(*args):
@@ -410,7 +412,7 @@ def _pdem(*args):
 
 
 def test_run_below_the_bound_records_it(tmp_path):
-    proc = _pdem(DECK, "--output", tmp_path / "ok", "--quiet")
+    proc = _pdem(*RUN, "--output", tmp_path / "ok", "--quiet")
     assert proc.returncode == 0, proc.stderr
     s = json.loads((tmp_path / "ok" / "summary.json").read_text())
     b = s["stiffness_bound"]
@@ -423,7 +425,7 @@ def test_run_below_the_bound_records_it(tmp_path):
 
 def test_step_above_the_limit_stops_with_exit_3_and_keeps_the_output(tmp_path):
     out = tmp_path / "big"
-    proc = _pdem(DECK, "--output", out, "--set", "run.dt=1e-5")
+    proc = _pdem(*RUN, "--output", out, "--set", "run.dt=1e-5")
     assert proc.returncode == 3, proc.stdout + proc.stderr
     msg = proc.stderr
     assert "run.stiffness_limit = 1.25" in msg and "dt = 1e-05 s" in msg and "run.dt_fraction" in msg
@@ -436,7 +438,7 @@ def test_step_above_the_limit_stops_with_exit_3_and_keeps_the_output(tmp_path):
 
 def test_limit_zero_lets_the_run_go_on_with_a_warning(tmp_path):
     out = tmp_path / "allowed"
-    proc = _pdem(DECK, "--output", out, "--set", "run.dt=1e-5", "--set", "run.stiffness_limit=0")
+    proc = _pdem(*RUN, "--output", out, "--set", "run.dt=1e-5", "--set", "run.stiffness_limit=0")
     assert proc.returncode == 0, proc.stderr
     b = json.loads((out / "summary.json").read_text())["stiffness_bound"]
     assert b["checks_exceeded"] > 0 and b["dt_over_bound"] > 1.3
@@ -446,9 +448,9 @@ def test_limit_zero_lets_the_run_go_on_with_a_warning(tmp_path):
 def test_resumed_run_keeps_the_record(tmp_path):
     """The smallest bound and its counts survive a checkpoint: a run stopped after 700 steps and
     resumed reports what the uninterrupted run reports."""
-    whole = _pdem(DECK, "--output", tmp_path / "whole", "--quiet")
+    whole = _pdem(*RUN, "--output", tmp_path / "whole", "--quiet")
     assert whole.returncode == 0, whole.stderr
-    part = _pdem(DECK, "--output", tmp_path / "part", "--quiet", "--steps", "700")
+    part = _pdem(*RUN, "--output", tmp_path / "part", "--quiet", "--steps", "700")
     assert part.returncode == 0, part.stderr
     res = _pdem("resume", tmp_path / "part" / "checkpoints" / "latest.h5", "--quiet")
     assert res.returncode == 0, res.stderr
@@ -465,7 +467,7 @@ def test_advise_predicts_the_bound_of_a_deck_it_was_not_fitted_on(tmp_path):
     warning with a smaller step."""
     from pdem.advise import advise
 
-    proc = _pdem(DECK, "--output", tmp_path / "run", "--quiet")
+    proc = _pdem(*RUN, "--output", tmp_path / "run", "--quiet")
     assert proc.returncode == 0, proc.stderr
     measured = json.loads((tmp_path / "run" / "summary.json").read_text())["stiffness_bound"]["dt_min"]
 
@@ -491,9 +493,9 @@ def test_stop_under_mpi_is_collective_and_the_bound_does_not_depend_on_ranks(tmp
     mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
     if mpiexec is None:
         pytest.skip("mpiexec not found (pip install mpich)")
-    serial = _pdem(DECK, "--output", tmp_path / "s", "--set", "run.dt=1e-5")
+    serial = _pdem(*RUN, "--output", tmp_path / "s", "--set", "run.dt=1e-5")
     par = subprocess.run(
-        [mpiexec, "-n", "2", sys.executable, "-m", "pdem", str(DECK), "--output", str(tmp_path / "p"),
+        [mpiexec, "-n", "2", sys.executable, "-m", "pdem", *map(str, RUN), "--output", str(tmp_path / "p"),
          "--set", "run.dt=1e-5"],
         capture_output=True, text=True, timeout=300,
     )

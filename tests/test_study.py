@@ -170,12 +170,12 @@ def test_study_errors_against_a_closed_form_and_failures_are_caught(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
 def test_killed_study_keeps_finished_runs_and_leaves_no_run_behind(tmp_path, sig):
-    spec = _spec(tmp_path, "jobs = 1\n" + STEP_STUDY.replace("[0.1, 0.3, 6.0]", "[0.3, 0.03, 6.0]"))
+    spec = _spec(tmp_path, "jobs = 1\n" + STEP_STUDY.replace("[0.1, 0.3, 6.0]", "[0.3, 0.06, 6.0]"))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "pdem", "study", str(spec)], stderr=subprocess.PIPE,
                             text=True, env=env, start_new_session=True)
     first = tmp_path / "out" / "dem_p" / "dt_fraction=0.3" / "study_run.json"
-    second = tmp_path / "out" / "dem_p" / "dt_fraction=0.03"  # ~27,000 steps: still running when killed
+    second = tmp_path / "out" / "dem_p" / "dt_fraction=0.06"  # ~13,500 steps: still running when killed
     deadline = time.monotonic() + 300
     while not (first.is_file() and second.is_dir()):
         assert proc.poll() is None, proc.stderr.read()
