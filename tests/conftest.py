@@ -144,13 +144,21 @@ def _warm_kernels() -> None:
 
         (Path(tmp) / "tiny.toml").write_text(TINY_LATTICE)
         pipes = dict(stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+        def wait(p: subprocess.Popen) -> tuple[subprocess.Popen, str]:
+            try:  # a hang here would stop the whole session before its first test
+                return p, p.communicate(timeout=900)[0]
+            except subprocess.TimeoutExpired:
+                p.kill()
+                return p, p.communicate()[0] + "\n(stopped after 900 s)"
+
         serial = [subprocess.Popen([sys.executable, script, part, tmp], **pipes)
                   for part in ("dem_p", "dem_c")]
-        outs = [(p, p.communicate()[0]) for p in serial]
+        outs = [wait(p) for p in serial]
         mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
         if mpiexec:
-            p = subprocess.Popen([mpiexec, "-n", "2", sys.executable, script, "mpi", tmp], **pipes)
-            outs.append((p, p.communicate()[0]))
+            ranks = [mpiexec, "-n", "2", sys.executable, script, "mpi", tmp]
+            outs.append(wait(subprocess.Popen(ranks, **pipes)))
     failed = [out for p, out in outs if p.returncode != 0]
     if failed:  # the tests then compile what they need themselves, and show what went wrong
         print("warming the kernel cache failed:\n" + "\n".join(o[-2000:] for o in failed), flush=True)
