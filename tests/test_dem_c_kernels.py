@@ -103,8 +103,10 @@ def three_pass_sweep(rows, nc, omega, corrected, want_res):
     ck.jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U)
     IB, CR = ck.jacobi_columns(cscale, croll, nc, width == 8)
     ck.jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega, corrected, want_res, RES)
-    # RES: the rows' squared residuals
-    return G.T.copy(), (math.sqrt(ck.max_nonneg(RES, nc)) if want_res else 0.0), np.sqrt(RES)
+    # RES: the rows' squared residuals (left unfilled without want_res)
+    if not want_res:
+        return G.T.copy(), 0.0, None
+    return G.T.copy(), math.sqrt(ck.max_nonneg(RES, nc)), np.sqrt(RES)
 
 
 @pytest.mark.parametrize("width", [4, 8])
