@@ -428,13 +428,11 @@ def test_dem_c_resume_after_a_short_seating_is_bitwise(tmp_path):
     """The DEM-C resume of test_dem_c_resume_at_every_stage_is_bitwise with the stages halved (20
     steps of seating, 60 of consolidation, 40 of shear), stopped at step 50: the resumed run differs
     from the uninterrupted one at step 51 (694 against 697 pairs with history; velocities by up to
-    0.18 m/s). The longer stages give the same bits at steps 50, 70, 100 and 130. The cause: the
-    uninterrupted run's list, built earlier with the wide reach of fast grains (no skin, envelope
-    0.98 mm), still holds a pair with a nonzero impulse outside the contact problem; the resumed
-    run's first list, built at the preparation's reach (0.14 mm) before the step widens it, drops
-    that pair and its impulse, which the uninterrupted run warm-starts from when the pair enters the
-    problem again. A warm start that depends only on the state (not on when the list was built)
-    would make the resume bitwise."""
+    0.18 m/s). The longer stages give the same bits at steps 50, 70, 100 and 130. What differs
+    before step 51: the uninterrupted run's list has the wide reach of fast grains (no skin,
+    envelope 0.98 mm); the resumed run's first list, built at the preparation's reach (0.14 mm)
+    before the step widens it, leaves out a pair 0.31 mm apart that the checkpoint holds with a
+    nonzero impulse. Every other pair impulse and every wall impulse is the same."""
     import sys
     from pathlib import Path
 
