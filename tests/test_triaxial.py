@@ -390,11 +390,10 @@ def test_resume_at_every_stage_is_bitwise(tmp_path):
     assert new_rows[0] == old_rows[0] and new_rows[2:] == old_rows[2:] and len(old_rows) > 3
 
 
-def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
-    """DEM-C: the platen is a free plate solved with the grains while seating and consolidating
-    (force control). Resumed in each stage, the run continues bit for bit. A resume in the
-    consolidation once differed from the first step on: the plate's load reads the membrane's
-    area, which the checkpoint did not keep."""
+def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra):
+    """The small triaxial deck with DEM-C at h = 1e-4 s and stages of ``stage_steps`` steps, run
+    whole and stopped at each of ``stops`` then resumed: every resumed run ends bit for bit as the
+    whole one."""
     import sys
     from pathlib import Path
 
@@ -406,20 +405,31 @@ def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
     from determinism import compare
 
     deck = root / "tests" / "data" / "triaxial_small.toml"
-    sets = ["--set", 'contact.law="complementarity"', "--set", "run.dt=1e-4",
-            "--set", "stages.0.end.steps=40", "--set", "stages.1.end.steps=120",
-            "--set", "stages.2.end.steps=80", "--set", "output.checkpoint_every_steps=40",
+    sets = ["--set", 'contact.law="complementarity"', "--set", "run.dt=1e-4", *extra,
             *TRIAXIAL_SMALL_PACKED]  # fmt: skip
+    for k, steps in enumerate(stage_steps):
+        sets += ["--set", f"stages.{k}.end.steps={steps}"]
+    total = sum(stage_steps)
     assert main([str(deck), "--output", str(tmp_path / "full"), "--quiet", *sets]) == 0
     ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
-    assert int(ref["scalars/step"]) == 240
-    for stop in (20, 100, 200):  # seating on the free plate, consolidation, shear
+    assert int(ref["scalars/step"]) == total
+    for stop in stops:
         out = tmp_path / f"stop{stop}"
         assert main([str(deck), "--output", str(out), "--quiet", "--steps", str(stop), *sets]) == 0
         assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]) == 0
         got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
-        assert int(got["scalars/step"]) == 240
+        assert int(got["scalars/step"]) == total
         assert compare(ref, got) is None, stop
+
+
+def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
+    """DEM-C: the platen is a free plate solved with the grains while seating and consolidating
+    (force control). Resumed in each stage, the run continues bit for bit. A resume in the
+    consolidation once differed from the first step on: the plate's load reads the membrane's
+    area, which the checkpoint did not keep."""
+    # seating on the free plate, consolidation, shear
+    every = ("--set", "output.checkpoint_every_steps=40")
+    _dem_c_resumes_bitwise(tmp_path, (40, 120, 80), (20, 100, 200), *every)
 
 
 @pytest.mark.xfail(strict=True, reason="known: a DEM-C resume 30 steps into the consolidation after a "
@@ -433,27 +443,7 @@ def test_dem_c_resume_after_a_short_seating_is_bitwise(tmp_path):
     envelope 0.98 mm); the resumed run's first list, built at the preparation's reach (0.14 mm)
     before the step widens it, leaves out a pair 0.31 mm apart that the checkpoint holds with a
     nonzero impulse. Every other pair impulse and every wall impulse is the same."""
-    import sys
-    from pathlib import Path
-
-    from pdem.cli import main
-    from pdem.io.checkpoint import read_checkpoint
-
-    root = Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(root / "tools"))
-    from determinism import compare
-
-    deck = root / "tests" / "data" / "triaxial_small.toml"
-    sets = ["--set", 'contact.law="complementarity"', "--set", "run.dt=1e-4",
-            "--set", "stages.0.end.steps=20", "--set", "stages.1.end.steps=60",
-            "--set", "stages.2.end.steps=40", *TRIAXIAL_SMALL_PACKED, "--quiet"]  # fmt: skip
-    assert main([str(deck), "--output", str(tmp_path / "full"), *sets]) == 0
-    assert main([str(deck), "--output", str(tmp_path / "part"), "--steps", "50", *sets]) == 0
-    assert main(["resume", str(tmp_path / "part" / "checkpoints" / "latest.h5"), "--quiet"]) == 0
-    ref, _ = read_checkpoint(tmp_path / "full" / "checkpoints" / "latest.h5")
-    got, _ = read_checkpoint(tmp_path / "part" / "checkpoints" / "latest.h5")
-    assert int(ref["scalars/step"]) == int(got["scalars/step"]) == 120
-    assert compare(ref, got) is None
+    _dem_c_resumes_bitwise(tmp_path, (20, 60, 40), (50,))
 
 
 def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):
