@@ -713,6 +713,7 @@ class Simulation:
         self.check_deferred()  # an integrator that skipped update_neighbours left them unchecked
         self.time += self._dt
         self.step_count += 1
+        self.contact_store.release_held()  # a restored history serves the first step only
         stiffness_due = self.stiffness_monitor.due(self.step_count)
         if self._defer_check and not stiffness_due:
             self._pending_flags = int(flags)

@@ -390,10 +390,13 @@ def test_resume_at_every_stage_is_bitwise(tmp_path):
     assert new_rows[0] == old_rows[0] and new_rows[2:] == old_rows[2:] and len(old_rows) > 3
 
 
-def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra):
+def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra, ranks=None):
     """The small triaxial deck with DEM-C at h = 1e-4 s and stages of ``stage_steps`` steps, run
     whole and stopped at each of ``stops`` then resumed: every resumed run ends bit for bit as the
-    whole one."""
+    whole one. ``ranks`` = (n, m): the stopped run on n MPI ranks, the resumed one on m (the whole
+    run is serial)."""
+    import shutil
+    import subprocess
     import sys
     from pathlib import Path
 
@@ -403,6 +406,14 @@ def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra):
     root = Path(__file__).resolve().parents[1]
     sys.path.insert(0, str(root / "tools"))
     from determinism import compare
+
+    def pdem_on(n, *args):
+        mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+        if mpiexec is None:
+            pytest.skip("mpiexec not found (pip install mpich)")
+        cmd = [mpiexec, "-n", str(n), sys.executable, "-m", "pdem", *map(str, args)]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
 
     deck = root / "tests" / "data" / "triaxial_small.toml"
     sets = ["--set", 'contact.law="complementarity"', "--set", "run.dt=1e-4", *extra,
@@ -415,8 +426,14 @@ def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra):
     assert int(ref["scalars/step"]) == total
     for stop in stops:
         out = tmp_path / f"stop{stop}"
-        assert main([str(deck), "--output", str(out), "--quiet", "--steps", str(stop), *sets]) == 0
-        assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]) == 0
+        first = [str(deck), "--output", str(out), "--quiet", "--steps", str(stop), *sets]
+        then = ["resume", str(out / "checkpoints" / "latest.h5"), "--quiet"]
+        if ranks is None:
+            assert main(first) == 0
+            assert main(then) == 0
+        else:
+            pdem_on(ranks[0], *first)
+            pdem_on(ranks[1], *then)
         got, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
         assert int(got["scalars/step"]) == total
         assert compare(ref, got) is None, stop
@@ -432,18 +449,15 @@ def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
     _dem_c_resumes_bitwise(tmp_path, (40, 120, 80), (20, 100, 200), *every)
 
 
-@pytest.mark.xfail(strict=True, reason="known: a DEM-C resume 30 steps into the consolidation after a "
-                   "20-step seating differs from its first step on (every state field, pair set included)")
-def test_dem_c_resume_after_a_short_seating_is_bitwise(tmp_path):
-    """The DEM-C resume of test_dem_c_resume_at_every_stage_is_bitwise with the stages halved (20
-    steps of seating, 60 of consolidation, 40 of shear), stopped at step 50: the resumed run differs
-    from the uninterrupted one at step 51 (694 against 697 pairs with history; velocities by up to
-    0.18 m/s). The longer stages give the same bits at steps 50, 70, 100 and 130. What differs
-    before step 51: the uninterrupted run's list has the wide reach of fast grains (no skin,
-    envelope 0.98 mm); the resumed run's first list, built at the preparation's reach (0.14 mm)
-    before the step widens it, leaves out a pair 0.31 mm apart that the checkpoint holds with a
-    nonzero impulse. Every other pair impulse and every wall impulse is the same."""
-    _dem_c_resumes_bitwise(tmp_path, (20, 60, 40), (50,))
+@pytest.mark.parametrize("ranks", [None, (2, 3)], ids=["serial", "2-to-3-ranks"])
+def test_dem_c_resume_while_grains_are_fast_is_bitwise(tmp_path, ranks):
+    """The DEM-C resume with the stages halved (20 steps of seating, 60 of consolidation, 40 of
+    shear), stopped at step 50, while the grains are fast: the list then reaches far (no skin,
+    envelope up to 1 mm) and is built afresh at every step. The resumed run once differed from its
+    first step on: its first list, built at the preparation's reach (0.14 mm), left out a pair
+    0.31 mm apart that held an impulse for the warm start. A resumed run now keeps the restored
+    history for every rebuild until its first step ends."""
+    _dem_c_resumes_bitwise(tmp_path, (20, 60, 40), (50,), ranks=ranks)
 
 
 def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):

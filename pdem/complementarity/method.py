@@ -773,7 +773,7 @@ class Stepper(Integrator):
         return max(2.5 * all_max(sim.comm, vmax) * sim.dt, self._base_envelope)
 
     def state(self) -> dict[str, np.ndarray]:
-        """Counters for checkpoints (the envelope is saved by the simulation)."""
+        """Counters for checkpoints (the envelope follows the state: :meth:`_needed_envelope`)."""
         return {
             "solver/counters": np.array(
                 [

@@ -61,6 +61,8 @@ class ContactStore:
         self.wall_hist = np.zeros((0, h))
         # history received from other ranks (migration) or restored, carried at the next rebuild
         self._pending: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"pair": [], "wall": []}
+        # a restored checkpoint's history, carried at every rebuild until its first step ends
+        self._held: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
         self.out_idx = np.zeros(1, dtype=np.int64)
         self.out_val = np.zeros((1, 6))
         self.counts = z.copy()
@@ -255,15 +257,33 @@ class ContactStore:
         return keys[first], hist[first]
 
     def _carry(self, kind: str, old_keys, old_hist, new_keys, new_hist) -> None:
-        """History by key into a new list: the rows set aside (:meth:`merge`), then this rank's own
-        (which win where both hold a key, as when the received rows were merged in)."""
+        """History by key into a new list: a restored checkpoint's rows while held
+        (:meth:`hold_restored`), the rows set aside (:meth:`merge`), then this rank's own (later
+        ones win where several hold a key, as when the received rows were merged in)."""
         pk, ph = self._pending_rows(kind)
         self._pending[kind] = []
+        zero = True
+        if self._held is not None and self._held[kind][0].size:
+            nk.carry_history(*self._held[kind], new_keys, new_hist)
+            zero = False
         if pk.size:
-            nk.carry_history(pk, ph, new_keys, new_hist)
-            nk.carry_history(old_keys, old_hist, new_keys, new_hist, False)
-        else:
-            nk.carry_history(old_keys, old_hist, new_keys, new_hist)
+            nk.carry_history(pk, ph, new_keys, new_hist, zero)
+            zero = False
+        nk.carry_history(old_keys, old_hist, new_keys, new_hist, zero)
+
+    def hold_restored(self) -> None:
+        """Keep the history just restored from a checkpoint (every row, on every rank) for every
+        rebuild until the first step ends (:meth:`release_held`). The preparation after a restore
+        builds its list at its own reach, which can be narrower than the list the checkpointed run
+        held: a method whose list reaches beyond touching (DEM-C's envelope, widened for fast grains
+        and narrowed only at rebuilds) would otherwise lose the warm start of pairs that the first
+        step's list, widened again, holds. Which history a rebuild carries then depends on the state
+        alone, not on the reach the list was built at before the checkpoint."""
+        self._held = {"pair": self.keys_sorted(), "wall": self._pending_rows("wall")}
+
+    def release_held(self) -> None:
+        """The first step after a restore ended: its lists hold what they need (:meth:`hold_restored`)."""
+        self._held = None
 
     # ------------------------------------------------------------------ checkpoints
     def wall_history_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -176,6 +176,7 @@ def restore_simulation(sim, state: dict[str, object]) -> dict[str, np.ndarray]:
         wall.motion.restore({k2[len(prefix):]: v for k2, v in state.items() if k2.startswith(prefix)})
         if key + "motion_velocity" in state and isinstance(wall.motion, Controlled):  # before 0.2
             wall.motion.velocity = np.array(state[key + "motion_velocity"], dtype=float)
+    store.hold_restored()  # for every rebuild until the first step ends (DEM-C's wide lists)
     sim.time = float(state["scalars/time"])
     sim.step_count = int(state["scalars/step"])
     sim.dt = float(state["scalars/dt"])
