@@ -214,13 +214,14 @@ def _print_summary(summary: dict, out: Path) -> None:
                 "(load_mass_scaling; docs/dem_c.md, Stiff boundary loads)"
             )
         thrown = solver.get("initial_recovery_speed", 0.0)
-        if solver.get("recovery_speed") is None and thrown >= INITIAL_RECOVERY_WARNING:
+        if thrown >= INITIAL_RECOVERY_WARNING:
             print(
                 f"pdem: warning: the packing the run started from overlapped by up to "
                 f"{solver['initial_overlap']:.3g} m (a soft-grain preparation leaves such overlaps), and "
                 f"the first DEM-C step pushed it apart at {thrown:.3g} m/s, more at the top of a deep "
                 "bed, where the contacts below add up: that can throw grains and loosen the packing. "
-                "Set contact.complementarity.recovery_speed (e.g. 1e-3 m/s) to remove overlaps gently "
+                f"Raise contact.complementarity.recovery_steps (now {solver.get('recovery_steps', 1)}) "
+                "or set contact.complementarity.recovery_speed (e.g. 1e-3 m/s) to remove overlaps gently "
                 "(docs/dem_c.md, Initial overlaps)"
             )
         missed, short = solver.get("missed_contact_steps", 0), solver.get("envelope_short_steps", 0)

@@ -506,8 +506,9 @@ def test_periodic_box_shift_invariance():
 
 
 def test_penetration_recovery_speed_cap():
-    """A sphere starting 0.1 r deep in the floor is pushed out at φ/h (no cap), or at the capped
-    recovery speed, and never faster; gravity off."""
+    """A sphere starting 0.1 r deep in the floor is pushed out at φ/h (no cap; the gradual removal
+    of initial overlaps measures grain pairs, and a lone grain has none), or at the capped recovery
+    speed, and never faster; gravity off."""
     depth = 0.1 * R
     for cap in (None, 0.05):
         kw = {} if cap is None else {"recovery_speed": cap}
@@ -520,10 +521,15 @@ def test_penetration_recovery_speed_cap():
         assert sim.particles.v[0, 2] == pytest.approx(expected, rel=1e-9)
 
 
-def test_initial_overlap_is_reported_with_the_speed_the_first_step_removes_it():
-    """Two spheres starting δ deep in each other (no gravity, no cap) separate at δ/h after the
-    first step; the summary reports δ and that speed, and with a cap the cap; the CLI warns about
-    an uncapped one above INITIAL_RECOVERY_WARNING and not about a capped one."""
+@pytest.mark.parametrize(
+    "kw", [{"recovery_steps": 1}, {}, {"recovery_speed": 1e-3, "recovery_steps": 1}],
+    ids=["immediate", "default", "capped"],
+)  # fmt: skip
+def test_initial_overlap_is_reported_with_the_speed_the_first_step_removes_it(kw):
+    """Two spheres starting δ deep in each other (no gravity) separate after the first step at δ/h
+    (recovery_steps = 1), at δ/(50 h) (the default recovery_steps) or at the cap; the summary
+    reports δ and that speed; the CLI warns about the first (above INITIAL_RECOVERY_WARNING) and
+    not about the others."""
     import io
     from contextlib import redirect_stdout
     from pathlib import Path
@@ -531,28 +537,107 @@ def test_initial_overlap_is_reported_with_the_speed_the_first_step_removes_it():
     from pdem import cli
 
     depth = 0.01 * R
-    for cap in (None, 1e-3):
-        kw = {} if cap is None else {"recovery_speed": cap}
-        sim = make_sim("apgd", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=500, **kw)
-        sim.add_particles([[0.0, 0.0, 0.0], [2 * R - depth, 0.0, 0.0]], R, material="glass")
+    sim = make_sim("apgd", gravity=(0, 0, 0), dt=1e-4, tolerance=1e-12, max_iterations=500, **kw)
+    sim.add_particles([[0.0, 0.0, 0.0], [2 * R - depth, 0.0, 0.0]], R, material="glass")
+    sim.step()
+    gap_speed = sim.particles.v[1, 0] - sim.particles.v[0, 0]
+    summary = sim.integrator.summary()
+    assert summary["initial_overlap"] == pytest.approx(depth, rel=1e-9)
+    expected = kw.get("recovery_speed", depth / (kw.get("recovery_steps", 50) * sim.dt))
+    assert gap_speed == pytest.approx(expected, rel=1e-9)
+    assert summary["initial_recovery_speed"] == pytest.approx(expected, rel=1e-12)
+    sim.step()  # later steps do not change what the run started from
+    assert sim.integrator.summary()["initial_overlap"] == pytest.approx(depth, rel=1e-9)
+    out = io.StringIO()
+    run = {"steps": 2, "time": 2e-4, "particles": 2, "wall_time_s": 0.1, "solver": summary}
+    with redirect_stdout(out):
+        cli._print_summary(run, Path("out"))
+    warned = "contact.complementarity.recovery_steps" in out.getvalue()
+    if kw == {"recovery_steps": 1}:
+        assert expected > cli.INITIAL_RECOVERY_WARNING and warned, out.getvalue()
+    else:
+        assert not warned, out.getvalue()
+
+
+def test_initial_overlaps_are_removed_over_recovery_steps_and_resume_bitwise():
+    """recovery_speed unset, recovery_steps = 4: the overlap allowed falls from the initial δ to 0
+    over 4 steps, so two spheres δ = 0.2 r deep in each other part at δ/(4h) and have parted after
+    step 4; a third sphere put into one of them afterwards is pushed out at φ/h. A run checkpointed
+    at step 2 and resumed gives the same bits as the uninterrupted one at step 6."""
+    depth = 0.2 * R
+    kw = {"recovery_steps": 4, "tolerance": 1e-12, "max_iterations": 500}
+
+    def scene(add=True):
+        sim = make_sim("apgd", gravity=(0, 0, 0), dt=1e-4, e=0.0, **kw)
+        sim.max_overlap = 0.5
+        if add:
+            sim.add_particles([[0.0, 0.0, 0.0], [2 * R - depth, 0.0, 0.0]], R, material="glass")
+        return sim
+
+    sim = scene()
+    slack, speed = [], []
+    p = sim.particles
+    for _ in range(6):
         sim.step()
-        gap_speed = sim.particles.v[1, 0] - sim.particles.v[0, 0]
-        summary = sim.integrator.summary()
-        assert summary["initial_overlap"] == pytest.approx(depth, rel=1e-9)
-        expected = depth / sim.dt if cap is None else cap
-        assert gap_speed == pytest.approx(expected, rel=1e-9)
-        assert summary["initial_recovery_speed"] == pytest.approx(expected, rel=1e-12)
-        sim.step()  # later steps do not change what the run started from
-        assert sim.integrator.summary()["initial_overlap"] == pytest.approx(depth, rel=1e-9)
-        out = io.StringIO()
-        run = {"steps": 2, "time": 2e-4, "particles": 2, "wall_time_s": 0.1, "solver": summary}
-        with redirect_stdout(out):
-            cli._print_summary(run, Path("out"))
-        warned = "contact.complementarity.recovery_speed" in out.getvalue()
-        if cap is None:
-            assert expected > cli.INITIAL_RECOVERY_WARNING and warned, out.getvalue()
-        else:
-            assert not warned, out.getvalue()
+        slack.append(sim.integrator.recovery_slack())  # the next step's allowance
+        order = np.argsort(p.id[: p.n_owned])
+        v = p.v[: p.n_owned][order]
+        speed.append(v[1, 0] - v[0, 0])
+    assert slack == pytest.approx([0.5 * depth, 0.25 * depth, 0.0, 0.0, 0.0, 0.0], abs=1e-18)
+    assert speed == pytest.approx([depth / (4 * sim.dt)] * 6, rel=1e-9)
+    x = p.x[: p.n_owned][np.argsort(p.id[: p.n_owned])]
+    assert x[1, 0] - x[0, 0] >= 2 * R * (1 - 1e-12)  # the overlap is gone
+    # a new overlap is removed within one step now (the two spheres stopped, a third put 0.05 r
+    # deep into the first)
+    order = np.argsort(p.id[: p.n_owned])
+    p.v[: p.n_owned] = 0.0
+    x0 = p.x[: p.n_owned][order][0].copy()
+    sim.add_particles([x0 + (0.0, 2 * R - 0.05 * R, 0.0)], R, material="glass")
+    sim.step()
+    order = np.argsort(p.id[: p.n_owned])
+    v = p.v[: p.n_owned][order]
+    assert v[2, 1] - v[0, 1] == pytest.approx(0.05 * R / sim.dt, rel=1e-6)
+    # resume during the removal
+    ref = scene()
+    ref.run(steps=6)
+    half = scene()
+    half.run(steps=2)
+    state = half.state_dict()
+    resumed = scene(add=False)
+    resumed.load_state(state)
+    resumed.run(steps=4)
+    a, b = ref.state_dict(), resumed.state_dict()
+    for k in a:
+        assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), k
+
+
+def test_a_poured_bed_starts_at_rest_with_the_automatic_recovery_speed(small_packing):
+    """The 300 beads poured with soft grains (E = 5e7 Pa; deepest overlap 0.78 µm) in their mould,
+    with DEM-C at h = 1e-4 s: with the overlaps removed in the first step (recovery_steps = 1) the
+    top of the bed is thrown up; removed over the default 50 steps the bed stays where it was
+    poured."""
+
+    def bed(**kw):
+        x, r = small_packing()
+        sim = pdem.Simulation(law="complementarity", solver="jacobi", **kw)
+        sim.add_material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
+                         friction=0.3)  # fmt: skip
+        sim.gravity = (0.0, 0.0, -G)
+        sim.add_particles(x, r)
+        sim.add_wall(shapes.Plane((0, 0, 0), (0, 0, 1)), name="floor")
+        sim.add_wall(shapes.Cylinder((0, 0, 0), (0, 0, 1), 3.5e-3), name="mould")
+        sim.dt = 1e-4
+        top = float(x[:, 2].max())
+        sim.run(steps=30)
+        p = sim.particles
+        n = p.n_owned
+        energy = float(0.5 * np.sum(p.mass[:n] * np.einsum("ij,ij->i", p.v[:n], p.v[:n])))
+        return energy, float(p.x[:n, 2].max()) - top
+
+    thrown, rise = bed(recovery_steps=1)
+    calm, still = bed()
+    assert calm < thrown / 20.0, (calm, thrown)
+    assert rise > 20e-6 and abs(still) < 5e-6, (rise, still)
 
 
 def test_automatic_envelope_catches_fast_grains():

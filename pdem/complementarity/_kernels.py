@@ -10,7 +10,9 @@ Per contact c:
   the contact point), ``j`` always a particle;
 * ``cn[c]``: unit normal from i to j; ``ca[c] = (a_i, a_j)``: lever lengths (radii), contact point
   x_i + a_i n = x_j − a_j n;
-* ``cbias[c]``: b = φ/h (or max(φ/h, −v_recovery)), φ the gap (negative when penetrating);
+* ``cbias[c]``: b = φ/h, φ the gap (negative when penetrating); a penetration within ``slack``
+  (an overlap the run started from, still allowed: ``Stepper.recovery_slack``) is held, not removed
+  (b = min(φ + slack, 0)/h), and with a cap b ≥ −v_recovery;
 * ``cmu[c]``: friction coefficient; ``cscale[c]``: B = 3 / trace(N_cc);
 * ``gam[c] = (γ_n, γ_tx, γ_ty, γ_tz, ρ_x, ρ_y, ρ_z, σ)``: normal impulse and tangential impulse
   vector (⊥ n), applied as G = γ_n n + γ_t on j and −G on i; then the rolling (ρ ⊥ n) and spinning
@@ -181,7 +183,7 @@ def entering_pairs(pi, pj, hist, x, r, inv_m, envelope, spd, env_base, env_facto
 
 @njit
 def assemble_pairs(
-    pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, v_bounce, max_overlap,
+    pi, pj, hist, x, v, r, inv_m, inv_i, mat, coef, h, envelope, v_recovery, slack, v_bounce, max_overlap,
     cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, csrc, spd, env_base, env_factor, tk,
 ):  # fmt: skip
     """Fill rows [0, n_pair_contacts) from the pair list; zero the history of pairs out of reach.
@@ -212,7 +214,7 @@ def assemble_pairs(
             flags |= FLAG_OVERLAP
         vn0 = (v[j, 0] - v[i, 0]) * nx + (v[j, 1] - v[i, 1]) * ny + (v[j, 2] - v[i, 2]) * nz
         co = coef[mat[i], mat[j]]
-        _fill(c, i, j, nx, ny, nz, r[i], r[j], 0.0, phi, h, v_recovery, co, vn0, v_bounce,
+        _fill(c, i, j, nx, ny, nz, r[i], r[j], 0.0, phi, h, v_recovery, slack, co, vn0, v_bounce,
               inv_m[i], inv_m[j], inv_i[i], inv_i[j], hist[k], cb, cn, ca, cbias, cmu, cscale, croll,
               gam)  # fmt: skip
         for q in range(6):
@@ -223,8 +225,8 @@ def assemble_pairs(
 
 
 @njit(inline="always")
-def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bounce, imi, imj, iii, iij,
-          hrow, cb, cn, ca, cbias, cmu, cscale, croll, gam):  # fmt: skip
+def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, slack, co, vn0, v_bounce, imi, imj, iii,
+          iij, hrow, cb, cn, ca, cbias, cmu, cscale, croll, gam):  # fmt: skip
     """One contact row. ``rstar`` > 0: the effective radius of the rolling rows (a wall's contact);
     0: a_i a_j/(a_i + a_j) (a pair's). ``co`` = (μ, e, μ_r, μ_s)."""
     cb[c, 0] = i
@@ -235,6 +237,8 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bou
     ca[c, 0] = ai
     ca[c, 1] = aj
     b = phi / h
+    if phi < 0.0 and slack > 0.0:  # an initial overlap still allowed: held, not pushed apart
+        b = min(phi + slack, 0.0) / h
     if v_recovery > 0.0 and b < -v_recovery:
         b = -v_recovery
     e = co[1]
@@ -285,8 +289,8 @@ def _fill(c, i, j, nx, ny, nz, ai, aj, rstar, phi, h, v_recovery, co, vn0, v_bou
 @njit
 def assemble_walls(
     kinds, params, vel, omega, centre, wmat, cstart, cand, whist, x, v, r, inv_m, inv_i, mat, coef, h,
-    envelope, v_recovery, v_bounce, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam,
-    csrc, cpt, wbody, wbinv, spd, env_base, env_factor,
+    envelope, v_recovery, slack, v_bounce, max_overlap, start, cb, cn, ca, cvw, cbias, cmu, cscale, croll,
+    gam, csrc, cpt, wbody, wbinv, spd, env_base, env_factor,
 ):  # fmt: skip
     """Append wall contacts from row ``start``; zero the history of candidates out of reach.
 
@@ -328,14 +332,14 @@ def assemble_walls(
             if body >= 0:  # the body's velocity is an unknown of the problem
                 vn0 = -((v[i, 0] - v[body, 0]) * nx + (v[i, 1] - v[body, 1]) * ny
                         + (v[i, 2] - v[body, 2]) * nz)
-                _fill(c, body, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, co, vn0, v_bounce,
-                      wbinv[k], inv_m[i], 0.0, inv_i[i], whist[q], cb, cn, ca, cbias, cmu, cscale, croll,
-                      gam)  # fmt: skip
+                _fill(c, body, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, slack, co, vn0,
+                      v_bounce, wbinv[k], inv_m[i], 0.0, inv_i[i], whist[q], cb, cn, ca, cbias, cmu, cscale,
+                      croll, gam)  # fmt: skip
                 for s in range(6):
                     cvw[c, s] = 0.0
             else:
                 vn0 = -((v[i, 0] - vwx) * nx + (v[i, 1] - vwy) * ny + (v[i, 2] - vwz) * nz)
-                _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, co, vn0, v_bounce,
+                _fill(c, -1, i, -nx, -ny, -nz, 0.0, r[i], r[i], gap, h, v_recovery, slack, co, vn0, v_bounce,
                       0.0, inv_m[i], 0.0, inv_i[i], whist[q], cb, cn, ca, cbias, cmu, cscale, croll,
                       gam)  # fmt: skip
                 cvw[c, 0] = vwx

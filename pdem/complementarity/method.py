@@ -7,7 +7,9 @@ pdem's own entry point like any contact law. One time step h:
 1. rebuild the neighbour list if particles moved more than half the skin (as DEM-P), else forward
    the ghosts' state;
 2. contacts: every listed pair and wall candidate with gap φ ≤ ``envelope``, normal n, bias
-   b = φ/h (or max(φ/h, −``recovery_speed``)), warm-started from the previous step's impulses of
+   b = φ/h (or max(φ/h, −``recovery_speed``); the overlaps the run starts from are removed over
+   ``recovery_steps`` steps: :meth:`Stepper.recovery_slack`), warm-started from the previous step's
+   impulses of
    the same id pair (of the same wall and particle); restitution: a contact approaching at
    v_n⁻ < −``restitution_threshold`` (start-of-step velocities) and closing within the step
    (b + v_n⁻ < 0) gets b = min(b, e v_n⁻), so it leaves at ≥ e|v_n⁻| (Newton's impact law, as
@@ -138,9 +140,17 @@ class ComplementarityParams(LawParams):
         default=None,
         gt=0,
         description="cap on the speed [m/s] at which penetration is removed (b = max(φ/h, −v)); "
-        "default: no cap (b = φ/h). Set it (e.g. 1e-3) when the run starts from a packing made with soft "
-        "grains (a poured bed): uncapped, its overlaps are pushed apart within one step and can throw "
-        "grains (summary.json: solver.initial_overlap, initial_recovery_speed)",
+        "default: no cap",
+    )
+    recovery_steps: int = Field(
+        50,
+        ge=1,
+        le=100000,
+        description="the overlaps of the packing the run starts from (a bed poured with soft grains) "
+        "are removed over this many steps: the overlap allowed falls from their deepest φ₀ to zero, a "
+        "contact within the allowance is held and a deeper one pushed out to it, so the deepest parts "
+        "at φ₀ / (recovery_steps h) and the bed starts at rest instead of being thrown apart (summary."
+        "json: solver.initial_overlap, initial_recovery_speed). 1: removed within the first step",
     )
     envelope_rule: Literal["contact", "global"] = Field(
         "contact",
@@ -227,6 +237,7 @@ class _StepProblem:
     h: float  # the step [s]
     env: float  # this step's envelope (the bound of the per-contact ones) [m]
     v_rec: float  # recovery speed cap (0: none) [m/s]
+    slack: float  # initial overlap still allowed at the step's end (0: none) [m]
     v_th: float  # restitution threshold [m/s]
     n_tot: int  # particle rows (owned, then ghosts)
     n_own: int  # owned particle rows
@@ -373,13 +384,13 @@ class Stepper(Integrator):
            ``sim.finish_step``."""
         sim = self.sim
         self._update_list()
-        self._setup_bodies()
-        sp = self._begin_problem()
-        sp.n_pair, sp.nc, sp.flags = self._assemble(sp, sp.spd)
         if self.n_steps == 0:
             cs = sim.contact_store
             p = sim.particles
             self.initial_overlap = all_max(sim.comm, _deepest_overlap(p.x, p.r, cs.pi, cs.pj))
+        self._setup_bodies()
+        sp = self._begin_problem()
+        sp.n_pair, sp.nc, sp.flags = self._assemble(sp, sp.spd)
         self._predict(sp)
         self._solve_step(sp)
         self._advance(sp)
@@ -448,7 +459,8 @@ class Stepper(Integrator):
         n_tot = p.n
         walls = bool(cs.walls)
         sp = _StepProblem(
-            h=h, env=env, v_rec=self.p.recovery_speed or 0.0, v_th=self.p.restitution_threshold, n_tot=n_tot,
+            h=h, env=env, v_rec=self.recovery_cap(), slack=self.recovery_slack(),
+            v_th=self.p.restitution_threshold, n_tot=n_tot,
             n_own=p.n_owned, nb=nb, npairs=cs.pi.shape[0], walls=walls,
             nw=int(cs.cstart[-1]) if walls else 0,
         )  # fmt: skip
@@ -484,10 +496,10 @@ class Stepper(Integrator):
         sim = self.sim
         p = sim.particles
         cs = sim.contact_store
-        h, env, v_rec, v_th = sp.h, sp.env, sp.v_rec, sp.v_th
+        h, env, v_rec, slack, v_th = sp.h, sp.env, sp.v_rec, sp.slack, sp.v_th
         n_pair, flags = ck.assemble_pairs(
             cs.pi, cs.pj, cs.hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env,
-            v_rec, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
+            v_rec, slack, v_th, sim.max_overlap, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
             self.cscale, self.croll, self.gam, self.csrc, spd, sp.env_base, sp.env_factor, self._pair_work(),
         )  # fmt: skip
         nc = n_pair
@@ -495,9 +507,9 @@ class Stepper(Integrator):
             nc, wflags = ck.assemble_walls(
                 cs.kinds, sp.w_params, cs.vel, cs.omega, cs.centre, cs.wmat, cs.cstart, cs.cand_step,
                 cs.wall_hist, p.x, self.V, p.r, self.IM, p.inv_i, p.mat, sim.coefficients, h, env, v_rec,
-                v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu,
-                self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(sp.n_tot), spd,
-                sp.env_base, sp.env_factor,
+                slack, v_th, sim.max_overlap, n_pair, self.cb, self.cn, self.ca, self.cvw, self.cbias,
+                self.cmu, self.cscale, self.croll, self.gam, self.csrc, self.cpt, *self._body_rows(sp.n_tot),
+                spd, sp.env_base, sp.env_factor,
             )  # fmt: skip
             flags |= wflags
         return n_pair, nc, flags
@@ -753,6 +765,22 @@ class Stepper(Integrator):
             v = v_free[n_tot + j] + P / wall.motion.mass
             self.V[n_tot + j] = v * wall.motion.free_axes
 
+    def recovery_cap(self) -> float:
+        """The cap on the speed at which penetration is removed (0: none): ``recovery_speed``."""
+        cap = self.p.recovery_speed
+        return cap if cap is not None and math.isfinite(cap) else 0.0
+
+    def recovery_slack(self) -> float:
+        """The initial overlap still allowed at the end of this step (0: none): φ₀ (1 − (k + 1)/
+        ``recovery_steps``) at the run's k-th step (from 0), φ₀ the deepest pair overlap of the
+        packing it starts from (measured at its first step), so the deepest contact parts at
+        φ₀ / (``recovery_steps`` h) and no contact deeper than the allowance is kept (penetration
+        from an unconverged solve included). A function of the checkpointed state (step count, φ₀)
+        alone."""
+        if self.initial_overlap <= 0.0:
+            return 0.0
+        return self.initial_overlap * max(0.0, 1.0 - (self.n_steps + 1) / self.p.recovery_steps)
+
     def _needed_envelope(self) -> float:
         """Automatic envelope: every pair that can close its gap within the step must be in the
         problem, so 2.5 × the fastest body's travel per step (at least 0.1 r_min): the bound of the
@@ -840,12 +868,19 @@ class Stepper(Integrator):
             "mass_scaled_steps": self.n_scaled_steps,
             "max_mass_ratio": self.max_mass_ratio,
             "recovery_speed": p.recovery_speed,
+            "recovery_steps": p.recovery_steps,
             "initial_overlap": self.initial_overlap,
             # how fast the first step pushed the deepest initial overlap apart
-            "initial_recovery_speed": (
-                min(self.initial_overlap / self.sim.dt, p.recovery_speed or math.inf) if self.n_steps else 0.0
-            ),
+            "initial_recovery_speed": self._initial_recovery_speed(),
         }
+
+    def _initial_recovery_speed(self) -> float:
+        """The speed at which the run's first step pushed its deepest initial overlap apart:
+        φ₀ / (``recovery_steps`` h), or the cap if lower (0 before the first step)."""
+        if not self.n_steps:
+            return 0.0
+        gradual = self.initial_overlap / (self.p.recovery_steps * self.sim.dt)
+        return min(gradual, self.recovery_cap() or math.inf)
 
     # ------------------------------------------------------------------ solvers
     def _sync_velocities(self, nc, v_free, w_free, P, L, gam=None) -> None:
