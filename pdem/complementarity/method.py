@@ -9,8 +9,7 @@ pdem's own entry point like any contact law. One time step h:
 2. contacts: every listed pair and wall candidate with gap φ ≤ ``envelope``, normal n, bias
    b = φ/h (or max(φ/h, −``recovery_speed``); the overlaps the run starts from are removed over
    ``recovery_steps`` steps: :meth:`Stepper.recovery_slack`), warm-started from the previous step's
-   impulses of
-   the same id pair (of the same wall and particle); restitution: a contact approaching at
+   impulses of the same id pair (of the same wall and particle); restitution: a contact approaching at
    v_n⁻ < −``restitution_threshold`` (start-of-step velocities) and closing within the step
    (b + v_n⁻ < 0) gets b = min(b, e v_n⁻), so it leaves at ≥ e|v_n⁻| (Newton's impact law, as
    Chrono NSC); rolling and spinning friction add, per contact, a rolling impulse (tangent) and a
