@@ -44,8 +44,16 @@ def random_rows(rng, nc, n, width):
     return cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w
 
 
-def reference_sweep(rows, nc, omega, corrected, want_res):
-    """The fused scalar sweep, row by row: new impulses, the largest residual and every row's."""
+def block_scales(rng, nc):
+    """Random (B_n, B_t, μρ) columns of a block-scaled sweep (B_t < B_n, as the levers make it)."""
+    bn = rng.uniform(0.5, 2.0, nc) * 1e-5
+    rho = rng.uniform(1.0, 4.0, nc)
+    return bn, bn / rho, rho
+
+
+def reference_sweep(rows, nc, omega, corrected, want_res, block=None):
+    """The fused scalar sweep, row by row: new impulses, the largest residual and every row's.
+    ``block``: (B_n, B_t, ρ) of a block-scaled update (:func:`ck.project_cone_weighted`)."""
     cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = rows
     width = gam.shape[1]
     u = np.zeros((nc, width))
@@ -60,8 +68,14 @@ def reference_sweep(rows, nc, omega, corrected, want_res):
             u0 += mu * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
         g0, g1, g2, g3 = gam[c, :4]
         rc, p0 = ck._residual(g0, g1, g2, g3, u0, u1, u2, u3, b, mu) if want_res else (0.0, g0)
-        s = omega * b
-        n0, n1, n2, n3 = ck.project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+        if block is None:
+            s = omega * b
+            n0, n1, n2, n3 = ck.project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+        else:
+            sn, st = omega * block[0][c], omega * block[1][c]
+            n0, n1, n2, n3 = ck.project_cone_weighted(
+                g0 - sn * u0, g1 - st * u1, g2 - st * u2, g3 - st * u3, mu, mu * block[2][c]
+            )
         new[c, :4] = n0, n1, n2, n3
         if width == 8 and croll[c, 2] > 0.0:
             mu_r, mu_s, _rs, br = croll[c]
@@ -94,7 +108,7 @@ def row_residual(gam, u, cmu, cscale, croll, nc):
     return res
 
 
-def three_pass_sweep(rows, nc, omega, corrected, want_res):
+def three_pass_sweep(rows, nc, omega, corrected, want_res, block=None):
     cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = rows
     width = gam.shape[1]
     G = np.ascontiguousarray(gam[:nc].T)
@@ -102,7 +116,8 @@ def three_pass_sweep(rows, nc, omega, corrected, want_res):
     RES = np.empty(nc)
     ck.jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U)
     IB, CR = ck.jacobi_columns(cscale, croll, nc, width == 8)
-    ck.jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega, corrected, want_res, RES)
+    BLK = np.stack([cscale, cscale, cmu]) if block is None else np.stack([block[0], block[1], cmu * block[2]])
+    ck.jacobi_project(U, G, cmu, cscale, IB, BLK, CR, nc, omega, corrected, want_res, RES)
     # RES: the rows' squared residuals (left unfilled without want_res)
     if not want_res:
         return G.T.copy(), 0.0, None
@@ -113,12 +128,14 @@ def three_pass_sweep(rows, nc, omega, corrected, want_res):
 @pytest.mark.parametrize("corrected", [True, False])
 @pytest.mark.parametrize("want_res", [True, False])
 @pytest.mark.parametrize("omega", [0.3, 1.0])
-def test_three_pass_sweep_is_the_row_by_row_sweep_bit_for_bit(width, corrected, want_res, omega):
+@pytest.mark.parametrize("block", [False, True])
+def test_three_pass_sweep_is_the_row_by_row_sweep_bit_for_bit(width, corrected, want_res, omega, block):
     rng = np.random.default_rng(100 * width + 10 * corrected + want_res)
     nc, n = 3000, 400
     rows = random_rows(rng, nc, n, width)
-    ref, ref_res, ref_each = reference_sweep(rows, nc, omega, corrected, want_res)
-    got, got_res, got_each = three_pass_sweep(rows, nc, omega, corrected, want_res)
+    blk = block_scales(rng, nc) if block else None
+    ref, ref_res, ref_each = reference_sweep(rows, nc, omega, corrected, want_res, blk)
+    got, got_res, got_each = three_pass_sweep(rows, nc, omega, corrected, want_res, blk)
     # every branch of the projection was taken
     n_t = np.linalg.norm(ref[:, 1:4], axis=1)
     mu = rows[5]
@@ -139,6 +156,76 @@ def test_three_pass_sweep_is_the_row_by_row_sweep_bit_for_bit(width, corrected, 
     ck.accumulate(cb, cn, ca, croll, ref, nc, P1, L1)
     ck.accumulate_columns(cb, cn, ca, croll, np.ascontiguousarray(ref.T), nc, P2, L2)
     assert np.array_equal(P1, P2) and np.array_equal(L1, L2)
+
+
+def _metric_distance(p, y, rho):
+    d = p - y
+    return d[..., 0] ** 2 + rho * np.sum(d[..., 1:] ** 2, axis=-1)
+
+
+def _skew(a):
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def test_weighted_cone_projection_is_the_closest_point_in_its_metric():
+    """Π_M(y) of :func:`ck.project_cone_weighted` against brute force: the point of the cone
+    nearest y in the metric M = diag(1, ρ, ρ), found by minimizing over a fine grid of the cone's
+    points (γ_n ≥ 0, |γ_t| ≤ μ γ_n, γ_t in the tangent plane in any direction); ρ = 1 is the
+    Euclidean projection bit for bit."""
+    rng = np.random.default_rng(3)
+    # candidates: γ_n on a grid, γ_t = s μ γ_n (cos θ, sin θ) in the tangent plane ⊥ x
+    gn = np.linspace(0.0, 4.0, 201)[:, None, None]
+    s = np.linspace(0.0, 1.0, 41)[None, :, None]
+    th = np.linspace(0.0, 2 * np.pi, 73)[None, None, :]
+    for _ in range(200):
+        mu = rng.choice([0.1, 0.5, 1.0])
+        rho = rng.uniform(1.0, 4.0)
+        y = rng.normal(size=4)
+        y[1] = 0.0
+        got = np.array(ck.project_cone_weighted(*y, mu, mu * rho))
+        assert got[0] >= 0.0 and np.linalg.norm(got[1:]) <= mu * got[0] * (1 + 1e-12) + 1e-15
+        tx, ty = s * mu * gn * np.cos(th), s * mu * gn * np.sin(th)
+        cand = np.stack(np.broadcast_arrays(gn, 0.0 * s, tx, ty), -1).reshape(-1, 4)
+        assert _metric_distance(got, y, rho) <= _metric_distance(cand, y, rho).min() + 1e-12
+        # a projection: no point of the cone is nearer along any direction (M's variational inequality)
+        q = cand[rng.integers(0, cand.shape[0], 2000)]
+        m = np.array([1.0, rho, rho, rho])
+        assert np.all(((y - got) * m) @ (q - got).T <= 1e-10)
+        assert ck.project_cone_weighted(*y, mu, mu) == ck.project_cone(*y, mu)
+
+
+def test_block_columns_are_the_inverse_diagonal_of_the_delassus_block():
+    """B_n, B_t of :func:`ck.block_columns` against the contact's 3 × 3 Delassus block formed from
+    its Jacobian (the velocities' change per unit impulse, as ``accumulate`` and ``velocities`` apply
+    it): diagonal in the contact frame, with B_n = 1/D_nn and B_t = 1/D_tt; and the trace scaling is
+    ``cscale``."""
+    rng = np.random.default_rng(8)
+    nc, n = 50, 30
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, n, 4)
+    inv_m = rng.uniform(0.5, 2.0, n) * 1e3
+    inv_i = rng.uniform(0.5, 2.0, n) * 1e8
+    blk = ck.block_columns(cb, ca, cmu, cscale, inv_m, inv_i, nc, True)
+    for c in range(nc):
+        i, j = cb[c]
+        nvec = cn[c]
+        t1 = np.cross(nvec, [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(nvec, t1)
+        frame = np.stack([nvec, t1, t2])
+
+        D = np.zeros((3, 3))
+        # the contact velocity per unit body velocities, v + ω × r = v − r × ω, in the contact frame
+        for body, lever, sign in ((j, -ca[c, 1] * nvec, 1.0), (i, ca[c, 0] * nvec, -1.0)):
+            if body < 0:
+                continue
+            jv, jw = sign * frame, sign * frame @ (-_skew(lever))
+            D += inv_m[body] * jv @ jv.T + inv_i[body] * jw @ jw.T
+        assert np.allclose(D - np.diag(np.diag(D)), 0.0, atol=1e-12 * np.abs(D).max())
+        assert blk[0, c] == pytest.approx(1.0 / D[0, 0], rel=1e-12)
+        assert blk[1, c] == pytest.approx(1.0 / D[1, 1], rel=1e-12)
+        assert blk[2, c] == pytest.approx(cmu[c] * D[1, 1] / D[0, 0], rel=1e-12)
+    trace = ck.block_columns(cb, ca, cmu, cscale, inv_m, inv_i, nc, False)
+    assert np.array_equal(trace, np.stack([cscale, cscale, cmu]))
 
 
 def test_max_nonneg_is_the_maximum_and_sees_nan():

@@ -109,6 +109,17 @@ def test_sphere_on_a_floor_has_the_closed_form_bound():
     assert sim.integrator.jacobi_bound() == pytest.approx(21.0 / 16.0, rel=1e-12)
 
 
+def test_block_scaling_bound_of_a_sphere_on_a_floor_is_one():
+    """With ``scaling = "block"`` each row is scaled by the inverse of its own diagonal entry of the
+    Delassus block (B_n = m, B_t = 2m/7 for a solid sphere on a fixed floor): B N = I, λ_max = 1."""
+    sim = make_sim(tolerance=1e-10, scaling="block")
+    sim.add_particles([[0.0, 0.0, R]], R, material="glass")
+    sim.add_wall(shapes.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), material="glass", name="floor")
+    sim.run(steps=3)
+    assert sim.integrator.gam[0, 0] > 0.0
+    assert sim.integrator.jacobi_bound() == pytest.approx(1.0, rel=1e-12)
+
+
 @pytest.mark.parametrize("mu_r", [0.0, 0.05])
 def test_pile_bound_matches_a_dense_eigenvalue_computation(mu_r):
     sim = pile(mu_r=mu_r)

@@ -113,6 +113,7 @@ def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]
     v0, w0 = p.v[: p.n].copy(), p.w[: p.n].copy()
     G = np.ascontiguousarray(st.gam[:nc].T)
     IB, CR = ck.jacobi_columns(st.cscale, st.croll, nc, width == 8)
+    BLK = ck.block_columns(st.cb, st.ca, st.cmu, st.cscale, st.IM, st.II, nc, False)
     U = np.empty((width, nc))
     RES = np.empty(nc)
 
@@ -120,7 +121,7 @@ def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]
         ck.jacobi_gather(st.cb, st.cn, st.ca, st.cvw, st.cbias, st.croll, p.v, p.w, nc, U)
 
     def project(check):
-        ck.jacobi_project(U, G, st.cmu, st.cscale, IB, CR, nc, 0.3, True, check, RES)
+        ck.jacobi_project(U, G, st.cmu, st.cscale, IB, BLK, CR, nc, 0.3, True, check, RES)
 
     def scatter():
         ck.accumulate_columns(st.cb, st.cn, st.ca, st.croll, G, nc, P, L)
@@ -146,7 +147,7 @@ def cost_per_contact(repeat: int = 9, rolling: bool = False) -> dict[str, float]
 
     def gauss_seidel():
         ck.gauss_seidel_sweep(
-            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, st.croll, st.gam, p.v, p.w,
+            st.cb, st.cn, st.ca, st.cvw, st.cbias, st.cmu, st.cscale, BLK, st.croll, st.gam, p.v, p.w,
             st.IM, st.II, st.DOF, nc, 0.3, True,
         )  # fmt: skip
 

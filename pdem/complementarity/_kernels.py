@@ -85,6 +85,25 @@ def project_cone(gn, tx, ty, tz, mu):
 
 
 @njit(inline="always")
+def project_cone_weighted(gn, tx, ty, tz, mu, murho):
+    """Projection of (γ_n, γ_t) onto K in the metric diag(1, ρ, ρ) (``murho`` = μρ): the closest
+    point of K when a tangential change counts ρ times a normal one. ρ = B_n/B_t of a
+    contact's Delassus block makes the block-scaled sweep γ ← Π(γ − ω B u) a fixed-point iteration
+    of the contact problem (the metric is B⁻¹'s). ρ = 1 (``murho`` = μ): :func:`project_cone`, bit
+    for bit. On the surface γ_n = (γ_n + μρ|γ_t|)/(1 + μ²ρ); the origin when μρ|γ_t| ≤ −γ_n."""
+    t = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if mu <= 0.0:
+        return max(gn, 0.0), 0.0, 0.0, 0.0
+    if t <= mu * gn:
+        return gn, tx, ty, tz
+    if murho * t <= -gn:
+        return 0.0, 0.0, 0.0, 0.0
+    gn2 = (murho * t + gn) / (mu * murho + 1.0)
+    s = mu * gn2 / t
+    return gn2, tx * s, ty * s, tz * s
+
+
+@njit(inline="always")
 def clamp_norm(x, y, z, bound):
     """(x, y, z) scaled to length ``bound`` if longer (bound ≥ 0)."""
     t = math.sqrt(x * x + y * y + z * z)
@@ -660,11 +679,12 @@ def _update_roll(c, cb, cn, cvw, croll, gam, w, omega_relax, bn, bn_new):
 
 
 @njit(inline="always")
-def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected, want_res=True):
+def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, blk, gam, v, w, omega_relax, corrected, want_res=True):
     """γ_c ← Π_K(γ_c − ω B_c u_c) from the current velocities (ũ_c when ``corrected``); returns the
     residual of the old γ_c, the fully projected γ_n (the rolling rows' bound in the residual) and
     the old and new impulses. Without ``want_res`` the residual is not formed (0, and γ_n for the
-    bound)."""
+    bound). ``blk[:, c]`` = (B_n, B_t, μρ) of the update (:func:`block_columns`; (B, B, μ) for the
+    trace scaling); the residual always uses B = ``cscale[c]``."""
     u0, u1, u2, u3 = _contact_velocity(c, cb, cn, ca, cvw, cbias, v, w)
     b = cscale[c]
     mu = cmu[c]
@@ -679,8 +699,10 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
     else:
         rc = 0.0
         p0 = g0
-    s = omega_relax * b
-    n0, n1, n2, n3 = project_cone(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+    sn = omega_relax * blk[0, c]
+    st = omega_relax * blk[1, c]
+    n0, n1, n2, n3 = project_cone_weighted(g0 - sn * u0, g1 - st * u1, g2 - st * u2, g3 - st * u3, mu,
+                                           blk[2, c])  # fmt: skip
     gam[c, 0] = n0
     gam[c, 1] = n1
     gam[c, 2] = n2
@@ -702,21 +724,21 @@ def _update(c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corr
 
 
 @njit(inline="always")
-def _cone_select(gn, tx, ty, tz, mu):
-    """:func:`project_cone` computed on every path and selected: the same values bit for bit
-    (t = 0 gives s = inf or nan, never selected), but no branch, so a loop over it vectorizes."""
+def _cone_select(gn, tx, ty, tz, mu, murho):
+    """:func:`project_cone_weighted` computed on every path and selected: the same values bit for
+    bit (t = 0 gives s = inf or nan, never selected), but no branch, so a loop over it vectorizes."""
     t = math.sqrt(tx * tx + ty * ty + tz * tz)
-    gn2 = (mu * t + gn) / (mu * mu + 1.0)
-    return _cone_pick(gn, tx, ty, tz, mu, t, gn2, mu * gn2 / t)
+    gn2 = (murho * t + gn) / (mu * murho + 1.0)
+    return _cone_pick(gn, tx, ty, tz, mu, murho, t, gn2, mu * gn2 / t)
 
 
 @njit(inline="always")
-def _cone_pick(gn, tx, ty, tz, mu, t, gn2, s):
+def _cone_pick(gn, tx, ty, tz, mu, murho, t, gn2, s):
     """The projection onto the cone chosen among its three cases without branches: (γ_n, γ_t)
     inside, the origin, or (gn2, s γ_t) on the surface (``t`` = |γ_t|; gn2 and s are not used
     unless that case is chosen, so t = 0's inf or nan never shows)."""
     inside = t <= mu * gn
-    zero = mu * t <= -gn
+    zero = murho * t <= -gn
     o0 = gn if inside else (0.0 if zero else gn2)
     o1 = tx if inside else (0.0 if zero else tx * s)
     o2 = ty if inside else (0.0 if zero else ty * s)
@@ -737,7 +759,7 @@ def _cone_select_residual(gn, tx, ty, tz, mu):
     t = math.sqrt(tx * tx + ty * ty + tz * tz)
     a = mu * t + gn
     q = 1.0 / ((mu * mu + 1.0) * t)
-    return _cone_pick(gn, tx, ty, tz, mu, t, a * t * q, mu * a * q)
+    return _cone_pick(gn, tx, ty, tz, mu, mu, t, a * t * q, mu * a * q)
 
 
 @njit(inline="always")
@@ -769,11 +791,14 @@ def jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U):
 
 
 @njit(inline="always")
-def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, ib, mu, omega_relax, corrected, want_res):
+def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, ib, mu, bn, bt, murho, omega_relax, corrected,
+                    want_res):  # fmt: skip
     """One column of :func:`jacobi_project` on scalars: the new (γ_n, γ_t), the **square** of the
     residual of the old (|γ − Π(γ − B u)|² (1/B)², 0 without ``want_res``; ``ib`` = 1/B) and its
-    fully projected γ_n (the old γ_n without). Scalars only: an inlined helper that takes arrays
-    kept numba's reference counting in the loop, which stopped LLVM from vectorizing it."""
+    fully projected γ_n (the old γ_n without). The update steps by (``bn``, ``bt``) and projects with
+    ``murho`` (:func:`project_cone_weighted`); the residual uses ``b``. Scalars only: an inlined
+    helper that takes arrays kept numba's reference counting in the loop, which stopped LLVM from
+    vectorizing it."""
     if corrected:
         u0 += mu * math.sqrt(u1 * u1 + u2 * u2 + u3 * u3)
     rc = 0.0
@@ -785,8 +810,9 @@ def _project_values(u0, u1, u2, u3, g0, g1, g2, g3, b, ib, mu, omega_relax, corr
         d2 = g2 - p2
         d3 = g3 - p3
         rc = (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3) * (ib * ib)
-    s = omega_relax * b
-    n0, n1, n2, n3 = _cone_select(g0 - s * u0, g1 - s * u1, g2 - s * u2, g3 - s * u3, mu)
+    sn = omega_relax * bn
+    st = omega_relax * bt
+    n0, n1, n2, n3 = _cone_select(g0 - sn * u0, g1 - st * u1, g2 - st * u2, g3 - st * u3, mu, murho)
     return n0, n1, n2, n3, rc, p0
 
 
@@ -809,41 +835,74 @@ def jacobi_columns(cscale, croll, nc, roll):
 
 
 @njit
-def jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega_relax, corrected, want_res, RES):
+def block_columns(cb, ca, cmu, cscale, inv_m, inv_i, nc, block):
+    """The update's scaling of every contact in columns, (B_n, B_t, μρ) (:func:`jacobi_project`,
+    :func:`gauss_seidel_sweep`). ``block``: the inverses of the diagonal of the contact's Delassus
+    block, which for spheres is diagonal in the contact frame: D_n = m_i⁻¹ + m_j⁻¹ normally and
+    D_t = D_n + a_i² I_i⁻¹ + a_j² I_j⁻¹ tangentially (the levers turn the bodies), so B_n = 1/D_n,
+    B_t = 1/D_t and ρ = B_n/B_t = D_t/D_n; the projection then works in B⁻¹'s metric
+    (:func:`project_cone_weighted`). Otherwise the trace scaling: B = ``cscale`` = 3/tr(D) on every
+    row, ρ = 1."""
+    BLK = np.empty((3, nc))
+    if not block:
+        for c in range(nc):
+            BLK[0, c] = cscale[c]
+            BLK[1, c] = cscale[c]
+            BLK[2, c] = cmu[c]
+        return BLK
+    for c in range(nc):
+        i = cb[c, 0]
+        j = cb[c, 1]
+        ai = ca[c, 0]
+        aj = ca[c, 1]
+        mi = inv_m[i] if i >= 0 else 0.0
+        ii = inv_i[i] if i >= 0 else 0.0
+        dn = mi + inv_m[j]
+        dt = dn + ai * ai * ii + aj * aj * inv_i[j]
+        BLK[0, c] = 1.0 / dn
+        BLK[1, c] = 1.0 / dt
+        BLK[2, c] = cmu[c] * (dt / dn)
+    return BLK
+
+
+@njit
+def jacobi_project(U, G, cmu, cscale, IB, BLK, CR, nc, omega_relax, corrected, want_res, RES):
     """Jacobi pass 2: γ_c ← Π_K(γ_c − ω B_c u_c) for every column (ũ when ``corrected``), then the
     rolling rows clamped to the bounds of the new γ_n (Chrono's order), as :func:`_update` and
     :func:`_update_roll`. With ``want_res``, ``RES[c]`` = the **square** of the residual of the old
     impulses (the residual is the square root of their maximum, :func:`max_nonneg`; equal to
     :func:`_update`'s within rounding). ``IB``: 1/B of every contact. ``U`` is overwritten. ``CR``:
     the rows' ``croll`` in columns, and 1/B_r in a fifth row (read only with rolling rows, G of 8
-    rows). (One loop per case, its flags constant, so that each vectorizes.)"""
+    rows). ``BLK``: the update's (B_n, B_t, μρ) in columns (:func:`block_columns`). (One loop per
+    case, its flags constant, so that each vectorizes.)"""
     u0a, u1a, u2a, u3a = U[0], U[1], U[2], U[3]
     g0a, g1a, g2a, g3a = G[0], G[1], G[2], G[3]
+    bna, bta, mra = BLK[0], BLK[1], BLK[2]
     o = omega_relax
     if not want_res:
         if corrected:
             for c in range(nc):
                 g0a[c], g1a[c], g2a[c], g3a[c], _r, _p = _project_values(
                     u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
-                    o, True, False,
+                    bna[c], bta[c], mra[c], o, True, False,
                 )  # fmt: skip
         else:
             for c in range(nc):
                 g0a[c], g1a[c], g2a[c], g3a[c], _r, _p = _project_values(
                     u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
-                    o, False, False,
+                    bna[c], bta[c], mra[c], o, False, False,
                 )  # fmt: skip
     elif corrected:
         for c in range(nc):
             g0a[c], g1a[c], g2a[c], g3a[c], RES[c], u0a[c] = _project_values(
-                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c], o,
-                True, True,
+                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
+                bna[c], bta[c], mra[c], o, True, True,
             )  # fmt: skip
     else:
         for c in range(nc):
             g0a[c], g1a[c], g2a[c], g3a[c], RES[c], u0a[c] = _project_values(
-                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c], o,
-                False, True,
+                u0a[c], u1a[c], u2a[c], u3a[c], g0a[c], g1a[c], g2a[c], g3a[c], cscale[c], IB[c], cmu[c],
+                bna[c], bta[c], mra[c], o, False, True,
             )  # fmt: skip
     if G.shape[0] == 8:
         _jacobi_project_roll(U, G, CR, nc, omega_relax, want_res, RES)
@@ -937,8 +996,8 @@ def accumulate_columns(cb, cn, ca, croll, G, nc, P, L):
 
 
 @njit
-def jacobi_solve(cb, cn, ca, cvw, cbias, croll, cmu, cscale, IB, CR, G, U, RES, P, L, v, w, v_free, w_free,
-                 inv_m, inv_i, dof, n, nc, omega_relax, corrected, check_every, max_iterations,
+def jacobi_solve(cb, cn, ca, cvw, cbias, croll, cmu, cscale, IB, BLK, CR, G, U, RES, P, L, v, w, v_free,
+                 w_free, inv_m, inv_i, dof, n, nc, omega_relax, corrected, check_every, max_iterations,
                  tolerance):  # fmt: skip
     """The Jacobi sweeps of a step in one call, for a run whose velocities need no forwarding (one
     rank, no periodic images, no rigid bodies): the loop of ``Stepper._jacobi`` (gather, project,
@@ -950,7 +1009,7 @@ def jacobi_solve(cb, cn, ca, cvw, cbias, croll, cmu, cscale, IB, CR, G, U, RES, 
     while it < max_iterations:
         check = it % check_every == 0
         jacobi_gather(cb, cn, ca, cvw, cbias, croll, v, w, nc, U)
-        jacobi_project(U, G, cmu, cscale, IB, CR, nc, omega_relax, corrected, check, RES)
+        jacobi_project(U, G, cmu, cscale, IB, BLK, CR, nc, omega_relax, corrected, check, RES)
         accumulate_columns(cb, cn, ca, croll, G, nc, P, L)
         it += 1
         velocities(v, w, v_free, w_free, P, L, inv_m, inv_i, dof, n)
@@ -963,15 +1022,16 @@ def jacobi_solve(cb, cn, ca, cvw, cbias, croll, cmu, cscale, IB, CR, G, U, RES, 
 
 @njit
 def gauss_seidel_sweep(
-    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w, inv_m, inv_i, dof, nc, omega_relax,
+    cb, cn, ca, cvw, cbias, cmu, cscale, blk, croll, gam, v, w, inv_m, inv_i, dof, nc, omega_relax,
     corrected=True,
 ):  # fmt: skip
     """One projected Gauss–Seidel sweep in row order, velocities updated after each contact
-    (``corrected`` as in :func:`_update`). Returns the largest residual met during the sweep."""
+    (``corrected`` and ``blk`` as in :func:`_update`). Returns the largest residual met during the
+    sweep."""
     res = 0.0
     for c in range(nc):
         rc, p0, g0, g1, g2, g3, n0, n1, n2, n3 = _update(
-            c, cb, cn, ca, cvw, cbias, cmu, cscale, gam, v, w, omega_relax, corrected
+            c, cb, cn, ca, cvw, cbias, cmu, cscale, blk, gam, v, w, omega_relax, corrected
         )
         d4 = d5 = d6 = d7 = 0.0
         if croll[c, 2] > 0.0:
@@ -1127,7 +1187,7 @@ def apgd_residual(G, U, UN, cmu, cscale, croll, nc, RES):
             g2 = G[2, c]
             g3 = G[3, c]
             p0, p1, p2, p3 = _cone_select(
-                g0 - b * UN[c], g1 - b * U[1, c], g2 - b * U[2, c], g3 - b * U[3, c], cmu[c]
+                g0 - b * UN[c], g1 - b * U[1, c], g2 - b * U[2, c], g3 - b * U[3, c], cmu[c], cmu[c]
             )
             d0 = g0 - p0
             d1 = g1 - p1
@@ -1164,7 +1224,7 @@ def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial):
             yn = GYN[c]
             o0, o1, o2, o3 = _cone_select(
                 Y[0, c] - t * yn, Y[1, c] - t * GY[1, c], Y[2, c] - t * GY[2, c], Y[3, c] - t * GY[3, c],
-                mu[c],
+                mu[c], mu[c],
             )  # fmt: skip
             OUT[0, c] = o0
             OUT[1, c] = o1

@@ -77,7 +77,7 @@ class ComplementarityParams(LawParams):
 
     #: solver settings a resume may change (e.g. a tighter solve from a checkpoint)
     resumable: ClassVar[frozenset[str]] = frozenset(
-        {"solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation",
+        {"solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation", "scaling",
          "load_mass_scaling"}
     )  # fmt: skip
 
@@ -108,6 +108,16 @@ class ComplementarityParams(LawParams):
     )
     relaxation: float = Field(
         0.3, gt=0, le=1.0, description="relaxation ω of Jacobi and Gauss–Seidel updates (0 < ω ≤ 1)"
+    )
+    scaling: Literal["trace", "block"] = Field(
+        "trace",
+        description="how Jacobi and Gauss–Seidel scale each contact's update: 'trace' (default) "
+        "steps every row by 3/tr(D), D the contact's diagonal Delassus block; 'block' by the inverse "
+        "of D itself, normal and tangential rows apart (for spheres D is diagonal in the contact "
+        "frame: its tangential entry holds the levers' rotation), with the cone projection in D's "
+        "metric so that the fixed point is the same contact problem. 'block' takes the normal "
+        "impulse 2.7× further per sweep (3/tr(D) = 0.37/D_n between solid spheres); the residual "
+        "and the stopping rule are the same for both",
     )
     check_every: int = Field(
         1,
@@ -908,6 +918,7 @@ class Stepper(Integrator):
         G = np.ascontiguousarray(self.gam[:nc].T)
         # 1/B of every row, and the rolling rows' coefficients in columns (read only by rows of 8)
         IB, CR = ck.jacobi_columns(self.cscale, self.croll, nc, width == 8)
+        BLK = self._block_columns(nc)
         U = np.empty((width, nc))
         RES = np.empty(nc)
         it = 0
@@ -917,9 +928,9 @@ class Stepper(Integrator):
             # nothing to forward between sweeps: the whole loop below in one kernel call, same bits
             p = sim.particles
             it, res = ck.jacobi_solve(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.cscale, IB, CR, G,
-                U, RES, P, L, p.v, p.w, v_free, w_free, self.IM, p.inv_i, p.dof, p.n_owned, nc, pr.relaxation,
-                self.corrected, k, pr.max_iterations, pr.tolerance,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.cmu, self.cscale, IB, BLK,
+                CR, G, U, RES, P, L, p.v, p.w, v_free, w_free, self.IM, p.inv_i, p.dof, p.n_owned, nc,
+                pr.relaxation, self.corrected, k, pr.max_iterations, pr.tolerance,
             )  # fmt: skip
         while it < pr.max_iterations and not res <= pr.tolerance:  # (after the fused call: done)
             check = it % k == 0  # sweeps 1, k + 1, 2k + 1, …: residual of the impulses before them
@@ -927,7 +938,7 @@ class Stepper(Integrator):
                 self.cb, self.cn, self.ca, self.cvw, self.cbias, self.croll, self.V, self.W, nc, U
             )
             ck.jacobi_project(
-                U, G, self.cmu, self.cscale, IB, CR, nc, pr.relaxation, self.corrected, check, RES
+                U, G, self.cmu, self.cscale, IB, BLK, CR, nc, pr.relaxation, self.corrected, check, RES
             )  # fmt: skip
             ck.accumulate_columns(self.cb, self.cn, self.ca, self.croll, G, nc, P, L)
             it += 1
@@ -971,15 +982,22 @@ class Stepper(Integrator):
         )
         return all_max(self.sim.comm, own)
 
+    def _block_columns(self, nc: int) -> np.ndarray:
+        """The update's (B_n, B_t, μρ) of every contact (:func:`ck.block_columns`, ``scaling``)."""
+        return ck.block_columns(
+            self.cb, self.ca, self.cmu, self.cscale, self.IM, self.II, nc, self.p.scaling == "block"
+        )
+
     def _gauss_seidel(self, nc, v_free, w_free, P, L) -> tuple[int, float]:
         pr = self.p
         self._sync_velocities(nc, v_free, w_free, P, L)
+        BLK = self._block_columns(nc)
         res = 0.0
         it = 0
         while it < pr.max_iterations:
             res = ck.gauss_seidel_sweep(
-                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, self.croll, self.gam,
-                self.V, self.W, self.IM, self.II, self.DOF, nc, pr.relaxation, self.corrected,
+                self.cb, self.cn, self.ca, self.cvw, self.cbias, self.cmu, self.cscale, BLK, self.croll,
+                self.gam, self.V, self.W, self.IM, self.II, self.DOF, nc, pr.relaxation, self.corrected,
             )  # fmt: skip
             it += 1
             if res <= pr.tolerance:
@@ -1005,7 +1023,8 @@ class Stepper(Integrator):
         while ω λ_max < 2, so 2/λ_max bounds ``relaxation`` there. ``active``: the contacts whose
         solved γ_n > 0 (those that carry load; the others are projected to zero and leave the
         iteration), else every row of the problem. N = D M⁻¹ Dᵀ (rolling rows included), B the
-        rows' scaling (3/trace of the contact's block, B_r for rolling rows).
+        rows' scaling (``scaling``: 3/trace of the contact's block, or the block's own inverse on the
+        normal and tangential rows; B_r for rolling rows).
 
         A diagnostic, for choosing ``relaxation`` on a scene (docs/dem_c.md, *The hopper at each
         method's best settings*): call it on every rank after a step. Partition-independent up to
@@ -1017,7 +1036,9 @@ class Stepper(Integrator):
         width = self.gam.shape[1]
         mask = (self.gam[:nc, 0] > 0.0) if active else np.ones(nc, dtype=bool)
         B = np.zeros((width, nc))
-        B[:4] = np.where(mask, self.cscale[:nc], 0.0)
+        blk = self._block_columns(nc)
+        B[0] = np.where(mask, blk[0], 0.0)
+        B[1:4] = np.where(mask, blk[1], 0.0)
         if width == 8:
             B[4:] = np.where(mask, self.croll[:nc, 3], 0.0)  # 0: a row without rolling friction
         IB = np.divide(1.0, B, out=np.zeros_like(B), where=B > 0.0)

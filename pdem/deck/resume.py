@@ -61,7 +61,7 @@ ALLOWED = (
     "output.* (not output.directory: use --output DIR), run.dt, run.force_dt, run.stiffness_limit, "
     "run.max_overlap, run.max_particles, run.balance_threshold, run.decomposition, title and the "
     "contact law's solver settings (DEM-C: "
-    "contact.solver, tolerance, max_iterations, check_every, apgd_start, relaxation, "
+    "contact.solver, tolerance, max_iterations, check_every, apgd_start, relaxation, scaling, "
     "load_mass_scaling); to change anything else start a new run"
 )
 
