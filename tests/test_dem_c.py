@@ -748,10 +748,11 @@ def test_envelope_per_contact_ignores_a_distant_fast_grain():
 
 
 def test_resume_is_bitwise_identical():
-    """N steps, checkpoint (state_dict), a new simulation resumes for N more: bitwise equal to 2N
-    uninterrupted steps (the envelope follows the state, not the rebuild history), solver counters
-    included. The grains bounce (restitution 0.5) and have rolling and spinning friction, so the
-    rolling impulses' warm start goes through the checkpoint too."""
+    """6 steps, checkpoint (state_dict) while the falling grains land (the envelope still grown), a
+    new simulation resumes for 34 more: bitwise equal to 40 uninterrupted steps (the envelope
+    follows the state, not the rebuild history), solver counters included. The grains bounce
+    (restitution 0.5) and have rolling and spinning friction, so the rolling impulses' warm start
+    goes through the checkpoint too."""
     kw = {"tolerance": 1e-6, "max_iterations": 60, "mu_r": 0.1, "mu_s": 0.05}
 
     def scene():
@@ -761,13 +762,13 @@ def test_resume_is_bitwise_identical():
     ref = _packing("jacobi", v0=-1.0, **kw)
     ref.run(steps=40)
     half = _packing("jacobi", v0=-1.0, **kw)
-    half.run(steps=20)
+    half.run(steps=6)
     state = half.state_dict()
-    assert half.envelope > 0.1 * R  # grown by the falling grains
+    assert half.envelope > 0.2 * R  # grown by the falling grains
     assert np.any(state["pairs/hist"][:, 4:] != 0.0)  # rolling and spinning impulses to carry over
     resumed = scene()
     resumed.load_state(state)
-    resumed.run(steps=20)
+    resumed.run(steps=34)
     a, b = ref.state_dict(), resumed.state_dict()
     assert a.keys() == b.keys()
     for k in a:
@@ -874,12 +875,12 @@ def test_jacobi_check_every_skips_residuals_not_sweeps():
         sim.run(steps=60)
         return sim
 
-    capped = {k: run(k, tolerance=1e-15, max_iterations=37) for k in (1, 5)}  # never converges
+    capped = {k: run(k, tolerance=1e-300, max_iterations=37) for k in (1, 5)}  # never converges
     a, b = (capped[k].get_particles() for k in (1, 5))
     for key in ("x", "v", "w"):
         assert np.array_equal(a[key], b[key]), key
     log5 = capped[5].integrator.log  # a step whose contacts are all open converges exactly (res 0)
-    assert all(it == 37 or (it % 5 == 1 and res <= 1e-15) for _, it, res, _ in log5)
+    assert all(it == 37 or (it % 5 == 1 and res == 0.0) for _, it, res, _ in log5)
     assert sum(it == 37 for _, it, _, _ in log5) > 30
 
     _stops_at_checked_iterations(run)

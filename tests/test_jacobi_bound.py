@@ -14,6 +14,7 @@ R = 1e-3
 
 
 def make_sim(mu=0.4, mu_r=0.0, dt=2e-4, **params):
+    params.setdefault("scaling", "trace")  # the dense reference below forms the trace scaling
     sim = pdem.Simulation(law="complementarity", solver="jacobi", **params)
     sim.add_material(
         "glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.0, friction=mu,

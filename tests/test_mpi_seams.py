@@ -1,6 +1,6 @@
 """The engine seams under MPI: a scene with a shrinking cylinder, a mesh floor, a rigid ball dropped
 on the grains, a boundary force inside the step and a registered per-particle field is bitwise
-identical on 1, 2 and 3 ranks, with DEM-P and with DEM-C (Jacobi, block-scaled; the ball is solved with
+identical on 1, 2 and 3 ranks, with DEM-P and with DEM-C (Jacobi, trace-scaled; the ball is solved with
 the grains, its impulses summed exactly across ranks every iteration)."""
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ SCRIPT = textwrap.dedent(
             p.f[:n][sel] += (2e-5, 0.0, 0.0)
 
     sim = pdem.Simulation(comm=comm, law=law)
-    if law == "complementarity":  # the block-scaled sweep (tests/test_mpi.py runs the trace scaling)
-        sim.set_law(law, scaling="block")
+    if law == "complementarity":  # the trace-scaled sweep (tests/test_mpi.py runs the default, block)
+        sim.set_law(law, scaling="trace")
     sim.add_material("glass", density=2500, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.3,
                      friction=0.3)
     sim.gravity = (0, 0, -9.81)

@@ -7,10 +7,13 @@
 Scenes (each small enough for CI):
 
 * ``hopper_dem_p``: inputs/hopper.toml shortened (300 beads, the plug opens at 0.03 s), 3,000 steps;
-* ``hopper_dem_c``: the same with ``contact.law = "complementarity"`` (Jacobi), 700 steps;
+* ``hopper_dem_c``: the same with ``contact.law = "complementarity"`` (Jacobi, trace-scaled: the
+  default until the block scaling became it), 700 steps;
 * ``hopper_dem_c_apgd``: the same with ``contact.solver = "apgd"`` (added with APGD under MPI, whose
   exact global sums changed serial APGD's rounding; stored from that branch, not from main before
   the refactor);
+* ``hopper_dem_c_block``: ``hopper_dem_c`` with the block-scaled Jacobi (the default since it was
+  added);
 * ``periodic_column``: inputs/examples/periodic_column_collapse.toml, 1,000 steps;
 * ``bench_column``: the benchmark scene of tools/bench_vs_lammps.py (five planes, dt = 2 µs,
   skin 0.1 mm) on a jittered lattice column of 1,500 spheres, 600 steps, through the Python API.
@@ -110,7 +113,16 @@ def scenes() -> dict[str, object]:
     periodic = ROOT / "inputs" / "examples" / "periodic_column_collapse.toml"
     return {
         "hopper_dem_p": lambda: _deck_run(hopper, 3000, HOPPER_SETS),
-        "hopper_dem_c": lambda: _deck_run(hopper, 700, HOPPER_SETS + ["contact.law=complementarity"]),
+        "hopper_dem_c": lambda: _deck_run(
+            hopper,
+            700,
+            HOPPER_SETS + ["contact.law=complementarity", 'contact.complementarity.scaling="trace"'],
+        ),
+        "hopper_dem_c_block": lambda: _deck_run(
+            hopper,
+            700,
+            HOPPER_SETS + ["contact.law=complementarity", 'contact.complementarity.scaling="block"'],
+        ),
         "hopper_dem_c_apgd": lambda: _deck_run(
             hopper, 700, HOPPER_SETS + ["contact.law=complementarity", "contact.complementarity.solver=apgd"]
         ),
