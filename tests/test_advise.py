@@ -354,3 +354,31 @@ def test_a_wave_deck_keeps_its_stiffness_and_is_told_dem_c_has_no_wave():
     rigid = advise(deck, ['contact.law="complementarity"'], probe=False)
     method = finding(rigid, "method", "all stages")
     assert method.verdict == "warn" and "measure the solver" in method.reason
+
+
+@pytest.mark.parametrize("solver", ["jacobi", "gauss_seidel"])
+@pytest.mark.parametrize("scaling", ["block", "trace"])
+def test_column_iterations_table_is_what_the_engine_takes(solver, scaling):
+    """The advice's cold-solve iterations for a column of N spheres (``rules.COLUMN_ITERATIONS``)
+    against the engine, run here: a column of 8 spheres on a floor, solved to 1e-8 m/s at ω = 1,
+    with each scaling."""
+    import numpy as np
+
+    import pdem
+    from pdem.advise import rules
+    from pdem.api import shapes
+
+    r = 1e-3
+    sim = pdem.Simulation(law="complementarity", solver=solver, tolerance=1e-8, max_iterations=200000,
+                          relaxation=1.0, scaling=scaling)  # fmt: skip
+    sim.add_material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.5)  # fmt: skip
+    x = np.zeros((8, 3))
+    x[:, 2] = r + 2 * r * np.arange(8)
+    sim.add_particles(x, r, material="glass")
+    sim.add_wall(shapes.Plane((0, 0, 0), (0, 0, 1)), material="glass", name="floor")
+    sim.gravity = (0, 0, -9.81)
+    sim.dt = 1e-4
+    sim.step()
+    assert sim.integrator.n_unconverged == 0
+    assert rules.column_iterations(solver, 8, scaling) == pytest.approx(sim.integrator.log[-1][1], rel=1e-9)

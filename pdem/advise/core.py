@@ -853,7 +853,7 @@ class _Advisor:
         )
         layers = max(sc.packed_height / sc.d_mean, 1.0) if math.isfinite(sc.packed_height) else 10.0
         solver = str(cparams.solver)
-        estimate = rules.column_iterations(solver, layers)
+        estimate = rules.column_iterations(solver, layers, str(cparams.scaling))
         iterations = float(cparams.max_iterations)
         z = rules.COORDINATION
         contacts = sc.n * z / 2

@@ -95,10 +95,13 @@ shear: 350 beads, 40,385 steps in 10.5 s, docs/experiments/direct_shear.md); use
 whether the probe's pluviation fits its time budget."""
 
 # iterations a cold solve needs for a column of N touching spheres (docs/dem_c.md, *Where it fails*,
-# part 1: h = 1e-4 s, tolerance 1e-8 m/s); interpolated in log-log
+# part 1: h = 1e-4 s, tolerance 1e-8 m/s, ω = 1); Jacobi and Gauss–Seidel with the block scaling (the
+# default) and, under "<solver>/trace", the trace scaling; interpolated in log-log
 COLUMN_ITERATIONS = {
-    "jacobi": ((2, 97), (4, 372), (8, 1396), (16, 5208), (32, 19302)),
-    "gauss_seidel": ((2, 85), (4, 312), (8, 1162), (16, 4328), (32, 16060)),
+    "jacobi": ((2, 35), (4, 143), (8, 555), (16, 2091), (32, 7809)),
+    "gauss_seidel": ((2, 19), (4, 74), (8, 280), (16, 1048), (32, 3907)),
+    "jacobi/trace": ((2, 97), (4, 372), (8, 1396), (16, 5208), (32, 19302)),
+    "gauss_seidel/trace": ((2, 85), (4, 312), (8, 1162), (16, 4328), (32, 16060)),
     "apgd": ((2, 15), (4, 30), (8, 74), (16, 141), (32, 197)),
 }
 
@@ -181,10 +184,11 @@ def inertial_number(shear_rate: float, d: float, density: float, stress: float) 
     return shear_rate * d * math.sqrt(density / stress) if stress > 0 else math.inf
 
 
-def column_iterations(solver: str, layers: float) -> float:
+def column_iterations(solver: str, layers: float, scaling: str = "block") -> float:
     """Iterations a cold solve of a column of ``layers`` spheres needs (pdem's measured table,
-    interpolated/extrapolated in log-log)."""
-    table = COLUMN_ITERATIONS.get(solver, COLUMN_ITERATIONS["jacobi"])
+    interpolated/extrapolated in log-log); ``scaling``: Jacobi's and Gauss–Seidel's."""
+    key = f"{solver}/trace" if scaling == "trace" and solver != "apgd" else solver
+    table = COLUMN_ITERATIONS.get(key, COLUMN_ITERATIONS["jacobi"])
     n = max(float(layers), 1.0)
     pts = [(math.log(a), math.log(b)) for a, b in table]
     x = math.log(n)
