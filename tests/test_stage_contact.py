@@ -130,6 +130,18 @@ def test_a_resume_inside_a_stage_may_change_its_settings(tmp_path):
     assert max(_iterations(out, "c")) == 40
 
 
+def test_a_resume_may_name_the_laws_keys_in_their_table(tmp_path):
+    """The checkpoint's resolved deck holds DEM-C's keys in [contact] itself; a resume may still name
+    them in the law's table, as a deck does (``contact.complementarity.max_iterations``)."""
+    deck = _deck(tmp_path, DECK.replace("[output]", "[output]\ncheckpoint_every_steps = 10"))
+    out = tmp_path / "out"
+    assert main([str(deck), "--output", str(out), "--quiet", "--steps", "30"]) == 0
+    assert main(["resume", str(out / "checkpoints" / "latest.h5"), "--quiet",
+                 "--set", "contact.complementarity.max_iterations=7"]) == 0  # fmt: skip
+    assert _iterations(out, "b") == [3] * 20  # the stage's own cap holds
+    assert _iterations(out, "c") == [7] * 20
+
+
 def test_a_stage_may_switch_solver_and_stays_identical_on_2_ranks(tmp_path):
     import shutil
     import subprocess

@@ -116,6 +116,32 @@ def _stand_in_missing_files(data: dict, point: ResumePoint, stand_in: Path) -> d
     return missing
 
 
+def _law_keys_at_top(data: dict, overrides: tuple[str, ...]) -> tuple[str, ...]:
+    """``contact.<law>.KEY=V`` (and a stage's ``stages.S.contact.<law>.KEY=V``) as ``contact.KEY=V``
+    for the law the checkpoint runs: its resolved deck holds that law's parameters in [contact]
+    itself, where a [contact.<law>] table would clash with them, while a deck, and the documents,
+    may name them either way."""
+    contact = data.get("contact")
+    law = contact.get("law") if isinstance(contact, dict) else None
+    if not isinstance(law, str) or isinstance(contact.get(law), dict):
+        return overrides
+    out = []
+    for text in overrides:
+        key, sep, value = text.partition("=")
+        parts = key.strip().split(".")
+        for at in (0, 2):  # contact.<law>.KEY, stages.S.contact.<law>.KEY
+            if (
+                len(parts) == at + 3
+                and (at == 0 or parts[0] == "stages")
+                and parts[at] == "contact"
+                and parts[at + 1] == law
+            ):
+                key = ".".join(parts[: at + 1] + parts[at + 2 :])
+                break
+        out.append(f"{key}{sep}{value}" if sep else text)
+    return tuple(out)
+
+
 def resume_deck(
     meta: dict, overrides: tuple[str, ...], point: ResumePoint, checkpoint: Path
 ) -> tuple[ResolvedDeck, ResolvedDeck]:
@@ -135,6 +161,7 @@ def resume_deck(
     deck_path = Path(str(meta.get("deck_path") or "")) if meta.get("deck_path") else None
     base = deck_path.parent if deck_path is not None else Path.cwd()
     missing = _stand_in_missing_files(data, point, Path(checkpoint).resolve())
+    overrides = _law_keys_at_top(data, tuple(overrides))
     try:
         old = validate_deck(copy.deepcopy(data), path=deck_path, base_dir=base)
     except DeckError as exc:
