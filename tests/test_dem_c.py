@@ -776,6 +776,22 @@ def test_resume_is_bitwise_identical():
     assert ref.integrator.summary() == resumed.integrator.summary()
 
 
+@pytest.mark.parametrize("law", ["complementarity", "hertz_mindlin"])
+def test_a_bad_value_in_the_law_table_is_named_there(tmp_path, law):
+    """A value of [contact.complementarity] is named as the deck wrote it, whether the deck runs
+    DEM-C or DEM-P (a DEM-P deck carrying DEM-C's settings would otherwise fail only once switched)."""
+    from pdem.deck import load_deck
+    from pdem.errors import DeckError
+
+    deck = tmp_path / "bad.toml"
+    deck.write_text(
+        f'[contact]\nlaw = "{law}"\n[contact.complementarity]\nrelaxation = 2.0\n'
+        '[materials.glass]\ndensity = 2500.0\n[[stages]]\nname = "a"\nend = { steps = 1 }\n'
+    )
+    with pytest.raises(DeckError, match=r"contact\.complementarity\.relaxation: must be in \(0, 1\]"):
+        load_deck(deck)
+
+
 def test_a_key_given_at_top_level_and_in_the_law_table_is_an_error(tmp_path):
     from pdem.deck import load_deck
     from pdem.errors import DeckError

@@ -472,11 +472,18 @@ def _validate_law(data: dict) -> tuple[type | None, BaseModel | None, list[tuple
             values.update(v)
         else:
             values[k] = v
-    problems = unused + _non_finite(values, ("contact",))
+    table = raw.get(law) if isinstance(raw.get(law), dict) else {}
+
+    def where(found: list[tuple[Loc, str]]) -> list[tuple[Loc, str]]:
+        # a key given in [contact.<law>] is named there, as the deck (or --set) wrote it
+        named = [(len(loc) > 1 and loc[0] == "contact" and loc[1] in table, loc, msg) for loc, msg in found]
+        return [(("contact", law, *loc[1:]) if mine else loc, msg) for mine, loc, msg in named]
+
+    problems = unused + where(_non_finite(values, ("contact",)))
     try:
         params = model.model_validate_json(_to_json(values), strict=True)
     except ValidationError as exc:
-        return cls, None, problems + translate(exc, model, ("contact",), extra_keys=("law",))
+        return cls, None, problems + where(translate(exc, model, ("contact",), extra_keys=("law",)))
     if problems:
         return cls, None, problems
     try:  # the law's constructor may check combinations of parameters
@@ -565,8 +572,8 @@ def _stage_key_message(law: str, allowed: frozenset[str]) -> str:
 
 
 def _unused_law_tables(raw: dict, law: str, known: set[str]) -> list[tuple[Loc, str]]:
-    """Unknown keys in the tables of the laws the deck does not select ([contact.complementarity]
-    of a DEM-P deck): a misspelt key there would otherwise surface only after ``--set
+    """Unknown keys and invalid values in the tables of the laws the deck does not select
+    ([contact.complementarity] of a DEM-P deck): they would otherwise surface only after ``--set
     contact.law=…``."""
     problems: list[tuple[Loc, str]] = []
     for name in sorted(k for k, v in raw.items() if isinstance(v, dict) and k in known and k != law):
@@ -577,10 +584,19 @@ def _unused_law_tables(raw: dict, law: str, known: set[str]) -> list[tuple[Loc, 
         if model is None:
             continue
         fields = list(model.model_fields)
-        for key in raw[name]:
-            if key not in fields:
-                hint = did_you_mean(key, fields)
-                problems.append((("contact", name, key), f"unknown key '{key}' in contact.{name}{hint}"))
+        unknown = [key for key in raw[name] if key not in fields]
+        for key in unknown:
+            hint = did_you_mean(key, fields)
+            problems.append((("contact", name, key), f"unknown key '{key}' in contact.{name}{hint}"))
+        if unknown:
+            continue
+        # and their values, which would otherwise fail only once the deck runs that law
+        found = _non_finite(raw[name], ("contact", name))
+        try:
+            model.model_validate_json(_to_json(raw[name]), strict=True)
+        except ValidationError as exc:
+            found += translate(exc, model, ("contact", name))
+        problems += [(loc, f"{msg} (used when contact.law = '{name}')") for loc, msg in found]
     return problems
 
 
