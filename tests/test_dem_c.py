@@ -269,15 +269,18 @@ def _packing(solver, add=True, v0=0.0, **kw):
 
 def test_solvers_reach_the_same_velocities_on_a_packing():
     """Jacobi, APGD and Gauss–Seidel from the same state give the same post-step velocities (the
-    CCP's velocities are unique, its impulses in general not) to within the tolerance; so do Jacobi
-    and Gauss–Seidel scaled by the contacts' Delassus blocks (``scaling = "block"``: the same fixed
-    point), Jacobi in fewer sweeps than with the trace scaling at the same relaxation."""
+    CCP's velocities are unique, its impulses in general not) to within the tolerance; so do the
+    solvers scaled by the contacts' Delassus blocks (``scaling = "block"``: the same fixed point; APGD
+    preconditioned by them), Jacobi in fewer sweeps than with the trace scaling at the same
+    relaxation."""
     states, sweeps = {}, {}
     base = _packing("apgd", tolerance=1e-10, max_iterations=5000)
     base.run(steps=150)  # let it settle into a packing with many contacts
     state = base.state_dict()
-    runs = [("jacobi", "trace", 0.3), ("jacobi", "block", 0.3), ("apgd", "trace", 1.0),
-            ("gauss_seidel", "trace", 1.0), ("gauss_seidel", "block", 1.0)]  # fmt: skip
+    runs = [
+        ("jacobi", "trace", 0.3), ("jacobi", "block", 0.3), ("apgd", "trace", 1.0), ("apgd", "block", 1.0),
+        ("gauss_seidel", "trace", 1.0), ("gauss_seidel", "block", 1.0),
+    ]  # fmt: skip
     for solver, scaling, relax in runs:
         sim = _packing(solver, add=False, tolerance=1e-9, max_iterations=200000, relaxation=relax,
                        scaling=scaling)  # fmt: skip
@@ -315,8 +318,13 @@ def test_apgd_warm_start_on_a_static_stack():
     states of that packing the ratio warm/cold at 100 iterations ranges 0.13–2.5, median 0.56: the
     warm start is no reliable help while the grains still move.)"""
     base = _stack("warm", tolerance=1e-12, max_iterations=20000)
-    base.run(steps=5)
-    assert base.integrator.last_iterations <= 2  # warm: at the solution from the start
+    its = []
+    for _ in range(6):
+        base.step()
+        its.append(base.integrator.last_iterations)
+    # warm: near the solution from the start; each solve stops just below the tolerance, so the next
+    # one starts near it and takes 1 to ~15 iterations, against ~100 from the cold first step
+    assert np.mean(its[1:]) < 0.2 * its[0], its
     state = base.state_dict()
     capped = {}
     for s in ("cold", "warm"):

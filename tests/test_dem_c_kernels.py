@@ -242,6 +242,9 @@ def test_max_nonneg_is_the_maximum_and_sees_nan():
         assert math.isnan(ck.max_nonneg(y, 1001))
 
 
+NO_BLK = np.empty((3, 0))
+
+
 def cols(a):
     """Rows (nc, width) as APGD holds them: in columns, C-contiguous (width, nc)."""
     return np.ascontiguousarray(a.T)
@@ -283,7 +286,7 @@ def test_apgd_projected_step_is_the_row_by_row_projection(width, t):
     D2, D3 = np.full((2, nc), 9.0)
     GY = cols(gy)
     GY[0] = 7.0  # u's own normal row is not read: ũ_n comes from gyn
-    ck.apgd_project_step(cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out, D2, D3, True)
+    ck.apgd_project_step(cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out, D2, D3, True, NO_BLK, False)
     full = gy.copy()
     full[:, 0] = gyn
     ref = ck.project_cone_array(gam - t * full, cmu, croll)
@@ -298,8 +301,47 @@ def test_apgd_projected_step_is_the_row_by_row_projection(width, t):
     assert np.array_equal(D3.view(np.int64), d3.view(np.int64))
     out2 = np.full((width, nc), 9.0)
     E2, E3 = np.full((2, nc), 5.0)
-    ck.apgd_project_step(cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out2, E2, E3, False)
+    ck.apgd_project_step(
+        cols(gam), GY, gyn, cols(gam_k), t, cmu, croll, nc, out2, E2, E3, False, NO_BLK, False
+    )
     assert np.array_equal(out2, out) and np.all(E2 == 5.0) and np.all(E3 == 5.0)  # no trial: not formed
+
+
+@pytest.mark.parametrize("width", [4, 8])
+def test_apgd_block_scaled_step_is_the_metric_projection_of_the_scaled_step(width):
+    """With the block scaling, APGD's step is Π_M(y − t B ũ(y)), M = B⁻¹ (B = B_n on the normal row,
+    B_t on the tangential ones, B_r on the rolling rows), and its |γ − y|² is measured in M: row by
+    row from :func:`ck.project_cone_weighted` and the rolling clamps (the same bits), and the
+    M-norm within rounding."""
+    rng = np.random.default_rng(23 + width)
+    nc, t = 2000, 1e-5
+    cb, cn, ca, cvw, cbias, cmu, cscale, croll, gam, v, w = random_rows(rng, nc, 400, width)
+    bn, bt, rho = block_scales(rng, nc)
+    blk = np.stack([bn, bt, cmu * rho])
+    gy = rng.normal(scale=1e-3, size=(nc, width)) / bn[:, None]  # steps t B ũ of the impulses' size
+    gam_k = rng.normal(scale=1e-6, size=(nc, width))
+    out = np.full((width, nc), 9.0)
+    D2, D3 = np.full((2, nc), 9.0)
+    ck.apgd_project_step(cols(gam), cols(gy), gy[:, 0].copy(), cols(gam_k), t, cmu, croll, nc, out, D2, D3,
+                         True, blk, True)  # fmt: skip
+    ref = np.zeros((nc, width))
+    m2 = np.zeros(nc)
+    for c in range(nc):
+        y = gam[c, :4] - t * np.array([bn[c], bt[c], bt[c], bt[c]]) * gy[c, :4]
+        ref[c, :4] = ck.project_cone_weighted(*y, cmu[c], cmu[c] * rho[c])
+        if width == 8 and croll[c, 2] > 0.0:
+            r = gam[c, 4:] - t * croll[c, 3] * gy[c, 4:]
+            ref[c, 4:7] = ck.clamp_norm(r[0], r[1], r[2], croll[c, 0] * ref[c, 0])
+            ref[c, 7] = ck.clamp_abs(r[3], croll[c, 1] * ref[c, 0])
+            m2[c] = np.sum((ref[c, 4:] - gam[c, 4:]) ** 2) / croll[c, 3]
+        d = ref[c, :4] - gam[c, :4]
+        m2[c] += d[0] ** 2 / bn[c] + np.sum(d[1:] ** 2) / bt[c]
+    assert np.array_equal(out.T.view(np.int64), ref.view(np.int64))
+    moved = (ref[:, 0] == 0.0) | (np.abs(ref[:, 0] - (gam[:, 0] - t * bn * gy[:, 0])) > 0.0)
+    assert moved.sum() > 50
+    np.testing.assert_allclose(D2, m2, rtol=1e-12)
+    counted = np.arange(width) < 4 + 4 * (croll[:, 2:3] > 0)  # the rolling rows where the contact has them
+    np.testing.assert_allclose(D3, np.sum(gy * (ref - gam_k) * counted, 1), rtol=1e-12, atol=1e-30)
 
 
 @pytest.mark.parametrize("width", [4, 8])

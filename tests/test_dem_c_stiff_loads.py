@@ -138,8 +138,11 @@ def test_membrane_grains_are_scaled_at_the_dem_c_step_and_the_run_stays_bounded(
     x, r = small_packing()
     speeds = {}
     for scaling in (True, False):
+        # APGD unpreconditioned (scaling = "trace"): preconditioned by the contacts' blocks, the run
+        # with the true masses stayed bounded here too (0.067 against 0.046 m/s in the last 200 steps)
         sim = pdem.Simulation(law="complementarity", solver="apgd", max_iterations=80, tolerance=1e-6,
-                              apgd_start="warm", recovery_speed=1e-3, load_mass_scaling=scaling)  # fmt: skip
+                              apgd_start="warm", recovery_speed=1e-3, load_mass_scaling=scaling,
+                              scaling="trace")  # fmt: skip
         sim.add_material("glass", density=2500, youngs_modulus=5e7, poisson_ratio=0.3, restitution=0.3,
                          friction=0.3)  # fmt: skip
         sim.add_particles(x, r)

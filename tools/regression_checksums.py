@@ -13,7 +13,8 @@ Scenes (each small enough for CI):
   exact global sums changed serial APGD's rounding; stored from that branch, not from main before
   the refactor);
 * ``hopper_dem_c_block``: ``hopper_dem_c`` with the block-scaled Jacobi (the default since it was
-  added);
+  added); ``hopper_dem_c_apgd`` likewise pins APGD unpreconditioned (``scaling = "trace"``) and
+  ``hopper_dem_c_apgd_block`` runs the default, block-preconditioned APGD;
 * ``periodic_column``: inputs/examples/periodic_column_collapse.toml, 1,000 steps;
 * ``bench_column``: the benchmark scene of tools/bench_vs_lammps.py (five planes, dt = 2 µs,
   skin 0.1 mm) on a jittered lattice column of 1,500 spheres, 600 steps, through the Python API.
@@ -124,6 +125,13 @@ def scenes() -> dict[str, object]:
             HOPPER_SETS + ["contact.law=complementarity", 'contact.complementarity.scaling="block"'],
         ),
         "hopper_dem_c_apgd": lambda: _deck_run(
+            hopper,
+            700,
+            HOPPER_SETS
+            + ["contact.law=complementarity", "contact.complementarity.solver=apgd",
+               'contact.complementarity.scaling="trace"'],
+        ),
+        "hopper_dem_c_apgd_block": lambda: _deck_run(
             hopper, 700, HOPPER_SETS + ["contact.law=complementarity", "contact.complementarity.solver=apgd"]
         ),
         "periodic_column": lambda: _deck_run(periodic, 1000, []),

@@ -1210,7 +1210,7 @@ def apgd_residual(G, U, UN, cmu, cscale, croll, nc, RES):
 
 
 @njit
-def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial):
+def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial, BLK, scaled):
     """OUT = Π(Y − t ũ(Y)) contact by contact (APGD's projected gradient step; ũ's normal row from
     ``GYN``, its others from ``GY``): each cone first, then the rolling rows clamped to the bounds of
     the new γ_n (:func:`project_cone_array`'s order). Rows of 4 take a loop without branches
@@ -1218,7 +1218,15 @@ def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial):
 
     With ``trial``, in the same pass, two of the trial's dot products per contact (formed in double
     in component order, the rolling rows only where the contact has them): |γ − y|² into ``D2`` and
-    ũ(y)·(γ − γ_k) into ``D3`` (γ_k: ``GK``)."""
+    ũ(y)·(γ − γ_k) into ``D3`` (γ_k: ``GK``).
+
+    ``scaled``: the step preconditioned by the contacts' blocks (``BLK`` = (B_n, B_t, μρ) in columns,
+    :func:`block_columns`; the rolling rows by B_r): OUT = Π_M(Y − t B ũ(Y)) in the metric
+    M = B⁻¹ (:func:`project_cone_weighted`), and |γ − y|² measured in M. This is APGD on the
+    variables B^-½ γ, whose cones are the contacts' scaled cones."""
+    if scaled:
+        _apgd_project_step_scaled(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial, BLK)
+        return
     if OUT.shape[0] == 4:
         for c in range(nc):
             yn = GYN[c]
@@ -1277,6 +1285,59 @@ def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial):
                 s = OUT[k, c] - Y[k, c]
                 d2 += s * s
                 d3 += GY[k, c] * (OUT[k, c] - GK[k, c])
+            D2[c] = d2
+            D3[c] = d3
+
+
+@njit
+def _apgd_project_step_scaled(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial, BLK):
+    """:func:`apgd_project_step` with ``scaled``."""
+    width = OUT.shape[0]
+    for c in range(nc):
+        yn = GYN[c]
+        bn = BLK[0, c]
+        bt = BLK[1, c]
+        tn = t * bn
+        tt = t * bt
+        n0, n1, n2, n3 = _cone_select(
+            Y[0, c] - tn * yn, Y[1, c] - tt * GY[1, c], Y[2, c] - tt * GY[2, c], Y[3, c] - tt * GY[3, c],
+            mu[c], BLK[2, c],
+        )  # fmt: skip
+        OUT[0, c] = n0
+        OUT[1, c] = n1
+        OUT[2, c] = n2
+        OUT[3, c] = n3
+        rolling = width == 8 and croll[c, 2] > 0.0
+        if width == 8:
+            if rolling:
+                tr = t * croll[c, 3]
+                r4 = Y[4, c] - tr * GY[4, c]
+                r5 = Y[5, c] - tr * GY[5, c]
+                r6 = Y[6, c] - tr * GY[6, c]
+                OUT[4, c], OUT[5, c], OUT[6, c] = clamp_norm(r4, r5, r6, croll[c, 0] * n0)
+                OUT[7, c] = clamp_abs(Y[7, c] - tr * GY[7, c], croll[c, 1] * n0)
+            else:
+                OUT[4, c] = 0.0
+                OUT[5, c] = 0.0
+                OUT[6, c] = 0.0
+                OUT[7, c] = 0.0
+        if trial:
+            s0 = n0 - Y[0, c]
+            s1 = n1 - Y[1, c]
+            s2 = n2 - Y[2, c]
+            s3 = n3 - Y[3, c]
+            d2 = s0 * s0 / bn + (s1 * s1 + s2 * s2 + s3 * s3) / bt
+            d3 = 0.0 + yn * (n0 - GK[0, c])
+            d3 += GY[1, c] * (n1 - GK[1, c])
+            d3 += GY[2, c] * (n2 - GK[2, c])
+            d3 += GY[3, c] * (n3 - GK[3, c])
+            if rolling:
+                sr = 0.0
+                for k in range(4, 8):
+                    s = OUT[k, c] - Y[k, c]
+                    sr += s * s
+                    d3 += GY[k, c] * (OUT[k, c] - GK[k, c])
+                d2 += sr / croll[c, 3]
             D2[c] = d2
             D3[c] = d3
 

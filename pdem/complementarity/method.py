@@ -111,13 +111,14 @@ class ComplementarityParams(LawParams):
     )
     scaling: Literal["trace", "block"] = Field(
         "block",
-        description="how Jacobi and Gauss–Seidel scale each contact's update: 'block' (default) by "
-        "the inverse of the contact's diagonal Delassus block D, normal and tangential rows apart "
-        "(for spheres D is diagonal in the contact frame: its tangential entry holds the levers' "
-        "rotation), with the cone projection in D's metric so that the fixed point is the same "
-        "contact problem; 'trace' steps every row by 3/tr(D) (pdem's scaling before this option), "
-        "which moves the normal impulse 2.7× less per sweep (3/tr(D) = 0.37/D_n between solid "
-        "spheres). The residual and the stopping rule are the same for both",
+        description="how the solvers scale each contact's update: 'block' (default) by the inverse "
+        "of the contact's diagonal Delassus block D, normal and tangential rows apart (for spheres D "
+        "is diagonal in the contact frame: its tangential entry holds the levers' rotation), with the "
+        "cone projection in D's metric so that the fixed point is the same contact problem (APGD: "
+        "the same block as its preconditioner); 'trace' steps every row of Jacobi and Gauss–Seidel "
+        "by 3/tr(D), which moves the normal impulse 2.7× less per sweep (3/tr(D) = 0.37/D_n between "
+        "solid spheres), and runs APGD unpreconditioned (pdem's solvers before this option). The "
+        "residual and the stopping rule are the same for both",
     )
     check_every: int = Field(
         1,
@@ -1143,6 +1144,10 @@ class _ApgdSolve:
         self.cscale = st.cscale[:nc]
         self.croll = st.croll[:nc]
         self.rows = st._counted_rows(nc)
+        # scaling = "block": APGD on B^-½ γ (the contacts' Delassus blocks as a preconditioner):
+        # steps t B ũ, projections and |γ − y|² in B⁻¹'s metric (ck.apgd_project_step)
+        self.scaled = st.p.scaling == "block"
+        self.blk = st._block_columns(nc) if self.scaled else np.empty((3, 0))
         # serially, or no contact held by two ranks: every row counts
         self.all_rows = self.rows.shape[0] == nc
         # Work arrays are reused through the solve and across steps (views of one block): allocating
@@ -1165,6 +1170,18 @@ class _ApgdSolve:
         """Global exact Σ a·b for each (a, b) (columns) and global max of each local value."""
         rows, all_rows = self.rows, self.all_rows
         return exact_reduce(self.comm, [dot_partials_columns(a, b, rows, all_rows) for a, b in pairs], maxima)
+
+    def row_scales(self) -> np.ndarray:
+        """B of every row in columns (width, nc): B_n, B_t (×3) and the rolling rows' B_r (1 where a
+        contact has none: its rows are zero)."""
+        width, nc = self.width, self.nc
+        S = np.empty((width, nc))
+        S[0] = self.blk[0]
+        S[1:4] = self.blk[1]
+        if width == 8:
+            br = self.croll[:, 3]
+            S[4:] = np.where(br > 0.0, br, 1.0)
+        return S
 
     def normal(self, u: np.ndarray, un: np.ndarray) -> np.ndarray:
         """The normal row of ũ: the corrected one, or u's own for the relaxed cone."""
@@ -1216,18 +1233,21 @@ class _ApgdSolve:
         G0[:] = g0.T
         GH[:] = ghat.T
         d = G0 - GH
-        nd = math.sqrt(self.reduce([(d, d)])[0][0])
+        S = self.row_scales() if self.scaled else None
+        self.inv_s = 1.0 / S if self.scaled else None
+        nd = math.sqrt(self.reduce([(d, d * self.inv_s if self.scaled else d)])[0][0])  # (in B⁻¹'s metric)
         self.grad(G0, GY, GYN_c)  # ũ and u at the first y = γ0
         self.gyn = self.normal(GY, GYN_c)
         if nd > 0.0:
             self.grad(GH, UN, UNN_c)
             du = GY - UN
             du[0] = self.gyn - self.normal(UN, UNN_c)
-            lip = math.sqrt(self.reduce([(du, du)])[0][0]) / nd
+            lip = math.sqrt(self.reduce([(du, du * S if self.scaled else du)])[0][0]) / nd
         else:
             lip = 0.0
         if not (lip > 0.0):
-            local = float(np.max(3.0 / cscale)) if nc else -math.inf
+            # the largest diagonal block's trace: of N_cc, or of B N_cc = I (3) when scaled
+            local = (3.0 if self.scaled else float(np.max(3.0 / cscale))) if nc else -math.inf
             lip = self.reduce([], [local])[1][0]
         self.lip = lip
         self.t = 1.0 / lip
@@ -1263,7 +1283,10 @@ class _ApgdSolve:
         trials = 0
         while True:
             # Π(y − t ∇), with the corrected cone's trial sums |γ − y|² and ũ(y)·(γ − γ_k)
-            ck.apgd_project_step(y, GY, self.gyn, gam_k, self.t, cmu, croll, nc, g_new, D[1], D[2], corrected)
+            ck.apgd_project_step(
+                y, GY, self.gyn, gam_k, self.t, cmu, croll, nc, g_new, D[1], D[2], corrected, self.blk,
+                self.scaled,
+            )  # fmt: skip
             self.grad(g_new, u_new, UNN_c, corrected)  # and (γ − y)·(ũ(γ) − ũ(y))
             res_args = (g_new, u_new, self.normal(u_new, UNN_c), cmu, cscale, croll, nc, D[3])
             local_res = ck.apgd_residual(*res_args) if check else math.inf
@@ -1275,7 +1298,8 @@ class _ApgdSolve:
                 step = g_new - y
                 restart_terms = (GY, g_new - gam_k)
                 s, m = self.reduce(
-                    [(g_new, u_new - r_vec), (r_vec, g_new), (GY, step), (step, step), restart_terms],
+                    [(g_new, u_new - r_vec), (r_vec, g_new), (GY, step),
+                     (step, step * self.inv_s if self.scaled else step), restart_terms],
                     [local_res],
                 )
                 accept = self.objective(s[0], s[1]) <= fy + s[2] + 0.5 * self.lip * s[3]
