@@ -71,17 +71,10 @@ from ..api import (
 
 @njit(inline="always")
 def project_cone(gn, tx, ty, tz, mu):
-    """Euclidean projection of (γ_n, γ_t) onto the cone K = {γ_n ≥ 0, |γ_t| ≤ μ γ_n}."""
-    t = math.sqrt(tx * tx + ty * ty + tz * tz)
-    if mu <= 0.0:
-        return max(gn, 0.0), 0.0, 0.0, 0.0
-    if t <= mu * gn:
-        return gn, tx, ty, tz
-    if mu * t <= -gn:
-        return 0.0, 0.0, 0.0, 0.0
-    gn2 = (mu * t + gn) / (mu * mu + 1.0)
-    s = mu * gn2 / t
-    return gn2, tx * s, ty * s, tz * s
+    """Euclidean projection of (γ_n, γ_t) onto the cone K = {γ_n ≥ 0, |γ_t| ≤ μ γ_n}: on the surface
+    γ_n = (γ_n + μ|γ_t|)/(μ² + 1), the origin when μ|γ_t| ≤ −γ_n (:func:`project_cone_weighted`
+    with ρ = 1)."""
+    return project_cone_weighted(gn, tx, ty, tz, mu, mu)
 
 
 @njit(inline="always")
@@ -1266,17 +1259,7 @@ def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial, BLK,
         OUT[2, c] = n2
         OUT[3, c] = n3
         rolling = croll[c, 2] > 0.0
-        if rolling:
-            r4 = Y[4, c] - t * GY[4, c]
-            r5 = Y[5, c] - t * GY[5, c]
-            r6 = Y[6, c] - t * GY[6, c]
-            OUT[4, c], OUT[5, c], OUT[6, c] = clamp_norm(r4, r5, r6, croll[c, 0] * n0)
-            OUT[7, c] = clamp_abs(Y[7, c] - t * GY[7, c], croll[c, 1] * n0)
-        else:
-            OUT[4, c] = 0.0
-            OUT[5, c] = 0.0
-            OUT[6, c] = 0.0
-            OUT[7, c] = 0.0
+        _apgd_roll_step(Y, GY, OUT, c, t, croll, n0, rolling)
         if trial:
             s = n0 - Y[0, c]
             d2 = 0.0 + s * s
@@ -1287,6 +1270,23 @@ def apgd_project_step(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, trial, BLK,
                 d3 += GY[k, c] * (OUT[k, c] - GK[k, c])
             D2[c] = d2
             D3[c] = d3
+
+
+@njit(inline="always")
+def _apgd_roll_step(Y, GY, OUT, c, tr, croll, n0, rolling):
+    """The rolling rows of APGD's projected step for contact ``c``: ρ, σ − ``tr`` ũ clamped to the
+    bounds of the new γ_n ``n0`` (zero where the contact has none)."""
+    if rolling:
+        r4 = Y[4, c] - tr * GY[4, c]
+        r5 = Y[5, c] - tr * GY[5, c]
+        r6 = Y[6, c] - tr * GY[6, c]
+        OUT[4, c], OUT[5, c], OUT[6, c] = clamp_norm(r4, r5, r6, croll[c, 0] * n0)
+        OUT[7, c] = clamp_abs(Y[7, c] - tr * GY[7, c], croll[c, 1] * n0)
+    else:
+        OUT[4, c] = 0.0
+        OUT[5, c] = 0.0
+        OUT[6, c] = 0.0
+        OUT[7, c] = 0.0
 
 
 @njit
@@ -1309,18 +1309,7 @@ def _apgd_project_step_scaled(Y, GY, GYN, GK, t, mu, croll, nc, OUT, D2, D3, tri
         OUT[3, c] = n3
         rolling = width == 8 and croll[c, 2] > 0.0
         if width == 8:
-            if rolling:
-                tr = t * croll[c, 3]
-                r4 = Y[4, c] - tr * GY[4, c]
-                r5 = Y[5, c] - tr * GY[5, c]
-                r6 = Y[6, c] - tr * GY[6, c]
-                OUT[4, c], OUT[5, c], OUT[6, c] = clamp_norm(r4, r5, r6, croll[c, 0] * n0)
-                OUT[7, c] = clamp_abs(Y[7, c] - tr * GY[7, c], croll[c, 1] * n0)
-            else:
-                OUT[4, c] = 0.0
-                OUT[5, c] = 0.0
-                OUT[6, c] = 0.0
-                OUT[7, c] = 0.0
+            _apgd_roll_step(Y, GY, OUT, c, t * croll[c, 3], croll, n0, rolling)
         if trial:
             s0 = n0 - Y[0, c]
             s1 = n1 - Y[1, c]
