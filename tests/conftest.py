@@ -1,9 +1,19 @@
-"""Shared pytest configuration: long runs are opt-in with --runslow.
+"""Shared pytest configuration: two opt-in tiers beside the default suite.
+
+- ``--integration`` adds the integration runs (marker ``integration``): each takes 5 s or more on
+  2 cores — whole decks, bitwise identity on 3-4 ranks (more ranks than such a machine has cores),
+  resumes across rank counts, kills. The default suite keeps a short version of each MPI identity
+  scene on 1 and 2 ranks; CI (.ci/run) runs both.
+- ``--runslow`` adds the full experiments (marker ``slow``).
 
 The MPI tests run 3-4 ranks on 2-core machines. MPICH's ranks busy-poll while they wait, so an
 oversubscribed rank waits for a descheduled one at every exchange; letting idle ranks sleep a
 microsecond (MPIR_CVAR_CH4_PROGRESS_THROTTLE) made a 4-rank DEM-C hopper run 1.4-1.6x faster on
 such a machine. It changes timing only, never results. The launched processes inherit it.
+
+Most tests launch pdem in fresh processes. Where Python is told not to write bytecode
+(``PYTHONDONTWRITEBYTECODE``, common in containers), each of them compiled pdem's sources again:
+the session compiles them once (``compileall``) and every process reads the bytecode.
 
 The ``run_pdem`` fixture runs pdem's command line in-process (``pdem.cli.main``) and returns its exit
 code and what it printed to stdout and stderr; ``run_pdem_guarded`` does the same within a 180 s
@@ -26,15 +36,18 @@ os.environ.setdefault("MPIR_CVAR_CH4_PROGRESS_THROTTLE", "1")
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False,
                      help="also run tests marked slow (full experiments, large scenes)")
+    parser.addoption("--integration", action="store_true", default=False,
+                     help="also run tests marked integration (runs of 5 s or more: whole decks, 3-4 ranks)")
 
 
 def pytest_collection_modifyitems(config, items):
-    if config.getoption("--runslow"):
-        return
-    skip = pytest.mark.skip(reason="slow: run with --runslow")
+    tiers = {"slow": "--runslow", "integration": "--integration"}
+    skips = {marker: pytest.mark.skip(reason=f"{marker}: run with {option}")
+             for marker, option in tiers.items() if not config.getoption(option)}
     for item in items:
-        if "slow" in item.keywords:
-            item.add_marker(skip)
+        for marker, skip in skips.items():
+            if marker in item.keywords:
+                item.add_marker(skip)
 
 
 class PdemResult(NamedTuple):
@@ -118,7 +131,22 @@ def pytest_configure(config):
         return
     if config.getoption("collectonly", False) or config.getoption("help", False):
         return
+    _compile_sources()
     _warm_kernels()
+
+
+def _compile_sources() -> None:
+    """Bytecode for pdem and tools/, written once: the launched processes then skip compiling
+    them (about half a second each where bytecode is not written on import)."""
+    import compileall
+    from pathlib import Path
+
+    import pdem
+
+    root = Path(__file__).resolve().parents[1]
+    for folder in (Path(pdem.__file__).parent, root / "tools"):
+        if folder.is_dir():
+            compileall.compile_dir(str(folder), quiet=2, workers=1)
 
 
 def _warm_kernels() -> None:

@@ -29,6 +29,7 @@ def test_exact_data_give_the_parameters_back(A, k, b):
     assert fixed["b"] == 2.5 and fixed["k"] == pytest.approx(k, abs=1e-4)
 
 
+@pytest.mark.integration
 def test_standard_errors_cover_noisy_data():
     """Over 100 noisy data sets (2 % scatter), |b − 2.5| stays within 2 standard errors in about 95 %
     of them (at least 80 %: five points and three parameters make the error itself uncertain)."""

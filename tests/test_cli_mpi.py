@@ -77,6 +77,7 @@ def _index_ok(out: Path) -> list[float]:
     return times
 
 
+@pytest.mark.integration
 def test_per_rank_output_continued_on_another_rank_count(tmp_path):
     """2 ranks write per-rank HDF5 and VTK pieces and stop; 3 ranks resume into the same directory:
     one series (each time once, every referenced piece present), bitwise equal to a serial run."""
@@ -121,6 +122,7 @@ def test_per_rank_output_continued_on_another_rank_count(tmp_path):
         assert np.array_equal(a[2][key], b[2][key]), key
 
 
+@pytest.mark.integration
 def test_instability_reported_alike_on_1_and_2_ranks(tmp_path):
     """The deck runner defers each step's stability check to the next step's list test (one
     collective a step less) and checks first in whatever writes the state: a run that blows up fails
@@ -148,6 +150,7 @@ def test_instability_reported_alike_on_1_and_2_ranks(tmp_path):
     assert at > 5 and last == at - 1  # a row at every step up to the failed one, which has none
 
 
+@pytest.mark.integration
 def test_series_identical_on_1_and_3_ranks(tmp_path):
     """Every measured column of a series, wall contact counts included (each rank counts its own:
     they are summed over ranks), is the same on 1 and 3 ranks; only the balancing columns differ."""

@@ -336,6 +336,7 @@ def test_apgd_warm_start_on_a_static_stack():
     assert capped["warm"] < 1e-6 * capped["cold"], capped
 
 
+@pytest.mark.integration
 def test_apgd_warm_and_cold_starts_reach_the_same_velocities():
     """Solved to the tolerance, a warm and a cold start reach the same velocities (the CCP's are
     unique), here on a packing that is still settling (many contacts, grains moving)."""
@@ -400,6 +401,7 @@ def test_one_key_switches_the_hopper_deck_and_per_law_tables(tmp_path):
         load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.solver=newton"])
 
 
+@pytest.mark.integration
 def test_dem_c_deck_run_writes_solver_series(tmp_path):
     """A small deck under DEM-C: summary.json reports the solver, solver_<stage>.csv every step."""
     import json

@@ -177,7 +177,7 @@ def test_weighted_cone_projection_is_the_closest_point_in_its_metric():
     gn = np.linspace(0.0, 4.0, 201)[:, None, None]
     s = np.linspace(0.0, 1.0, 41)[None, :, None]
     th = np.linspace(0.0, 2 * np.pi, 73)[None, None, :]
-    for _ in range(200):
+    for _ in range(40):
         mu = rng.choice([0.1, 0.5, 1.0])
         rho = rng.uniform(1.0, 4.0)
         y = rng.normal(size=4)

@@ -57,7 +57,7 @@ def heights(sim, steps, until=None):
 
 
 # ----------------------------------------------------------------------------------- a sliding block
-@pytest.mark.parametrize("dt", [1e-3, 1e-4])
+@pytest.mark.parametrize("dt", [1e-3, pytest.param(1e-4, marks=pytest.mark.integration)])
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_sliding_block_stays_on_the_floor_and_stops_after_v2_over_2_mu_g(solver, dt):
     """A non-rotating sphere launched at 5 m/s along a floor (μ = 0.5): its height changes by less
@@ -119,6 +119,7 @@ def test_free_sphere_slides_then_rolls_on_the_floor(cone, dt):
 
 
 # ----------------------------------------------------------------------------------- walls
+@pytest.mark.integration
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_block_sliding_under_a_rigid_body_lid(solver):
     """A block (non-rotating sphere) slides at 2 m/s between a fixed floor and a lid that is a free
@@ -154,6 +155,7 @@ def test_block_sliding_under_a_rigid_body_lid(solver):
     assert lid_relaxed - 2 * R > 0.1 * R
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_block_on_a_moving_floor_is_carried_without_lifting(solver):
     """A conveyor: the floor moves along x at 1 m/s under a block at rest. The block slides on it,

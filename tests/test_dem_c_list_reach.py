@@ -7,6 +7,7 @@ envelope plus the skin at every rebuild), bit for bit."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from physics_helpers import E_MOD, NU, RHO
 
 import pdem
@@ -68,6 +69,7 @@ def _run(wide: bool, monkeypatch):
     return sim, states, pairs, calls
 
 
+@pytest.mark.integration
 def test_list_without_skin_while_grains_are_fast_gives_the_same_bits(monkeypatch):
     sim, got, pairs, calls = _run(False, monkeypatch)
     ref, want, ref_pairs, _ = _run(True, monkeypatch)

@@ -87,6 +87,7 @@ def test_dropped_sphere_rebounds_to_e_squared_of_its_height(e):
     assert ratio == pytest.approx(e * e, rel=0.01)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("solver", ["apgd", "gauss_seidel"])
 def test_rebound_with_the_serial_solvers(solver):
     """The other solvers give the same rebound (e = 0.5) to within their tolerance."""

@@ -127,6 +127,7 @@ def test_bad_stiffness_declarations_are_errors():
         sim.add_load_stiffness([0], [1.0, 2.0])
 
 
+@pytest.mark.integration
 def test_membrane_grains_are_scaled_at_the_dem_c_step_and_the_run_stays_bounded(small_packing):
     """The triaxial membrane (300 poured beads, σ3 = 20 kPa at once) at DEM-C's automatic step for
     these grains, h = 1e-4 s: the membrane declares its stiffness (h² k/m ≈ 10 on its stiffest
@@ -206,6 +207,7 @@ MPI_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
 def test_scaled_masses_are_bitwise_identical_on_1_2_3_ranks(tmp_path, small_packing):
     """Ghost copies take their owners' scaled masses (forwarded every scaled step): a DEM-C

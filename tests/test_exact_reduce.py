@@ -136,6 +136,7 @@ def _hostile_terms(rng, n):
     return x
 
 
+@pytest.mark.integration
 def test_exact_add_many_is_term_by_term_exact_add():
     """A block added at once (a bin per exponent first) leaves the accumulator with the value of
     the same terms added one by one: the same partials, the same plain sum of non-finite terms; the

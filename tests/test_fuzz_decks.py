@@ -417,7 +417,10 @@ def run_case(name: str, case: dict, tmp: Path, capsys) -> tuple[int, str]:
     return code, err
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# the 50 MB deck is parsed and run in full (10 s on 2 cores): an integration run
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.integration) if n == "title 50 MB" else n for n in CASES]
+)
 def test_hostile_deck(name, tmp_path, capsys, plugins, monkeypatch):
     monkeypatch.chdir(tmp_path)
     run_case(name, CASES[name], tmp_path, capsys)

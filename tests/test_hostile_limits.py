@@ -318,6 +318,7 @@ def test_stage_count_limited(tmp_path, run_pdem_guarded):
     assert code == 0, err
 
 
+@pytest.mark.integration
 def test_boundary_count_limited(tmp_path, run_pdem_guarded):
     extra = "".join(
         f'[boundaries.w{i}]\ntype = "plane"\nmaterial = "glass"\npoint = [0, 0, -{i + 1}]\n'

@@ -192,6 +192,7 @@ def _box_mesh_file(tmp_path, lo, hi):
     return path
 
 
+@pytest.mark.integration
 def test_stl_box_gives_the_loads_of_the_six_planes(tmp_path):
     lo, hi = np.array([-6 * R, -6 * R, 0.0]), np.array([6 * R, 6 * R, 12 * R])
     rng = np.random.default_rng(2)
@@ -265,6 +266,7 @@ def test_grain_on_a_facet_diagonal_counts_once():
 
 
 # ----------------------------------------------------------------------------------- rigid bodies
+@pytest.mark.integration
 @pytest.mark.parametrize("law", ["hertz_mindlin", "complementarity"])
 def test_dropped_rigid_ball_falls_freely_then_rests_on_fixed_grains(law):
     sim = _sim(law, gravity=(0, 0, -9.81))

@@ -112,6 +112,7 @@ LOW_FILL = [
 ]
 
 
+@pytest.mark.integration
 def test_hopper_identical_on_1_2_3_ranks(tmp_path):
     """tools/determinism.py: the hopper (grains crossing subdomains, leaving through the sink). 2 and
     3 ranks split it in slabs (3: an interior subdomain with two neighbours); 4 ranks took the same
@@ -174,6 +175,7 @@ def _dem_c_hopper(ranks, steps, tmp_path, sets=()):
     return proc
 
 
+@pytest.mark.integration
 def test_dem_c_jacobi_identical_on_1_2_3_ranks(tmp_path):
     """DEM-C with the distributed projected Jacobi solver: the same hopper, mid-discharge, is
     bitwise identical on 1, 2 and 3 ranks (one ghost-velocity exchange per iteration; 4 ranks took
@@ -183,6 +185,7 @@ def test_dem_c_jacobi_identical_on_1_2_3_ranks(tmp_path):
     _dem_c_hopper((1, 2, 3), 160, tmp_path, ["contact.complementarity.max_iterations=20"])
 
 
+@pytest.mark.integration
 def test_dem_c_apgd_identical_on_1_2_3_ranks(tmp_path):
     """DEM-C with APGD under MPI: the same hopper, mid-discharge, is bitwise identical on 1, 2 and
     3 ranks, and so is every step's iteration count (solver_<stage>.csv): the global sums that
@@ -220,20 +223,20 @@ PERIODIC_STEPS = 1000
 PERIODIC_DETERMINISM_STEPS = 250
 
 
-def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
+@pytest.mark.parametrize(
+    "rank_counts", [("1", "2"), pytest.param(("1", "2", "3", "4:2x2x1"), marks=pytest.mark.integration)]
+)
+def test_periodic_column_collapse_identical_across_ranks(tmp_path, rank_counts):
     """tools/determinism.py: periodic x and y; the default grids split x (2 and 3 subdomains, the
     periodic face between two ranks, or the same rank on both sides when split in two; 4 slabs took
     the same paths as 3), and a 2x2x1 grid splits y as well (edges and corners forwarded across both
-    periodic faces)."""
+    periodic faces). The default suite runs 1 and 2 ranks."""
     cmd = [
         sys.executable,
         str(ROOT / "tools" / "determinism.py"),
         str(PERIODIC_DECK),
         "--ranks",
-        "1",
-        "2",
-        "3",
-        "4:2x2x1",
+        *rank_counts,
         "--steps",
         str(PERIODIC_DETERMINISM_STEPS),
         "--keep",
@@ -241,9 +244,9 @@ def test_periodic_column_collapse_identical_on_1_2_3_4_ranks(tmp_path):
     ]
     proc, crossed = _run_counting_crossings(cmd, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.count("bitwise identical") == 3
+    assert proc.stdout.count("bitwise identical") == len(rank_counts) - 1
     assert f"400 particles at step {PERIODIC_DETERMINISM_STEPS}" in proc.stdout
-    _assert_crossed(crossed, (2, 3, 4))
+    _assert_crossed(crossed, [int(k.split(":")[0]) for k in rank_counts[1:]])
 
 
 _FAIL = textwrap.dedent(
@@ -292,6 +295,7 @@ def test_failure_on_one_rank_ends_every_rank(tmp_path):
     assert elapsed < 120, f"the job took {elapsed:.0f} s to end"
 
 
+@pytest.mark.integration
 def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
     """n -> m resume: 2 ranks to step 2500, checkpoint, 3 ranks to 5000 (mid-discharge)
     == 1 rank to 5000, bitwise."""
@@ -316,6 +320,7 @@ def test_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
     assert compare(full, resumed) is None
 
 
+@pytest.mark.integration
 def test_periodic_checkpoint_written_on_2_ranks_resumes_on_3(tmp_path):
     """n -> m resume across periodic faces: 2 ranks to step 500, 3 ranks on to 1000 == 1 rank to 1000."""
     sys.path.insert(0, str(ROOT / "tools"))
@@ -373,6 +378,7 @@ _RESOLVE_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("solver", ["jacobi", "apgd"])
 def test_dem_c_envelope_second_solve_identical_on_1_2_3_ranks(tmp_path, solver):
     """Steps solved a second time because the per-contact envelope left out a contact that an impulse
@@ -418,6 +424,7 @@ _ADD_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 def test_particles_added_after_a_run_identical_on_1_2_3_ranks(tmp_path):
     """Grains added after a run (a second preparation, which chooses the automatic skin again and
     fits it to the subdomains): the same bits on 1, 2 and 3 ranks."""
@@ -466,6 +473,7 @@ _UNSTABLE_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("steps,every", [(200, 1), (200, 7), (200, 500)])
 def test_instability_raised_at_the_same_step_on_1_2_3_ranks(tmp_path, steps, every):
     """A step's stability check is deferred to the next step's list test on several ranks
@@ -493,6 +501,7 @@ def test_instability_raised_at_the_same_step_on_1_2_3_ranks(tmp_path, steps, eve
     assert calls == (at - 1) // every and last < at  # the failed step was never handed to a callback
 
 
+@pytest.mark.integration
 def test_instability_on_the_last_step_is_raised_by_run(tmp_path):
     """A run that ends on the failed step still raises (run() checks what it deferred)."""
     script = tmp_path / "unstable.py"
@@ -508,6 +517,7 @@ def test_instability_on_the_last_step_is_raised_by_run(tmp_path):
     assert all(ln.split()[6] == "False" for ln in lines)  # run()'s own last check: nothing drifted
 
 
+@pytest.mark.integration
 def test_jacobi_bound_tool_agrees_on_1_and_2_ranks(tmp_path):
     """tools/jacobi_bound.py on the short DEM-C hopper (rolling friction on): the loaded contacts'
     count and λ_max of B N at each measure are the same on 2 ranks as serially (exact global sums,

@@ -46,6 +46,7 @@ def test_the_empty_first_stage_deck_is_what_it_says():
     assert EMPTY_FIRST.count("[[stages]]") == 2 and 'stage = "drop"' in EMPTY_FIRST
 
 
+@pytest.mark.integration
 @needs_mpi
 def test_empty_first_stage_on_2_ranks_equals_the_serial_run(tmp_path):
     sys.path.insert(0, str(ROOT / "tools"))
@@ -101,6 +102,7 @@ _PLACE = textwrap.dedent(
 )
 
 
+@pytest.mark.integration
 @needs_mpi
 def test_grains_of_a_later_stage_are_decomposed_as_if_there_from_the_start(tmp_path):
     """A column of 108 grains added after 5 steps without any: on 3 ranks the grid and cut planes

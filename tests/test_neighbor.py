@@ -188,6 +188,7 @@ assert got == want, "build_pairs disagrees with brute force"
 """
 
 
+@pytest.mark.integration
 def test_kernels_are_right_whichever_were_cached_by_an_earlier_process(tmp_path):
     """numba names some internal helpers (its sort and argsort) alike in every module: a kernel
     loaded from the cache into a process that has just compiled another kernel can call that

@@ -172,6 +172,7 @@ def test_nan_positions_reach_the_forces_as_in_the_generic_loop():
         assert same_bits(a, b)
 
 
+@pytest.mark.integration
 def test_non_contiguous_history_takes_the_generic_loop():
     """The passes read history and pair-force rows as bits, which needs C-contiguous arrays; a view
     of a wider array gets the generic loop, with the same results."""

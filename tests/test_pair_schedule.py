@@ -143,6 +143,7 @@ if comm.rank == 0:
 """
 
 
+@pytest.mark.integration
 def test_scheduled_loop_identical_on_1_2_3_ranks(tmp_path):
     import shutil
     import subprocess

@@ -89,6 +89,7 @@ def _check_png(path: Path, size: tuple[int, int] | None = None) -> None:
     assert len(np.unique(rgb, axis=0)) > 10, f"{path} is (nearly) one colour"
 
 
+@pytest.mark.integration
 def test_plot_series_and_discharge(run_dir, tmp_path):
     ps = _tool("plot_series")
     path = ps.plot_series(run_dir, tmp_path / "series.png")

@@ -80,6 +80,7 @@ def test_bad_keys_are_deck_errors():
         load_deck(SMALL, overrides=["boundaries.box.shear_stage=shaer"])
 
 
+@pytest.mark.integration
 def test_normal_stress_held_during_shear(dem_p):
     summary, s = dem_p
     res = summary["results"]["box"]
@@ -90,6 +91,7 @@ def test_normal_stress_held_during_shear(dem_p):
     assert res["final_displacement"] == pytest.approx(0.004, abs=5e-5)
 
 
+@pytest.mark.integration
 def test_shear_force_builds_up_and_levels_off(dem_p):
     _, s = dem_p
     u, f = s["box.displacement"], s["box.shear_force"]
@@ -107,6 +109,7 @@ def test_shear_force_builds_up_and_levels_off(dem_p):
     assert 0.2 < ratio[u > 2e-3].mean() < 1.0  # a friction angle between 11° and 45°
 
 
+@pytest.mark.integration
 def test_normal_force_on_the_shear_plane(dem_p):
     """The normal force across the plane (from the lower grains' equilibrium) is the plate's load
     plus the weight of the grains above the plane, less what the upper walls carry by friction:
@@ -120,6 +123,7 @@ def test_normal_force_on_the_shear_plane(dem_p):
     assert res["residual_plane_ratio"] < res["residual_ratio"]
 
 
+@pytest.mark.integration
 def test_dilation_measured_and_no_grain_escapes(dem_p):
     summary, s = dem_p
     res = summary["results"]["box"]
@@ -131,6 +135,7 @@ def test_dilation_measured_and_no_grain_escapes(dem_p):
     assert summary["particles"] == 350
 
 
+@pytest.mark.integration
 def test_friction_orders_the_strength(tmp_path, dem_p_run):
     """Frictionless grains and walls resist little (geometric interlocking only); mu = 0.5 more than
     the shipped mu = 0.18. The same consolidated sample (the shipped run's checkpoint where its shear
@@ -179,6 +184,7 @@ def test_empty_box_reads_zero_shear_force():
 
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("capped", [True, False])
 def test_low_stress_servo_at_a_larger_step(monkeypatch, capped):
     """150 beads of 2 mm under 50 Pa with the small deck's max_speed = 0.3 m/s (gain 6e-3 m/(s Pa)):

@@ -142,6 +142,7 @@ def test_a_resume_may_name_the_laws_keys_in_their_table(tmp_path):
     assert _iterations(out, "c") == [7] * 20
 
 
+@pytest.mark.integration
 def test_a_stage_may_switch_solver_and_stays_identical_on_2_ranks(tmp_path):
     import shutil
     import subprocess

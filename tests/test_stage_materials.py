@@ -129,6 +129,7 @@ def test_deck_rejects_an_unknown_stage_material(tmp_path, capsys):
     assert "stages.0.materials.glass" in err and "unknown material 'glass'" in err
 
 
+@pytest.mark.integration
 def test_pluviation_friction_makes_a_looser_pour():
     from pdem.materials import Material
     from pdem.sources import pluviate

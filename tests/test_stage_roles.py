@@ -350,6 +350,7 @@ def test_boundary_params_off_stages_default_is_left_out_of_resolved_decks():
     assert "off_stages" not in load_deck(TRIAXIAL).resolved_dict()["boundaries"]["cell"]
 
 
+@pytest.mark.integration
 def test_a_finished_triaxial_resumed_with_a_later_shear_stage(tmp_path):
     """End to end on a short triaxial_small: the finished run's checkpoint, resumed with a stage
     'more' added, is refused by the stage check (pdem's resume path, real checkpoint); named as a

@@ -411,6 +411,7 @@ def _pdem(*args):
                           timeout=600)
 
 
+@pytest.mark.integration
 def test_run_below_the_bound_records_it(tmp_path):
     proc = _pdem(*RUN, "--output", tmp_path / "ok", "--quiet")
     assert proc.returncode == 0, proc.stderr
@@ -445,6 +446,7 @@ def test_limit_zero_lets_the_run_go_on_with_a_warning(tmp_path):
     assert "warning: dt = 1e-05 s exceeded the step the contact network bore" in proc.stdout
 
 
+@pytest.mark.integration
 def test_resumed_run_keeps_the_record(tmp_path):
     """The smallest bound and its counts survive a checkpoint: a run stopped after 700 steps and
     resumed reports what the uninterrupted run reports."""
@@ -459,6 +461,7 @@ def test_resumed_run_keeps_the_record(tmp_path):
     assert a == b
 
 
+@pytest.mark.integration
 def test_advise_predicts_the_bound_of_a_deck_it_was_not_fitted_on(tmp_path):
     """pdem advise predicts the live bound from the overlap at the scene's stress, with a prefactor
     taken from the shipped triaxial deck (E = 1e8 Pa, 100 kPa, 1,400 beads). On this small triaxial
@@ -485,6 +488,7 @@ def test_advise_predicts_the_bound_of_a_deck_it_was_not_fitted_on(tmp_path):
                           for f in warned)
 
 
+@pytest.mark.integration
 def test_stop_under_mpi_is_collective_and_the_bound_does_not_depend_on_ranks(tmp_path):
     """On 2 ranks the check stops at the same step with the same bound as in serial (a max over
     ranks of per-particle sums), every rank exits 3, nothing hangs."""
@@ -508,6 +512,7 @@ def test_stop_under_mpi_is_collective_and_the_bound_does_not_depend_on_ranks(tmp
     assert stop(serial.stderr) == stop(par.stderr)
 
 
+@pytest.mark.integration
 def test_flat_bed_bound_does_not_depend_on_ranks(tmp_path):
     """The 2-D shock-wave bed's first 250 steps (the struck grain's contacts slide, every grain is
     locked in the plane; 2 ranks cut the bed at the struck grain): the same record, bit for bit, on

@@ -140,6 +140,7 @@ vary = { "contact.max_iterations" = [10, 20] }
     assert plans[-1].knobs["contact.max_iterations"] == 20
 
 
+@pytest.mark.integration
 def test_study_errors_against_a_closed_form_and_failures_are_caught(tmp_path):
     study = Study.from_file(_spec(tmp_path, STEP_STUDY), jobs=2)
     study.run(progress=None)
@@ -168,6 +169,7 @@ def test_study_errors_against_a_closed_form_and_failures_are_caught(tmp_path):
     assert "DEM-P: fastest run within 0.01" in reading and "dt_fraction=6.0" in reading
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
 def test_killed_study_keeps_finished_runs_and_leaves_no_run_behind(tmp_path, sig):
     spec = _spec(tmp_path, "jobs = 1\n" + STEP_STUDY.replace("[0.1, 0.3, 6.0]", "[0.3, 0.06, 6.0]"))
@@ -220,6 +222,7 @@ def _pdem_runs_for(tmp_path: Path) -> list[int]:
     return found
 
 
+@pytest.mark.integration
 def test_finest_reference_and_changed_spec_reruns(tmp_path):
     spec = _spec(tmp_path, """
 [quantities.floor_load]
@@ -244,6 +247,7 @@ vary = { "run.dt_fraction" = [0.1, 0.2] }
     assert all(r.record.sets[0] == "stages.settle.end.time=0.03" for r in results)
 
 
+@pytest.mark.integration
 def test_series_option_runs_only_those_series(tmp_path, capsys):
     """``--series``: the named series run, the others are left unrun (and a later full run does
     them without redoing the first); an unknown name is refused with exit 2, naming the spec's."""
@@ -283,6 +287,7 @@ def test_pareto_front_matches_brute_force(seed):
     assert front == brute
 
 
+@pytest.mark.integration
 def test_mpi_runs_give_the_serial_values(tmp_path):
     """ranks = 2: each run under mpiexec; pdem's results do not depend on the rank count, so the
     table holds the serial run's value bit for bit."""
@@ -309,6 +314,7 @@ vary = { "run.seed" = [1] }
     assert values[1] == values[2]
 
 
+@pytest.mark.integration
 def test_live_bound_columns_and_a_run_it_stops(tmp_path):
     """study.csv carries the live step bound (its smallest value and dt over it); a run the bound
     stops is 'failed' (exit 3), of the stability class 'stopped', and still placed on the step axis

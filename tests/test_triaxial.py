@@ -165,6 +165,7 @@ def _boundary_szz(sim, cell):
     return -(platen + membrane) / cell._volume, f[:, 2].sum()
 
 
+@pytest.mark.integration
 def test_boundary_stresses_agree_with_the_grains_own_stress(packing):
     """The grains' own mean stress (Love–Weber, from their contacts) against the boundary's: σ_rr
     against σ3; σ_zz against the platen's and the membrane's loads (the membrane pushes along its
@@ -184,6 +185,7 @@ def test_boundary_stresses_agree_with_the_grains_own_stress(packing):
     assert m["sigma3"] == pytest.approx(SIGMA3, rel=1e-9)  # what the membrane's loads exert
 
 
+@pytest.mark.integration
 def test_shearing_bulges_the_specimen_and_mobilises_friction(packing):
     # consolidated to σ1 ≈ 0.96 σ3, then ε_a ≈ 5 % at 4 /s (inertial number ≈ 1e-3). Measured: q ≈
     # 0.66 σ3, the radius up 1.4 % (at 2 /s to 8 % after σ1 ≈ σ3: q ≈ σ3, the radius up 2.7 %)
@@ -306,6 +308,7 @@ def test_dem_c_consolidates_under_load_control(packing):
     assert np.mean([m["lw_srr"] for m in rows]) == pytest.approx(SIGMA3, rel=0.1)
 
 
+@pytest.mark.integration
 def test_dem_c_seats_the_platen_as_a_free_plate(packing):
     """Force control in the mould stage (DEM-C): the platen comes down at max_speed from above the
     grains, becomes a free plate at the first contact, and then carries the seating load (the
@@ -341,6 +344,7 @@ def test_dem_c_seats_the_platen_as_a_free_plate(packing):
     assert np.std(tail) < 0.25 * seat  # it rests on the grains, it does not bounce
 
 
+@pytest.mark.integration
 def test_resume_at_every_stage_is_bitwise(tmp_path):
     """Kill points in each stage (settle, consolidation with its pressure ramp, shear with its
     strain references): `pdem resume` continues bit for bit as the uninterrupted run."""
@@ -439,6 +443,7 @@ def _dem_c_resumes_bitwise(tmp_path, stage_steps, stops, *extra, ranks=None):
         assert compare(ref, got) is None, stop
 
 
+@pytest.mark.integration
 def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
     """DEM-C: the platen is a free plate solved with the grains while seating and consolidating
     (force control). Resumed in each stage, the run continues bit for bit. A resume in the
@@ -449,6 +454,7 @@ def test_dem_c_resume_at_every_stage_is_bitwise(tmp_path):
     _dem_c_resumes_bitwise(tmp_path, (40, 120, 80), (20, 100, 200), *every)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("ranks", [None, (2, 3)], ids=["serial", "2-to-3-ranks"])
 def test_dem_c_resume_while_grains_are_fast_is_bitwise(tmp_path, ranks):
     """The DEM-C resume with the stages halved (20 steps of seating, 60 of consolidation, 40 of
@@ -472,6 +478,7 @@ def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):
     assert main(["check", str(deck), "--deck-only"]) == 2
 
 
+@pytest.mark.integration
 def test_tied_membrane_ends_hold_the_end_grains_and_follow_the_platen(packing, tmp_path):
     """``membrane_ends = "tied"``: a ring of the platen radius stands on each platen while the
     membrane acts; the top one follows the top platen. No grain near a platen reaches past the ring,
@@ -510,6 +517,7 @@ def test_tied_membrane_ends_hold_the_end_grains_and_follow_the_platen(packing, t
     assert m["lw_srr"] == pytest.approx(m["sigma3"] + ring_pressure, rel=0.03)
 
 
+@pytest.mark.integration
 def test_tied_membrane_ends_resume_bitwise(tmp_path):
     import sys
     from pathlib import Path

@@ -322,6 +322,7 @@ def test_bed_edges_fixed_and_in_plane(tmp_path, law):
     assert all(t is not None for t in arr) and arr == sorted(arr)
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
 def test_bed_bitwise_identical_on_1_and_3_ranks(tmp_path):
     """DEM-P through the CLI: the sensors' CSV and results and the last snapshot are the same bits."""

@@ -100,6 +100,7 @@ def _table() -> MaterialTable:
     return mt
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("params", [
     {"kn": 1e3},
     {"kn": 5e4, "kt_over_kn": 1.0, "clamp_normal": True},
@@ -187,6 +188,7 @@ def test_restitution_converges_with_dt():
     assert errs[1] / errs[2] == pytest.approx(2.0, rel=0.1)
 
 
+@pytest.mark.integration
 def test_head_on_wall():
     """A sphere on a wall (another material, restitution mixed as the minimum): m* = m."""
     e = 0.5
@@ -383,6 +385,7 @@ def test_critical_dt_is_the_fcc_stability_limit(e, kt_over_kn):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.integration
 def test_pile_comes_to_rest():
     """80 spheres dropped into a box settle: kinetic energy ~0, the walls carry the weight (the floor
     most of it, the side walls the rest through friction), overlaps stay small. A softer k_n than

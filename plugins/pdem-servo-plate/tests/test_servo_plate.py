@@ -37,6 +37,7 @@ def _box_with_plate(law: str, control: str = "velocity"):
     return sim, plate
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("law, control, dt, settle, hold", [
     ("hertz_mindlin", "velocity", 1e-5, 0.2, 0.05),  # 0.15 of the Rayleigh time
     ("complementarity", "force", 2e-4, 0.1, 0.05),
@@ -112,6 +113,7 @@ def test_plugin_is_registered():
     assert "servo_plate" in available("boundaries")
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("capped", [True, False])
 def test_deck_at_a_five_times_larger_step(tmp_path, monkeypatch, capped):
     """The plugin runs from a deck (through the CLI). dt = 1e-5 s, five times the step the deck
