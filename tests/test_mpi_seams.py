@@ -1,7 +1,7 @@
 """The engine seams under MPI: a scene with a shrinking cylinder, a mesh floor, a rigid ball dropped
 on the grains, a boundary force inside the step and a registered per-particle field is bitwise
-identical on 1, 2 and 3 ranks, with DEM-P and with DEM-C (Jacobi, trace-scaled; the ball is solved with
-the grains, its impulses summed exactly across ranks every iteration)."""
+identical on 1, 2 and 3 ranks, with DEM-P and with DEM-C (Jacobi, trace-scaled, and APGD; the ball is
+solved with the grains, its impulses summed exactly across ranks every iteration)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,8 @@ SCRIPT = textwrap.dedent(
     import pdem
     from pdem.api import Boundary, BoundaryParams, Resize, RigidBody, shapes
 
-    law, steps, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    method, steps, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    law = "complementarity" if method == "apgd" else method
     comm = MPI.COMM_WORLD
     R = 1e-3
 
@@ -38,8 +39,10 @@ SCRIPT = textwrap.dedent(
             p.f[:n][sel] += (2e-5, 0.0, 0.0)
 
     sim = pdem.Simulation(comm=comm, law=law)
-    if law == "complementarity":  # the trace-scaled sweep (tests/test_mpi.py runs the default, block)
+    if method == "complementarity":  # the trace-scaled Jacobi sweep (tests/test_mpi.py runs block)
         sim.set_law(law, scaling="trace")
+    elif method == "apgd":  # APGD preconditioned by the contacts' Delassus blocks (the default)
+        sim.set_law(law, solver="apgd", max_iterations=40)
     sim.add_material("glass", density=2500, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.3,
                      friction=0.3)
     sim.gravity = (0, 0, -9.81)
@@ -79,6 +82,7 @@ WIDE = pytest.mark.integration
     [
         ("hertz_mindlin", 3000, (1, 2)),
         ("complementarity", 90, (1, 2)),
+        ("apgd", 90, (1, 2)),
         pytest.param("hertz_mindlin", 3000, (1, 2, 3), marks=WIDE),
         pytest.param("complementarity", 90, (1, 2, 3), marks=WIDE),
     ],
