@@ -164,7 +164,7 @@ def _triaxial_on(tmp_path, ranks_list, packing, *args):
 
 @pytest.mark.parametrize(
     "rank_counts, consolidation, shear",
-    [((1, 2), 1000, 800), pytest.param((1, 2, 3), 1000, 800, marks=pytest.mark.integration)],
+    [((1, 2), 500, 300), pytest.param((1, 2, 3), 1000, 800, marks=pytest.mark.integration)],
 )
 def test_triaxial_identical_across_ranks(tmp_path, small_packing, rank_counts, consolidation, shear):
     """The membrane's outermost grains are a global maximum and its forces act on owned grains, and
