@@ -166,7 +166,7 @@ def resolve_stages(resolved: Any) -> list[StageSettings]:
                 index=index,
                 stage=stage,
                 dt=stage.dt if stage.dt is not None else deck.run.dt,
-                dt_key=f"stages.{stage.name}.dt" if stage.dt is not None else "run.dt",
+                dt_key=f"stages.{stage.name}.dt" if stage.dt is not None else resolved.step_key,
                 output=resolved.output_for(stage.name),
                 law_params=params,
                 contact_given=bool(values),

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..contact.stability import STIFFNESS_LIMIT
+from ..deck.load import LAW_STEP_KEYS
 from ..errors import InputError
 from . import rules
 from .scene import Scene, deck_scene, run_probe
@@ -519,8 +520,9 @@ class _Advisor:
             self.dt_old[st.name] = cur
             info[st.name] = (v, label, t_c, pair, cur)
         given_run = sc.run_dt
-        own = {st.name for st in sc.stages if st.dt_key and st.dt_key != "run.dt"}
-        via_run = [st.name for st in sc.stages if st.dt_key == "run.dt"]
+        run_key = sc.run_dt_key  # run.dt, or the law table's dt
+        own = {st.name for st in sc.stages if st.dt_key and st.dt_key != run_key}
+        via_run = [st.name for st in sc.stages if st.dt_key == run_key]
         via_default = [st.name for st in sc.stages if st.dt_key is None]
         changes: dict[str, Any] = {}
         new_dt: dict[str, float] = {}
@@ -528,7 +530,7 @@ class _Advisor:
             group = min(need[s] for s in via_run)
             if group / given_run >= rules.CHANGE_FACTOR:
                 val = rules.round_sig(group, 2, "down")
-                changes["run.dt"] = val
+                changes[run_key] = val
                 for s in via_run:
                     new_dt[s] = val
             else:
@@ -578,8 +580,8 @@ class _Advisor:
             src = ("physics reference §2: dt ≈ 0.1–0.3 T_R, at least ~20–50 steps per collision "
                    f"(here {rules.STEPS_PER_COLLISION}); t_c = 2.868 (m*²/(R* E*² v))^(1/5)")  # fmt: skip
             mine = {k: v2 for k, v2 in changes.items() if k == f"stages.{st.name}.dt"}
-            if "run.dt" in changes and st.name in via_run and st.name == via_run[0]:
-                mine["run.dt"] = changes["run.dt"]
+            if run_key in changes and st.name in via_run and st.name == via_run[0]:
+                mine[run_key] = changes[run_key]
             if "run.dt_fraction" in changes and st.name in via_default and st.name == via_default[0]:
                 mine["run.dt_fraction"] = changes["run.dt_fraction"]
             if cur > t_r_old * (1 + 1e-12) and not self.deck.run.force_dt:
@@ -593,7 +595,7 @@ class _Advisor:
                 )
                 mysugg = self._dt_setting(st, need[st.name], t_r)
             elif abs(dt / cur - 1) > 1e-9 and dt <= rules.WARN_FACTOR * need[st.name]:
-                via = (st.name in via_run and "run.dt" in changes) or (
+                via = (st.name in via_run and run_key in changes) or (
                     st.name in via_default and "run.dt_fraction" in changes
                 )
                 verdict = "change" if (mine or via) else "ok"
@@ -605,7 +607,7 @@ class _Advisor:
                 fewer = f"{dt / cur:.3g}× fewer steps" if dt > cur else f"{cur / dt:.3g}× more steps"
                 reason = f"dt {cur:.3g} → {dt:.3g} s ({fewer}): {why}; the step is now set by {limit}"
                 if via and not mine:
-                    reason += f" ({'run.dt_fraction' if by_fraction else 'run.dt'}, changed above)"
+                    reason += f" ({'run.dt_fraction' if by_fraction else run_key}, changed above)"
                 elif verdict == "ok":
                     reason += (" (run.dt_fraction follows the stiffness)" if by_fraction else
                                " (the deck gives no dt: pdem's default follows the stiffness)")  # fmt: skip
@@ -645,7 +647,7 @@ class _Advisor:
         (a deck may not give both run.dt and run.dt_fraction)."""
         if st.dt_key is None and self.scene.dt_fraction is not None:
             return {"run.dt_fraction": rules.round_sig(dt / t_r, 2, "down")}
-        return {st.dt_key or "run.dt": rules.round_sig(dt, 2, "down")}
+        return {st.dt_key or self.scene.run_dt_key: rules.round_sig(dt, 2, "down")}
 
     # ------------------------------------------------------------------ inertial number
     def inertial(self) -> None:
@@ -837,20 +839,24 @@ class _Advisor:
         from ..complementarity.method import Complementarity
 
         table = self.raw.get("contact", {}) if isinstance(self.raw.get("contact"), dict) else {}
+        own_dt = None  # DEM-C's own step, [contact.complementarity] dt, in a deck that runs DEM-P
         if isinstance(self.resolved.law_params, Complementarity.Params):  # the deck runs it
             cparams = self.resolved.law_params
         else:
             sub = table.get("complementarity") if isinstance(table.get("complementarity"), dict) else {}
+            own_dt = sub.get("dt")
+            sub = {k: v for k, v in sub.items() if k not in LAW_STEP_KEYS}  # steps, not parameters
             try:
                 cparams = Complementarity.Params.model_validate(sub)
             except Exception:  # noqa: BLE001
                 cparams = Complementarity.Params()
         r_min = min(g.r_min for g in sc.groups)
-        h_c = (
-            float(sc.run_dt)
-            if sc.rigid and sc.run_dt
-            else (cparams.max_travel * r_min / cparams.reference_speed)
-        )
+        if sc.rigid and sc.run_dt:
+            h_c = float(sc.run_dt)
+        elif isinstance(own_dt, int | float) and not isinstance(own_dt, bool) and own_dt > 0:
+            h_c = float(own_dt)
+        else:
+            h_c = cparams.max_travel * r_min / cparams.reference_speed
         layers = max(sc.packed_height / sc.d_mean, 1.0) if math.isfinite(sc.packed_height) else 10.0
         solver = str(cparams.solver)
         estimate = rules.column_iterations(solver, layers, str(cparams.scaling))
@@ -895,6 +901,8 @@ class _Advisor:
         using = (
             "the deck's"
             if sc.rigid
+            else "[contact.complementarity] dt"
+            if own_dt is not None and h_c == own_dt
             else "DEM-C's automatic step (max_travel r_min / reference_speed)"
         )
         reason = (

@@ -83,6 +83,8 @@ class Scene:
     fall_height: float
     footprint: float | None
     probe: dict[str, Any] = field(default_factory=dict)
+    #: the deck key that gives run_dt: run.dt, or contact.<law>.dt (the law's own step)
+    run_dt_key: str = "run.dt"
     #: run.dt_fraction: stages that give no dt step at this fraction of the law's critical step (T_R)
     dt_fraction: float | None = None
     #: name -> the boundary's plugin class (its hooks describe it; Boundary's defaults if unknown)
@@ -259,6 +261,7 @@ def deck_scene(resolved: Any, raw: dict) -> Scene:
         wall_materials=wall_materials,
         materials=dict(deck.materials),
         run_dt=deck.run.dt,
+        run_dt_key=resolved.step_key,
         dt_fraction=deck.run.dt_fraction,
         packed_height=packed,
         fall_height=_fall_height(groups, axis),
@@ -313,7 +316,7 @@ def _stage_facts(scene: Scene, resolved: Any, k: int) -> StageFacts:
     if stage.dt is not None:
         dt, key = stage.dt, f"stages.{stage.name}.dt"
     elif deck.run.dt is not None:
-        dt, key = deck.run.dt, "run.dt"
+        dt, key = deck.run.dt, resolved.step_key
     else:
         dt, key = None, None
         for earlier in reversed(deck.stages[:k]):  # "the current step goes on"

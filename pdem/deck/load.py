@@ -91,7 +91,8 @@ class ResolvedDeck:
     validated ``Params`` (deck order); ``law_class`` / ``boundary_classes`` / ``source_classes`` (one
     per ``[[particles]]`` table): the plugin classes;
     ``path``: the deck file (None for a deck given as a dict); ``base_dir``: the directory relative
-    paths in the deck are resolved against; ``overrides``: the ``--set`` texts applied.
+    paths in the deck are resolved against; ``overrides``: the ``--set`` texts applied; ``step_key``:
+    the deck key that gave ``run.dt`` (``contact.<law>.dt`` when the law's own table gave it).
     """
 
     deck: Deck
@@ -103,6 +104,7 @@ class ResolvedDeck:
     boundary_classes: dict[str, type] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
     source_classes: list[type] = field(default_factory=list)
+    step_key: str = "run.dt"
 
     def make_law(self) -> Any:
         """A new instance of the contact law with the deck's parameters."""
@@ -279,6 +281,8 @@ def _validate(
     allowed = tuple(writers) if writers is not None else tuple(installed_writers())
     context = {"base_dir": str(base), "writers": allowed}
 
+    step_key, step_problems = _fold_law_steps(data, applied)
+    problems += step_problems
     deck: Deck | None = None
     try:
         deck = Deck.model_validate(data, context=context)
@@ -322,7 +326,85 @@ def _validate(
         boundary_classes=boundary_classes,
         overrides=overrides,
         source_classes=[source_classes[k] for k in range(len(sources))],
+        step_key=step_key,
     )
+
+
+#: the step keys a law's own table ([contact.<law>]) may give, for that law only
+LAW_STEP_KEYS = ("dt", "dt_fraction")
+
+
+def _fold_law_steps(data: dict, applied: list[Override]) -> tuple[str, list[tuple[Loc, str]]]:
+    """``dt`` / ``dt_fraction`` in a ``[contact.<law>]`` table: the step of that law only, so that a deck
+    carries each method's step and ``contact.law`` alone switches both (DEM-P at its stability
+    estimate, DEM-C at the step its accuracy allows). They are taken out of every law's table (they are
+    not the law's parameters); the selected law's are moved into ``[run]``, where the schema checks
+    them as ``[run]``'s own. When ``[run]`` gives a step as well, a ``--set`` of one of the two wins
+    (``--set run.dt=…`` steps a deck whose law table gives its step; the other is dropped); both in
+    the deck file, or both set, is an error: the step is set in one place.
+    Returns the deck key that gives the step (for messages) and the problems found."""
+
+    def by_set(path: tuple) -> bool:
+        return any(o.loc == path[: len(o.loc)] for o in applied)
+
+    contact = data.get("contact")
+    if not isinstance(contact, dict):
+        return "run.dt", []
+    law = contact.get("law", DEFAULT_LAW)
+    known = set(plugins.available("contact_laws"))
+    run = data.get("run", {})
+    problems: list[tuple[Loc, str]] = []
+    step_key = "run.dt"
+    for name in [k for k, v in contact.items() if isinstance(v, dict) and k in known]:
+        table = contact[name]
+        given = {k: table.pop(k) for k in LAW_STEP_KEYS if k in table}
+        if not given:
+            continue
+        used = "" if name == law else f" (used when contact.law = '{name}')"
+        bad = False
+        for k, v in given.items():
+            ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and 0 < v <= 1e6
+            if not ok:
+                bad = True
+                what = "[s]" if k == "dt" else "as a multiple of its stability estimate"
+                problems.append(
+                    (("contact", name, k), f"must be a number > 0 (the {name} law's time step {what}); "
+                     f"got {show(v)}{used}")
+                )
+        if len(given) == 2:
+            bad = True
+            problems.append(
+                (
+                    ("contact", name, "dt_fraction"),
+                    f"dt_fraction and dt are both given; give one: dt (seconds) or dt_fraction (a multiple "
+                    f"of the law's stability estimate){used}",
+                )
+            )
+        if name != law or bad or not isinstance(run, dict):
+            continue
+        clash = [k for k in LAW_STEP_KEYS if k in run]
+        run_set = any(by_set(("run", k)) for k in clash)
+        law_set = any(by_set(("contact", name, k)) for k in given)
+        if clash and run_set != law_set:
+            if run_set:
+                continue  # --set run.dt=… steps this run; the law table's step is dropped
+            for k in clash:
+                del run[k]
+            clash = []
+        if clash:
+            (mine, value), = given.items()
+            problems.append(
+                (
+                    ("contact", name, mine),
+                    f"contact.{name}.{mine} = {show(value)} and run.{clash[0]} = {show(run[clash[0]])} both "
+                    f"set the time step; give it in one place: [run] for every contact law, "
+                    f"[contact.{name}] for this law only",
+                )
+            )
+            continue
+        data.setdefault("run", run).update(given)
+        step_key = f"contact.{name}.dt" if "dt" in given else "run.dt"
+    return step_key, problems
 
 
 # -------------------------------------------------------------------------------------------------
