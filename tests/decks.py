@@ -37,6 +37,14 @@ TINY_LATTICE_TWO_STAGES = TINY_LATTICE.replace(
     "[output]", '[[stages]]\nname = "rest"\n[stages.end]\nsteps = 20\n[output]'
 )
 
+# inputs/hopper.toml's DEM-C tables replaced by the engine's plain settings (Jacobi capped at 100 at
+# the automatic step, one solver for both stages): tests of solver paths on the hopper set their own
+# solver keys on top, which the deck's discharge table would otherwise override
+HOPPER_PLAIN_DEM_C = [
+    'contact.complementarity={solver="jacobi", tolerance=1.0e-4, max_iterations=100}',
+    "stages.discharge.contact={}",
+]
+
 # inputs/hopper.toml shortened: 300 beads, 0.03 s of fill, discharge until 0.3 g has left (~6,600
 # steps, ~2 s), snapshots every 0.02 s and a checkpoint every 1,000 steps
 SHORT_HOPPER_SETS = [

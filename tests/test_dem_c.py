@@ -392,9 +392,12 @@ def test_one_key_switches_the_hopper_deck_and_per_law_tables(tmp_path):
     assert p.deck.contact.law == "hertz_mindlin"
     c = load_deck(deck, overrides=["contact.law=complementarity"])
     assert c.deck.contact.law == "complementarity"
-    assert c.law_params.solver == "jacobi" and c.law_params.max_iterations == 100
-    c2 = load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.solver=apgd"])
-    assert c2.law_params.solver == "apgd"
+    assert c.law_params.solver == "apgd" and c.law_params.max_iterations == 60
+    assert c.law_params.max_travel == 1.1 and c.deck.run.dt is None  # DEM-C's own step rule
+    discharge = c.deck.stages[1].contact["complementarity"]
+    assert discharge == {"solver": "jacobi", "max_iterations": 10, "relaxation": 0.4}
+    c2 = load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.solver=jacobi"])
+    assert c2.law_params.solver == "jacobi"
     with pytest.raises(DeckError, match="relaxation"):
         load_deck(deck, overrides=["contact.law=complementarity", "contact.complementarity.relaxation=1.5"])
     with pytest.raises(DeckError, match="solver"):

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from decks import HOPPER_PLAIN_DEM_C
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
@@ -146,7 +147,7 @@ def test_hopper_identical_on_1_2_3_ranks(tmp_path):
 # exchanges ghost velocities, and with 3-4 ranks oversubscribed on 2 cores every exchange waits for
 # a descheduled rank: the tests cap the iterations (15-20, most steps reach the cap, so each rank
 # count runs the same number of sweeps through every path) to keep the exchanges few
-DEM_C_SETS = HOPPER_SETS + [
+DEM_C_SETS = HOPPER_SETS + HOPPER_PLAIN_DEM_C + [
     "contact.law=complementarity",
     "materials.glass.restitution=0.6",
     "materials.glass.rolling_friction=0.1",
@@ -522,8 +523,8 @@ def test_jacobi_bound_tool_agrees_on_1_and_2_ranks(tmp_path):
     """tools/jacobi_bound.py on the short DEM-C hopper (rolling friction on): the loaded contacts'
     count and λ_max of B N at each measure are the same on 2 ranks as serially (exact global sums,
     each cross-rank contact counted once)."""
-    sets = [*HOPPER_SETS, "contact.law=complementarity", "materials.glass.rolling_friction=0.1",
-            "materials.steel.rolling_friction=0.1"]  # fmt: skip
+    sets = [*HOPPER_SETS, *HOPPER_PLAIN_DEM_C, "contact.law=complementarity",
+            "materials.glass.rolling_friction=0.1", "materials.steel.rolling_friction=0.1"]  # fmt: skip
     tables = {}
     for n in (1, 2):
         cmd = [MPIEXEC, "-n", str(n), sys.executable, str(ROOT / "tools" / "jacobi_bound.py"),

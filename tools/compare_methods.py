@@ -11,7 +11,7 @@ the wall time and every result the deck's boundaries report in ``summary.json`` 
 steady flow rate), then the relative difference of each numeric result, DEM-C against DEM-P.
 ``DIR/compare.json`` keeps the table. Exit code: 0 if both runs completed, 1 otherwise.
 
-Example (the hopper, DEM-C at its automatic step, ~11× DEM-P's)::
+Example (the hopper, each method at the deck's settings: DEM-C's step ~64× DEM-P's)::
 
     python tools/compare_methods.py inputs/hopper.toml --out out/compare_hopper
 """
