@@ -5,7 +5,10 @@
   tolerance as a dashed line;
 * ``error_vs_<knob>_<quantity>``: error against each varied knob, a line per series;
 * ``stability``: the spec's ``[stability]`` map, each run a marker by its class (stable, drift,
-  stopped by the live step bound, failed, uncaught, refused, timeout), with ``stability.csv``.
+  stopped by the live step bound, failed, uncaught, refused, timeout), with ``stability.csv``;
+* ``crossover``: the spec's ``[crossover]`` chart, wall time against a stiffness knob: DEM-P's runs
+  with a fitted power law extended to ``extend_to``, DEM-C's as one line, the x where they cross,
+  with ``crossover.csv`` (the runs) and ``crossover.json`` (the fit).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from .core import Study
 
-__all__ = ["write_charts", "pareto_front"]
+__all__ = ["write_charts", "pareto_front", "crossover_fit"]
 
 COLOURS = {"DEM-P": "#1f77b4", "DEM-C": "#d62728"}
 MARKERS = "osD^v<>pP*hX"
@@ -166,7 +169,113 @@ def write_charts(study: Study, rows: list[dict[str, Any]], out: Path) -> dict[st
 
     for st in spec.maps:
         paths.update(_stability(study, st, rows, out, save, plt, title))
+    for cx in spec.crossovers:
+        paths.update(_crossover(study, cx, rows, out, save, plt, title))
     return paths
+
+
+def crossover_fit(study: Study, cx: Any, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The numbers of a crossover chart: each run of its series (x, wall time, error, within the
+    tolerance or not), the power law t = a x^b fitted (least squares in log-log) through the penalty
+    runs that ended ok, the rigid runs' median wall time t_rigid, and the x where the law reaches it
+    (``x_cross``; None when the law does not rise or the fit has fewer than two values of x)."""
+    q = cx.quantity or study.spec.primary
+    tol = study.spec.quantities[q].tolerance
+    ekey = f"{q}_error"
+    runs = []
+    for r in rows:
+        role = "penalty" if r["series"] in cx.penalty else "rigid" if r["series"] in cx.rigid else None
+        if role is None:
+            continue
+        x = r.get(cx.x) if role == "penalty" else None
+        err = r.get(ekey)
+        runs.append({
+            "role": role, "series": r["series"], "run": r["run"], "method": r["method"],
+            "x": x if _finite(x) else None, "wall_s": r["wall_s"] if _finite(r["wall_s"]) else None,
+            "status": r["status"], "error": err if _finite(err) else None,
+            "accurate": _finite(err) and err <= tol,
+        })  # fmt: skip
+    pen = [(math.log(u["x"]), math.log(u["wall_s"])) for u in runs if u["role"] == "penalty"
+           and u["status"] == "ok" and u["x"] and u["x"] > 0 and u["wall_s"]]  # fmt: skip
+    fit: dict[str, Any] = {"quantity": q, "tolerance": tol, "x": cx.x, "runs": runs, "a": None, "b": None}
+    if len({lx for lx, _ in pen}) >= 2:
+        n = len(pen)
+        mx = sum(lx for lx, _ in pen) / n
+        my = sum(ly for _, ly in pen) / n
+        sxx = sum((lx - mx) ** 2 for lx, _ in pen)
+        b = sum((lx - mx) * (ly - my) for lx, ly in pen) / sxx
+        fit["b"] = b
+        fit["a"] = math.exp(my - b * mx)
+    rigid = sorted(u["wall_s"] for u in runs if u["role"] == "rigid" and u["status"] == "ok" and u["wall_s"])
+    fit["t_rigid"] = rigid[len(rigid) // 2] if len(rigid) % 2 else (
+        0.5 * (rigid[len(rigid) // 2 - 1] + rigid[len(rigid) // 2]) if rigid else None)  # fmt: skip
+    fit["t_rigid_range"] = (rigid[0], rigid[-1]) if rigid else None
+    fit["rigid_accurate"] = [u["accurate"] for u in runs if u["role"] == "rigid" and u["status"] == "ok"]
+    fit["x_cross"] = None
+    if fit["b"] is not None and fit["b"] > 0 and fit["t_rigid"]:
+        fit["x_cross"] = (fit["t_rigid"] / fit["a"]) ** (1.0 / fit["b"])
+    fit["marks"] = {}
+    for label, xm in cx.marks.items():
+        t_p = fit["a"] * xm ** fit["b"] if fit["b"] is not None else None
+        ratio = t_p / fit["t_rigid"] if t_p and fit["t_rigid"] else None
+        fit["marks"][label] = {"x": xm, "t_penalty": t_p, "penalty_over_rigid": ratio}
+    return fit
+
+
+def _crossover(study: Study, cx: Any, rows, out: Path, save, plt, title: str) -> dict[str, Path]:
+    import json
+
+    fit = crossover_fit(study, cx, rows)
+    stem = f"crossover_{_safe(cx.name)}" if cx.name else "crossover"
+    fig, ax = plt.subplots(figsize=(6.8, 4.8))
+    pen = [u for u in fit["runs"] if u["role"] == "penalty" and u["x"] and u["wall_s"]]
+    for ok, face in ((True, None), (False, "none")):
+        sel = [u for u in pen if u["accurate"] is ok]
+        if sel:
+            label = f"DEM-P runs, {'within' if ok else 'outside'} {fit['tolerance']:g} of the reference"
+            ax.scatter([u["x"] for u in sel], [u["wall_s"] for u in sel], color=COLOURS["DEM-P"],
+                       facecolors=face, s=50, zorder=3, label=label)  # fmt: skip
+    xs = [u["x"] for u in pen]
+    hi = max([*xs, cx.extend_to or 0.0, *cx.marks.values()]) if xs else None
+    if fit["b"] is not None and xs:
+        lo = min(xs)
+        grid = [lo * (hi / lo) ** (k / 60) for k in range(61)]
+        ax.plot(grid, [fit["a"] * g ** fit["b"] for g in grid], color=COLOURS["DEM-P"], ls="--", lw=1.2,
+                label=f"DEM-P fit: t ∝ x^{fit['b']:.2f}")  # fmt: skip
+    if fit["t_rigid"]:
+        lo_r, hi_r = fit["t_rigid_range"]
+        left = min(xs) if xs else 1.0
+        right = hi or left * 10
+        ax.axhline(fit["t_rigid"], color=COLOURS["DEM-C"], lw=1.5,
+                   label=f"DEM-C (rigid), median of {len(fit['rigid_accurate'])} run(s)")  # fmt: skip
+        if hi_r > lo_r:
+            ax.fill_between([left, right], lo_r, hi_r, color=COLOURS["DEM-C"], alpha=0.12, lw=0)
+    if fit["x_cross"]:
+        ax.axvline(fit["x_cross"], color="0.3", ls=":", lw=1.2, label=f"crossover x = {fit['x_cross']:.3g}")
+    for label, m in fit["marks"].items():
+        ax.axvline(m["x"], color="0.55", ls="-.", lw=0.9)
+        ax.annotate(label, (m["x"], ax.get_ylim()[1]), rotation=90, va="top", ha="right", fontsize=7)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(cx.x)
+    ax.set_ylabel(f"wall time [s] ({study.spec.time})")
+    ax.set_title(f"{title}\nwall time against {cx.x}: DEM-P at its stable step, DEM-C as one line",
+                 fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    save(fig, stem)
+    table = out / f"{stem}.csv"
+    with open(table, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["role", "series", "run", "method", cx.x, "wall_s", "status", f"{fit['quantity']}_error",
+                    "within_tolerance"])  # fmt: skip
+        for u in fit["runs"]:
+            w.writerow([u["role"], u["series"], u["run"], u["method"], "" if u["x"] is None else u["x"],
+                        "" if u["wall_s"] is None else f"{u['wall_s']:.6g}", u["status"],
+                        "" if u["error"] is None else f"{u['error']:.6g}", u["accurate"]])  # fmt: skip
+    numbers = out / f"{stem}.json"
+    numbers.write_text(json.dumps({k: v for k, v in fit.items() if k != "runs"}, indent=2) + "\n")
+    return {f"{stem}_table": table, f"{stem}_numbers": numbers}
 
 
 def _floor(rows: list[dict[str, Any]], ekey: str) -> float:

@@ -370,6 +370,8 @@ class Study:
                 (m1, (t1, _)), (m2, (t2, _)) = ordered[0], ordered[1]
                 lines.append(f"- {m1} reaches {q.tolerance:g} first, {t2 / t1:.2f}× faster than {m2}.")
             lines.append("")
+        for cx in spec.crossovers:
+            lines += self._crossover_reading(cx, rows)
         failed = [row for row in rows if row["status"] not in ("ok", "not run")]
         if failed:
             lines.append("## Runs that did not end ok")
@@ -381,6 +383,36 @@ class Study:
                 )
             lines.append("")
         return "\n".join(lines)
+
+
+    def _crossover_reading(self, cx: Any, rows: list[dict[str, Any]]) -> list[str]:
+        from .charts import crossover_fit
+
+        fit = crossover_fit(self, cx, rows)
+        lines = [f"## Crossover{' ' + cx.name if cx.name else ''}: wall time against `{cx.x}`", ""]
+        if fit["b"] is None or not fit["t_rigid"]:
+            lines += ["Not enough finished runs for the fit (two values of x for DEM-P, one DEM-C run).", ""]
+            return lines
+        within = [u for u in fit["runs"] if u["role"] == "penalty" and u["accurate"]]
+        n_pen = sum(u["role"] == "penalty" for u in fit["runs"])
+        lines.append(
+            f"- DEM-P's wall time grows as x^{fit['b']:.2f} over its runs ({len(within)} of "
+            f"{n_pen} within {fit['tolerance']:g} of the reference); "
+            f"DEM-C's is {fit['t_rigid']:.1f} s (median), within {fit['tolerance']:g} in "
+            f"{sum(fit['rigid_accurate'])} of {len(fit['rigid_accurate'])} run(s)."
+        )
+        if fit["x_cross"]:
+            lines.append(f"- The two cross at x = {fit['x_cross']:.3g}: above it DEM-C takes less wall time.")
+        else:
+            lines.append("- The fitted DEM-P line does not rise with x: no crossover.")
+        for label, m in fit["marks"].items():
+            if m["t_penalty"]:
+                lines.append(
+                    f"- {label} (x = {m['x']:.3g}): DEM-P {m['t_penalty']:.3g} s by the fit (extrapolated "
+                    f"past its stiffest run), {m['penalty_over_rigid']:.3g}× DEM-C's."
+                )
+        lines.append("")
+        return lines
 
 
 def _cell(v: Any) -> Any:

@@ -27,6 +27,12 @@ A spec is a TOML file::
     y = "series"
     drift = 0.01
 
+    [crossover]                             # optional: wall time against a stiffness knob, DEM-P's runs
+    x = "materials.glass.youngs_modulus"    #   (series varying x; zip = true varies several keys as one)
+    penalty = ["dem_p_stiffness"]           #   with a fitted power law, DEM-C's as one line, and where
+    rigid = ["dem_c"]                       #   they cross
+    extend_to = 7.0e10
+
 Everything is validated before any run starts; an error names the key, the value and the remedy.
 """
 
@@ -48,7 +54,7 @@ from ..deck.overrides import OverrideError, apply_overrides, parse_override
 from ..deck.toml_writer import value as toml_value
 from ..errors import InputError
 
-__all__ = ["StudySpec", "RunPlan", "load_spec", "plan_runs", "method_label"]
+__all__ = ["StudySpec", "RunPlan", "Crossover", "load_spec", "plan_runs", "method_label"]
 
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
 
@@ -117,6 +123,11 @@ class Series(_Model):
     name: str
     set: dict[str, Any] = Field(default_factory=dict)
     vary: dict[str, list[Any]] = Field(default_factory=dict)
+    zip: bool = Field(
+        False,
+        description="take the vary lists together, value k of each in run k (lists of one length), "
+        "instead of every combination: e.g. the grains' and the walls' Young's modulus varied as one",
+    )
 
     @field_validator("name")
     @classmethod
@@ -135,6 +146,22 @@ class Series(_Model):
                 raise ValueError(f"vary.{key} = {values!r} lists a value twice")
         return v
 
+    @model_validator(mode="after")
+    def _zipped(self) -> Series:
+        lengths = {key: len(values) for key, values in self.vary.items()}
+        if self.zip and len(set(lengths.values())) > 1:
+            raise ValueError(f"zip = true takes the vary lists together; give them one length: {lengths}")
+        return self
+
+    def combinations(self) -> list[tuple[tuple[str, Any], ...]]:
+        """The varied (key, value) pairs of each run, in order."""
+        keys = list(self.vary)
+        if not keys:
+            return [()]
+        lists = [self.vary[k] for k in keys]
+        combos = zip(*lists, strict=True) if self.zip else itertools.product(*lists)
+        return [tuple(zip(keys, combo, strict=True)) for combo in combos]
+
 
 class Stability(_Model):
     """A stability map: each run placed at (x, y) and marked by its class (stable, drift, failed, …).
@@ -149,6 +176,23 @@ class Stability(_Model):
     quantity: str | None = None
 
 
+class Crossover(_Model):
+    """Which method for which stiffness: the wall time of each run of the penalty series (DEM-P, at
+    each value of ``x`` with its own stable step) against ``x``, a power law fitted through them and
+    extended to ``extend_to``, and the rigid series (DEM-C, whose grains do not depend on ``x``) as
+    one line; where the two cross is the stiffness above which the rigid method is cheaper. Each
+    run is marked by whether it is within the quantity's tolerance of its reference. ``marks``:
+    named values of ``x`` drawn on the chart (e.g. glass at 6.3e10 Pa)."""
+
+    name: str | None = None
+    x: str
+    quantity: str | None = None
+    penalty: list[str] = Field(min_length=1)
+    rigid: list[str] = Field(min_length=1)
+    extend_to: float | None = Field(None, gt=0)
+    marks: dict[str, float] = Field(default_factory=dict)
+
+
 class StudySpec(_Model):
     title: str = ""
     deck: Path
@@ -161,6 +205,7 @@ class StudySpec(_Model):
     quantities: dict[str, Quantity]
     series: list[Series] = Field(min_length=1)
     stability: Stability | list[Stability] | None = None
+    crossover: Crossover | list[Crossover] | None = None
     check_finite: bool = Field(True, description="scan failed runs' HDF5 files for non-finite values")
 
     @model_validator(mode="after")
@@ -196,7 +241,33 @@ class StudySpec(_Model):
         stems = [st.name or "" for st in self.maps]
         if len(set(stems)) != len(stems):
             raise ValueError("give each [[stability]] map its own name")
+        for k, cx in enumerate(self.crossovers):
+            if cx.quantity is not None and cx.quantity not in self.quantities:
+                raise ValueError(
+                    f"crossover[{k}].quantity = {cx.quantity!r} is not one of {list(self.quantities)}"
+                )
+            for role in ("penalty", "rigid"):
+                for name in getattr(cx, role):
+                    if name not in names:
+                        raise ValueError(f"crossover[{k}].{role} names {name!r}, which is not one of {names}")
+            for name in cx.penalty:
+                s = next(s for s in self.series if s.name == name)
+                if cx.x not in s.vary:
+                    raise ValueError(
+                        f"crossover[{k}].x = {cx.x!r} is not varied in penalty series {name!r}: the chart "
+                        "needs its runs at several values of x"
+                    )
+        stems = [cx.name or "" for cx in self.crossovers]
+        if len(set(stems)) != len(stems):
+            raise ValueError("give each [[crossover]] chart its own name")
         return self
+
+    @property
+    def crossovers(self) -> list[Crossover]:
+        """The crossover charts (none, one or several)."""
+        if self.crossover is None:
+            return []
+        return self.crossover if isinstance(self.crossover, list) else [self.crossover]
 
     @property
     def maps(self) -> list[Stability]:
@@ -272,9 +343,7 @@ def plan_runs(spec: StudySpec) -> list[RunPlan]:
     runs: list[RunPlan] = []
     seen: dict[Path, str] = {}
     for s in spec.series:
-        keys = list(s.vary)
-        for combo in itertools.product(*(s.vary[k] for k in keys)) if keys else [()]:
-            varied = tuple(zip(keys, combo, strict=True))
+        for varied in s.combinations():
             merged: dict[str, Any] = {**spec.set, **s.set, **dict(varied)}
             sets = tuple(merged.items())
             directory = spec.output / s.name / _slug(varied)
