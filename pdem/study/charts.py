@@ -246,15 +246,17 @@ def _crossover(study: Study, cx: Any, rows, out: Path, save, plt, title: str) ->
         lo_r, hi_r = fit["t_rigid_range"]
         left = min(xs) if xs else 1.0
         right = hi or left * 10
-        ax.axhline(fit["t_rigid"], color=COLOURS["DEM-C"], lw=1.5,
-                   label=f"DEM-C (rigid), median of {len(fit['rigid_accurate'])} run(s)")  # fmt: skip
+        n_ok, n_c = sum(fit["rigid_accurate"]), len(fit["rigid_accurate"])
+        label = f"DEM-C (rigid), median of {n_c} run(s), {n_ok} within {fit['tolerance']:g}"
+        ax.axhline(fit["t_rigid"], color=COLOURS["DEM-C"], lw=1.5, label=label)
         if hi_r > lo_r:
             ax.fill_between([left, right], lo_r, hi_r, color=COLOURS["DEM-C"], alpha=0.12, lw=0)
     if fit["x_cross"]:
         ax.axvline(fit["x_cross"], color="0.3", ls=":", lw=1.2, label=f"crossover x = {fit['x_cross']:.3g}")
-    for label, m in fit["marks"].items():
+    top = ax.get_ylim()[1]
+    for k, (label, m) in enumerate(fit["marks"].items()):
         ax.axvline(m["x"], color="0.55", ls="-.", lw=0.9)
-        ax.annotate(label, (m["x"], ax.get_ylim()[1]), rotation=90, va="top", ha="right", fontsize=7)
+        ax.annotate(label, (m["x"], top / 1.6**k), rotation=90, va="top", ha="right", fontsize=7)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel(cx.x)
