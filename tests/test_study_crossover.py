@@ -60,6 +60,7 @@ def test_zipped_series_take_the_lists_together(tmp_path):
         ((f'x = "{E}"', 'x = "run.seed"'), None),  # varied in p: valid
         ((f'x = "{E}"', 'x = "run.dt"'), "is not varied in penalty series"),
         (("[crossover]", '[crossover]\nquantity = "w"'), "'w'"),
+        (("marks = { glass = 6.3e10 }", "marks = { glass = -6.3e10 }"), "marks must be stiffnesses > 0"),
     ],
 )
 def test_crossover_spec_errors_name_the_key(tmp_path, change, message):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import statistics
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -207,8 +208,7 @@ def crossover_fit(study: Study, cx: Any, rows: list[dict[str, Any]]) -> dict[str
         fit["b"] = b
         fit["a"] = math.exp(my - b * mx)
     rigid = sorted(u["wall_s"] for u in runs if u["role"] == "rigid" and u["status"] == "ok" and u["wall_s"])
-    fit["t_rigid"] = rigid[len(rigid) // 2] if len(rigid) % 2 else (
-        0.5 * (rigid[len(rigid) // 2 - 1] + rigid[len(rigid) // 2]) if rigid else None)  # fmt: skip
+    fit["t_rigid"] = statistics.median(rigid) if rigid else None
     fit["t_rigid_range"] = (rigid[0], rigid[-1]) if rigid else None
     fit["rigid_accurate"] = [u["accurate"] for u in runs if u["role"] == "rigid" and u["status"] == "ok"]
     fit["x_cross"] = None

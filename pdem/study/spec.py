@@ -192,6 +192,14 @@ class Crossover(_Model):
     extend_to: float | None = Field(None, gt=0)
     marks: dict[str, float] = Field(default_factory=dict)
 
+    @field_validator("marks")
+    @classmethod
+    def _positive_marks(cls, v: dict[str, float]) -> dict[str, float]:
+        bad = {k: x for k, x in v.items() if not x > 0}
+        if bad:
+            raise ValueError(f"marks must be stiffnesses > 0 (the chart is log-log); got {bad}")
+        return v
+
 
 class StudySpec(_Model):
     title: str = ""
