@@ -86,7 +86,7 @@ def _run(law, floor, steps, old_way, monkeypatch):
 
 
 @pytest.mark.parametrize("law,steps", [("hertz_mindlin", 4000), ("complementarity", 800)])
-@pytest.mark.parametrize("floor", ["plane", "mesh"])
+@pytest.mark.parametrize("floor", [pytest.param("plane", marks=pytest.mark.integration), "mesh"])
 def test_removal_without_rebuild_gives_the_same_bits(law, steps, floor, monkeypatch):
     sim, got = _run(law, floor, steps, False, monkeypatch)
     ref, want = _run(law, floor, steps, True, monkeypatch)

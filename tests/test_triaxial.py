@@ -204,7 +204,7 @@ def test_shearing_bulges_the_specimen_and_mobilises_friction(packing):
 
 
 
-@pytest.mark.parametrize("capped", [True, False])
+@pytest.mark.parametrize("capped", [True, pytest.param(False, marks=pytest.mark.integration)])
 def test_a_fast_servo_consolidates_at_a_larger_step(packing, monkeypatch, capped):
     """max_speed = 1 m/s (20 times the default; the gain is max_speed / σ3) at twice this file's
     step: the platen's loop gain gain (K dt + 2 C) / A reaches ≈ 2.5, past the limit 2, mostly from
