@@ -249,6 +249,7 @@ class _Advisor:
         self.e_new: dict[str, float] = {}  # grain material -> proposed E
         self.dt_new: dict[str, float] = {}  # stage -> dt it will run with
         self.dt_old: dict[str, float] = {}
+        self.dt_usable: dict[str, float] = {}  # stage -> the step DEM-P can run at (≤ dt_new)
         self.rate_factor: dict[str, float] = {}  # stage -> loading-rate factor
         self.hertz = scene.hertzian
 
@@ -566,6 +567,7 @@ class _Advisor:
             v, label, t_c, pair, cur = info[st.name]
             dt = new_dt[st.name]
             self.dt_new[st.name] = dt
+            usable = dt  # lowered below where the deck's step cannot run (past T_R or the live bound)
             nums = {
                 "T_R [s]": t_r, "dt [s]": cur, "dt/T_R": cur / t_r_old,
                 "speed [m/s]": v, "speed from": label, "t_c [s]": t_c, "t_c pair": pair,
@@ -594,6 +596,7 @@ class _Advisor:
                     ),
                 )
                 mysugg = self._dt_setting(st, need[st.name], t_r)
+                usable = min(usable, need[st.name])
             elif abs(dt / cur - 1) > 1e-9 and dt <= rules.WARN_FACTOR * need[st.name]:
                 via = (st.name in via_run and run_key in changes) or (
                     st.name in via_default and "run.dt_fraction" in changes
@@ -636,7 +639,9 @@ class _Advisor:
                     f"{STIFFNESS_LIMIT:g}; take {safe:.3g} s"
                 )
                 mysugg = self._dt_setting(st, safe, t_r)
+                usable = min(usable, safe)
                 src += "; live bound ≈ 0.092 T_R (δ/d)^(-1/4), docs/study/stability.md"
+            self.dt_usable[st.name] = usable
             self.findings.append(
                 Finding("step", f"stage {st.name}", verdict, reason, src, nums, mine, mysugg)
             )
@@ -886,8 +891,9 @@ class _Advisor:
         t_total, steps_p, steps_p_old, steps_c, unknown = 0.0, 0.0, 0.0, 0.0, []
         # DEM-C's contact work stage by stage: each stage's solver and cap ([stages.contact], e.g.
         # the hopper's APGD fill and 10 Jacobi sweeps in its discharge)
-        work_c, per_stage = 0.0, []
+        work_c, per_stage, finer, steps_p_stiff = 0.0, [], [], 0.0
         t_r = self._rayleigh(proposed=True)
+        t_r_deck = self._rayleigh(proposed=False)
         for st in sc.stages:
             if st.duration is None:
                 unknown.append(st.name)
@@ -895,14 +901,20 @@ class _Advisor:
             k = self.rate_factor.get(st.name, 1.0)
             t = st.duration / k
             t_total += t
-            dt_p = self.dt_new.get(st.name) or self._default_fraction() * t_r
+            # DEM-P at the step its grains allow: the deck's, or the advised one where the deck's
+            # cannot run (stiffer grains than the deck's step was set for)
+            dt_p = self.dt_usable.get(st.name) or self.dt_new.get(st.name) or self._default_fraction() * t_r
+            if dt_p < (self.dt_new.get(st.name) or dt_p) * (1 - 1e-9):
+                finer.append(st.name)
             steps_p += t / dt_p
+            steps_p_stiff += t / (dt_p * min(t_r_deck / t_r, 1.0))  # the deck's grains, unsoftened
             steps_p_old += st.duration / (self.dt_old.get(st.name) or dt_p)
             steps_c += t / h_c
             sp = self._stage_dem_c(st.index, cparams)
             ns_table = rules.NS_PER_CONTACT_ITERATION
             ns_st = ns_table.get(str(sp.solver), max(ns_table.values()))
-            work_c += t / h_c * float(sp.max_iterations) * ns_st
+            iteration_s = rules.ITERATION_OVERHEAD_S + contacts * ns_st * 1e-9
+            work_c += t / h_c * (rules.STEP_OVERHEAD_S + float(sp.max_iterations) * iteration_s)
             per_stage.append(f"{st.name}: {sp.solver} × {sp.max_iterations}")
         if t_total <= 0:
             self.findings.append(
@@ -911,18 +923,26 @@ class _Advisor:
                 )
             )
             return
-        cost_p = steps_p * contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9
+        cost_p = steps_p * (rules.STEP_OVERHEAD_S + contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9)
         ns_c = rules.NS_PER_CONTACT_ITERATION.get(solver, max(rules.NS_PER_CONTACT_ITERATION.values()))
-        cost_c = work_c * contacts * 1e-9
+        cost_c = work_c
         ratio = cost_c / cost_p
+        softened = steps_p_stiff > steps_p * (1 + 1e-9)  # the overlap finding softens the grains
+        per_step_p = rules.STEP_OVERHEAD_S + contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9
+        ratio_stiff = cost_c / (steps_p_stiff * per_step_p)
         stage_text = "; ".join(per_stage)
         nums = {
             "simulated time [s]": t_total, "contacts (N Z/2)": contacts, "DEM-P steps": steps_p,
             "DEM-P dt": (t_total / steps_p), "DEM-C h [s]": h_c, "DEM-C steps": steps_c, "solver": solver,
             "iterations per step": iterations, "iterations to converge (column estimate)": estimate,
             "iteration cap": cparams.max_iterations, "DEM-C solver × cap by stage": stage_text,
-            "DEM-P contact time [s]": cost_p, "DEM-C contact time [s]": cost_c, "DEM-C / DEM-P": ratio,
+            "DEM-P time [s]": cost_p, "DEM-C time [s]": cost_c, "DEM-C / DEM-P": ratio,
         }  # fmt: skip
+        if softened:
+            nums["DEM-P steps at the deck's stiffness"] = steps_p_stiff
+            nums["DEM-C / DEM-P at the deck's stiffness"] = ratio_stiff
+        if finer:
+            nums["DEM-P at a finer step than the deck's in"] = ", ".join(finer)
         if self.hertz and steps_p_old > 0:
             nums["DEM-P steps as the deck stands"] = steps_p_old
             nums["predicted speed-up of the changes"] = steps_p_old / steps_p
@@ -934,26 +954,39 @@ class _Advisor:
             if own_dt is not None and h_c == own_dt
             else "DEM-C's automatic step (max_travel r_min / reference_speed)"
         )
+        step_ms = rules.STEP_OVERHEAD_S * 1e3
+        iter_ms = rules.ITERATION_OVERHEAD_S * 1e3
         reason = (
-            f"{winner} is likely {max(ratio, 1 / ratio):.2g}× faster for this scene: DEM-P "
-            f"{steps_p:,.0f} steps × "
-            f"{contacts:,.0f} contacts × {rules.NS_PER_CONTACT_DEM_P} ns; DEM-C {steps_c:,.0f} steps "
-            f"({using}, "
-            f"h = {h_c:.3g} s) × each stage's solver and cap ({stage_text}) × "
-            f"{', '.join(f'{k} {v} ns' for k, v in rules.NS_PER_CONTACT_ITERATION.items())}. "
-            f"Iterations: the cap ({cparams.max_iterations}), because pdem's measured DEM-C runs end "
-            "their solves "
-            "at or near it (hopper 96 of 100, direct shear 736–799 of 1,000, triaxial every shear step "
-            "at 500); "
+            f"{winner} is likely {max(ratio, 1 / ratio):.2g}× faster for this scene"
+            + (" with the grains softened as the overlap finding proposes" if softened else "")
+            + f": DEM-P {steps_p:,.0f} steps × ({step_ms:g} ms + {contacts:,.0f} contacts × "
+            f"{rules.NS_PER_CONTACT_DEM_P} ns); DEM-C {steps_c:,.0f} steps ({using}, h = {h_c:.3g} s) × "
+            f"({step_ms:g} ms + each stage's solver and cap ({stage_text}) × ({iter_ms:g} ms + contacts × "
+            f"{', '.join(f'{k} {v} ns' for k, v in rules.NS_PER_CONTACT_ITERATION.items())}))."
+        )
+        if softened:
+            other = "DEM-P (hertz_mindlin)" if ratio_stiff > 1 else "DEM-C (complementarity)"
+            reason += (
+                f" At the deck's own stiffness DEM-P needs {steps_p_stiff:,.0f} steps and {other} is "
+                f"{max(ratio_stiff, 1 / ratio_stiff):.2g}× faster: stiff grains favour DEM-C, whose rigid "
+                "grains cost the same at any stiffness, softened ones DEM-P."
+            )
+        if finer:
+            reason += (
+                f" DEM-P is costed at the step its grains allow in stage(s) {', '.join(finer)}: the deck's "
+                "step is past the stability bound there (see the step findings)."
+            )
+        reason += (
+            f" Iterations: the cap ({cparams.max_iterations}), because pdem's measured DEM-C runs end "
+            "their solves at or near it (direct shear 632–714 of 1,000, the triaxial's shear at 500); "
             f"a column of {layers:.0f} grains needs ~{estimate:,.0f} {solver} iterations cold "
-            f"({'~N²' if solver != 'apgd' else '~N'}), a lower bound. Only contact work is counted (lists, "
-            "integration and boundaries add to both) and Z = 5.5 is assumed. Given the step counts and "
-            "caps of pdem's measured runs, the model gives DEM-C/DEM-P 3.4× for the hopper (APGD, "
-            "h = 1e-3 s, cap 100; measured 1.9×), 0.28× for the hopper deck's own DEM-C settings (APGD "
-            "fill, 10 Jacobi sweeps in the discharge; measured 0.42–0.56×) and 94× for the reduced "
-            "direct shear (measured 12.7×): it leaves out each method's per-step work (lists, "
-            "integration, Python between kernels), which dominates small scenes, so it overstates the "
-            "cheaper method's lead; and DEM-C's unconverged solves change the results"
+            f"({'~N²' if solver != 'apgd' else '~N'}), a lower bound. Z = 5.5 is assumed, and the fixed "
+            "costs are one scene's (boundaries that cost more per step, like a membrane, are not "
+            "counted). Against pdem's measured runs at their decks' settings (docs/study/crossover.md) "
+            "the model names the cheaper method in each: DEM-C/DEM-P 0.15× for the hopper (measured "
+            "0.42–0.56×); 12× for the reduced direct shear (measured 7.3–8.7×) and 0.24× at glass "
+            "stiffness (0.37× by the measured fit); 7.6× for the reduced triaxial (measured 3.5×) and "
+            "0.30× at glass stiffness (0.15× by the fit); DEM-C's unconverged solves change the results"
         )
         if unknown:
             reason += f". Stages {', '.join(unknown)} have no length the deck tells and are left out"
@@ -975,7 +1008,8 @@ class _Advisor:
             "method", "all stages", verdict, reason,
             f"docs/dem_c.md, Kernel costs: {rules.NS_PER_CONTACT_DEM_P} ns per contact (DEM-P) and "
             f"{ns_c} ns per contact and {solver} iteration (tools/dem_c_study.py --parts 3, 4,000 spheres); "
-            "iterations of a column, same document part 1", nums))  # fmt: skip
+            "iterations of a column, same document part 1; the fixed costs a step and an iteration: the "
+            "reduced direct shear's wall times, docs/study/crossover.md", nums))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------

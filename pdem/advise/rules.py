@@ -89,6 +89,20 @@ Jacobi's fused sweep with its velocity update (residual formed on every sweep, `
 a Gauss–Seidel sweep, and an APGD iteration as the solver runs it (line-search trials, exact sums,
 the Python between its kernels)."""
 
+STEP_OVERHEAD_S = 7.0e-4
+"""A whole step's fixed cost beyond its contacts, either method (neighbour-list upkeep, integration,
+boundaries, the Python between kernels): the reduced direct shear (350 beads, about 960 contacts)
+took 0.74–0.76 ms a DEM-P step at E = 4e7 Pa (40,385 steps in 30.8 s; 41,285 in 30.1 s), of which
+its contacts are 0.04 ms by :data:`NS_PER_CONTACT_DEM_P` (docs/study/crossover.md, 2026-11-29). It
+is what makes small scenes cost more per contact than the kernels alone say; scenes with costly
+boundaries cost more (the reduced triaxial's membrane: 2.0 ms a step for 1,400 beads)."""
+
+ITERATION_OVERHEAD_S = 1.1e-4
+"""A DEM-C solver iteration's fixed cost beyond its contacts (exact-sum reductions, the residual,
+the Python between its kernels): the reduced direct shear's APGD took 0.21 ms an iteration
+(1,764 steps, 714 iterations a step, 261 s), its 960 contacts 0.09 ms by
+:data:`NS_PER_CONTACT_ITERATION` (docs/study/crossover.md, 2026-11-29)."""
+
 PARTICLE_STEPS_PER_SECOND = 1.35e6
 """Whole DEM-P steps of a small scene, particle-steps per second on one core (the reduced direct
 shear: 350 beads, 40,385 steps in 10.5 s, docs/experiments/direct_shear.md); used only to predict
