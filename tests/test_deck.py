@@ -521,6 +521,20 @@ def test_bad_override_targets(deck_dir):
     expect(probs, "run.dt", "must be > 0", "(from --set run.dt=-1)")
 
 
+def test_override_into_a_name_the_deck_lacks_is_refused(deck_dir):
+    """A dotted --set into a material or boundary the deck does not have would make a new, unused
+    entry and change nothing (a typo that silently leaves the run as it was): refused, naming the
+    entries the deck has. A whole table still adds one."""
+    probs = problems_of(deck_dir, text=FULL, overrides=("materials.glas.youngs_modulus=1e9",
+                                                        "boundaries.flor.material=\"glass\""))
+    expect(probs, "materials.glas", "no material named 'glas'", "did you mean 'glass'?", "'steel'")
+    expect(probs, "boundaries.flor", "no boundary named 'flor'", "did you mean 'floor'?")
+    assert len(probs) == 2
+    (deck_dir / "deck.toml").write_text(FULL)
+    added = load_deck(deck_dir / "deck.toml", ("materials.sand={density = 2650.0}",))
+    assert added.deck.materials["sand"].density == 2650.0
+
+
 def test_several_errors_reported_at_once(deck_dir):
     text = (FULL.replace("dt = 1e-5", 'dt = "fast"')
             .replace("poisson_ratio = 0.3", "poisson_ratio = 0.7")

@@ -182,6 +182,11 @@ def apply_one(data: dict, text: str) -> Override:
                 f"{quote(seg, 80)}",
                 loc,
             )
+        if (
+            not last and len(loc) == 1 and loc[0] in NAMED_ENTRIES and isinstance(node, dict)
+            and key not in node
+        ):  # fmt: skip
+            raise _no_such_entry(text, str(loc[0]), str(key), node)
         loc += (key,)
         if last:
             node[key] = value
@@ -190,6 +195,27 @@ def apply_one(data: dict, text: str) -> Override:
                 node[key] = {}
             node = node[key]
     return Override(text, loc, value)
+
+
+NAMED_ENTRIES = {"materials": "material", "boundaries": "boundary"}
+"""Sections whose tables are named by the deck: a dotted ``--set`` into a name the deck does not
+have is a typo (it would make a new, unused entry and change nothing), not a way to add one; a whole
+table (``--set 'materials.sand={density = 2650.0}'``) still adds one."""
+
+
+def _no_such_entry(text: str, section: str, name: str, node: dict) -> OverrideError:
+    names = sorted(str(k) for k in node)
+    hint = ""
+    close = difflib.get_close_matches(name, names, n=1)
+    if close:
+        hint = f" (did you mean {quote(close[0], 80)}?)"
+    have = ", ".join(quote(n, 40) for n in names[:12]) or "none"
+    return OverrideError(
+        f"override {quote(text)}: the deck has no {NAMED_ENTRIES[section]} named {quote(name, 80)}"
+        f"{hint}; it has {have}. A dotted --set changes an entry the deck has; to add one, give it "
+        f"whole: --set '{section}.{clip(name, 40)}={{...}}'",
+        (section, name),
+    )
 
 
 def apply_overrides(
