@@ -629,3 +629,25 @@ def test_file_source_spatial_order_makes_results_independent_of_row_order(tmp_pa
     # the grains interacted (contacts spin them: measured, 93 of the 120) and file order really differs
     assert np.count_nonzero(np.abs(sa["w"]).max(axis=1)) > 60
     assert not np.array_equal(states["a", "file"]["x"], states["b", "file"]["x"])
+
+
+def test_pluviation_is_not_at_rest_before_its_column_has_fallen():
+    """The spheres start at rest in a tall column: a short step (here checked every 5 steps, as a
+    stiff material's 0.2 T_R makes the default 500) put the first check before they had gathered
+    speed, and the pour ended there, the column still in the air. Settled, the packing lies on the
+    floor: its highest sphere far below the column's top, many spheres touching the floor."""
+    from pdem.materials import Material
+    from pdem.sources import pluviate
+    from pdem.sources.regions import BoxRegion
+    from pdem.sources.sizes import Uniform
+
+    mat = Material("g", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.1, friction=0.3)
+    box = BoxRegion((0.0, 0.0, 0.0), (0.006, 0.006, 0.05))
+    x, r = pluviate(box, Uniform(0.9e-3, 1.1e-3), 60, mat, seed=2, check_every=5)
+    column = 60 * (4 / 3 * np.pi * 1.0e-9) / 0.3 / 0.006**2  # the loose column, about 23 mm
+    packed = 60 * (4 / 3 * np.pi * 1.0e-9) / 0.6 / 0.006**2  # at a solid fraction of 0.6
+    assert float(np.max(x[:, 2] + r)) < 0.5 * (column + packed)
+    assert int(np.sum(x[:, 2] - r < 0.05e-3)) >= 5  # a floor layer
+
+    with pytest.raises(GeometryError, match="max_time"):
+        pluviate(box, Uniform(0.9e-3, 1.1e-3), 60, mat, seed=2, max_time=0.01)

@@ -45,7 +45,9 @@ def pluviate(
     column is as tall as needed. Settling ends when the root-mean-square speed of the spheres falls
     below ``rest_speed`` [m/s] (default 0.01 sqrt(g d_mean)), checked every ``check_every`` steps (the
     RMS, not the maximum: without rolling resistance a few surface spheres keep rolling for a long
-    time); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
+    time), and not before the column's top could have reached the floor in free fall, sqrt(2 H / g)
+    (the spheres start at rest: with a short step the first checks come before they have gathered
+    speed); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
     is raised. ``progress(t, v_rms)`` is called at each check. Output is spatially ordered.
     Inside a run, the pour reports its progress (:mod:`pdem.sources.progress`).
     """
@@ -65,6 +67,12 @@ def pluviate(
         column = CylinderRegion(container.base_center, container.radius, height)
     else:
         column = BoxRegion(lo, (hi[0], hi[1], lo[2] + height))
+    t_fall = math.sqrt(2.0 * height / gravity) if gravity > 0 else 0.0  # the column's top reaches the floor
+    if max_time < t_fall:
+        raise GeometryError(
+            f"pluviate: max_time = {max_time:.3g} s is shorter than the {height:.3g} m pour column's free "
+            f"fall, {t_fall:.3g} s; raise max_time"
+        )
     x, r = random_fill(column, sizes, n=n, seed=seed)
 
     sim = Simulation()
@@ -93,7 +101,7 @@ def pluviate(
         report(
             "settling", None, _settling_detail(sim.time, v_rms, v_rest, max_time, time.perf_counter() - wall0)
         )
-        if v_rms < v_rest:
+        if v_rms < v_rest and sim.time >= t_fall:
             break
         if sim.time > max_time:
             raise GeometryError(
