@@ -4,6 +4,7 @@ a too-coarse step and too-soft grains, and the command line's refusals and JSON.
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -384,22 +385,48 @@ CROSSOVER_CHARTS = {
                      "direct_shear_peak.json"),
     "triaxial": ("triaxial.toml", _REDUCED_TRIAXIAL, ["materials.glass.youngs_modulus"], 1e8,
                  "triaxial.json"),
+    "cone_drop_cap300": ("cone_drop.toml", ["contact.complementarity.dt=1e-4"],
+                         ["materials.bead.youngs_modulus"], 1e8, "cone_drop_cap300.json"),
+    "cone_drop_cap100": ("cone_drop.toml", ["contact.complementarity.dt=2e-4",
+                                            "contact.complementarity.max_iterations=100"],
+                         ["materials.bead.youngs_modulus"], 1e8, "cone_drop_cap100.json"),
 }  # fmt: skip
 
 
-@pytest.mark.parametrize("name", sorted(CROSSOVER_CHARTS))
-def test_the_method_named_is_the_one_the_crossover_chart_measured(name):
+_MODEL_MISSES = {
+    ("cone_drop_cap300", 6.3e10): "the model costs both methods over the same simulated time, the drop's "
+    "max_time; measured, DEM-C's settling (0.02 s) and its slower approach to rest made it simulate 1.3-1.7x "
+    "DEM-P's time, so the model's ratio (DEM-C 1.1x cheaper) is 2.6x under the measured one (DEM-P "
+    "2.2-2.7x cheaper)",
+}
+
+
+@pytest.mark.parametrize(
+    "name, e",
+    [
+        pytest.param(n, e, marks=pytest.mark.xfail(strict=True, reason=_MODEL_MISSES[n, e]))
+        if (n, e) in _MODEL_MISSES else (n, e)
+        for n in sorted(CROSSOVER_CHARTS) for e in (CROSSOVER_CHARTS[n][3], 6.3e10)
+    ],
+)  # fmt: skip
+def test_the_method_named_is_the_one_the_crossover_chart_measured(name, e):
     """At the deck's stiffness and at glass's (6.3e10 Pa), the method the cost model names as cheaper,
     for the grains as given (not softened), is the one the measured crossover chart names: DEM-C
-    above the stiffness where the charted wall times cross, DEM-P below it."""
+    above the stiffness where the charted wall times cross, DEM-P below it. Where the chart ran DEM-P
+    (not extrapolated), the model's ratio is within a factor 4 of the chart's (its documented
+    error), in the case it misses too."""
     root = Path(__file__).resolve().parents[1]
-    deck, sets, keys, e_deck, chart = CROSSOVER_CHARTS[name]
-    x_cross = json.loads((root / "docs" / "study" / "crossover" / chart).read_text())["x_cross"]
-    for e in (e_deck, 6.3e10):
-        adv = advise(root / "inputs" / deck, [*sets, *(f"{k}={e:g}" for k in keys)], probe=False)
-        nums = finding(adv, "method", "all stages").numbers
-        ratio = nums.get("DEM-C / DEM-P at the deck's stiffness", nums["DEM-C / DEM-P"])
-        assert (ratio < 1) == (e > x_cross), (e, ratio, x_cross)
+    deck, sets, keys, _, chart = CROSSOVER_CHARTS[name]
+    fit = json.loads((root / "docs" / "study" / "crossover" / chart).read_text())
+    adv = advise(root / "inputs" / deck, [*sets, *(f"{k}={e:g}" for k in keys)], probe=False)
+    nums = finding(adv, "method", "all stages").numbers
+    ratio = nums.get("DEM-C / DEM-P at the deck's stiffness", nums["DEM-C / DEM-P"])
+    table = root / "docs" / "study" / "crossover" / chart.replace(".json", ".csv")
+    runs = list(csv.DictReader(table.open()))
+    if e <= max(float(u[keys[0]]) for u in runs if u["role"] == "penalty"):  # measured, not extrapolated
+        measured = fit["t_rigid"] / (fit["a"] * e ** fit["b"])
+        assert 0.25 < ratio / measured < 4.0, (e, ratio, measured)
+    assert (ratio < 1) == (e > fit["x_cross"]), (e, ratio, fit["x_cross"])
 
 
 @pytest.mark.parametrize("solver", ["jacobi", "gauss_seidel"])

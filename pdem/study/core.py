@@ -405,11 +405,17 @@ class Study:
             lines.append(f"- The two cross at x = {fit['x_cross']:.3g}: above it DEM-C takes less wall time.")
         else:
             lines.append("- The fitted DEM-P line does not rise with x: no crossover.")
+        x_max = max((u["x"] for u in fit["runs"] if u["role"] == "penalty" and u["x"] is not None),
+                    default=math.inf)  # fmt: skip
         for label, m in fit["marks"].items():
             if m["t_penalty"]:
+                where = (
+                    "extrapolated past its stiffest run" if m["x"] > x_max * (1 + 1e-9)
+                    else "within its runs' range"
+                )  # fmt: skip
                 lines.append(
-                    f"- {label} (x = {m['x']:.3g}): DEM-P {m['t_penalty']:.3g} s by the fit (extrapolated "
-                    f"past its stiffest run), {m['penalty_over_rigid']:.3g}× DEM-C's."
+                    f"- {label} (x = {m['x']:.3g}): DEM-P {m['t_penalty']:.3g} s by the fit ({where}), "
+                    f"{m['penalty_over_rigid']:.3g}× DEM-C's."
                 )
         lines.append("")
         return lines
