@@ -923,12 +923,12 @@ class _Advisor:
                 )
             )
             return
-        cost_p = steps_p * (rules.STEP_OVERHEAD_S + contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9)
+        per_step_p = rules.STEP_OVERHEAD_S + contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9
+        cost_p = steps_p * per_step_p
         ns_c = rules.NS_PER_CONTACT_ITERATION.get(solver, max(rules.NS_PER_CONTACT_ITERATION.values()))
         cost_c = work_c
         ratio = cost_c / cost_p
         softened = steps_p_stiff > steps_p * (1 + 1e-9)  # the overlap finding softens the grains
-        per_step_p = rules.STEP_OVERHEAD_S + contacts * rules.NS_PER_CONTACT_DEM_P * 1e-9
         ratio_stiff = cost_c / (steps_p_stiff * per_step_p)
         stage_text = "; ".join(per_stage)
         nums = {

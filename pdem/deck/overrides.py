@@ -128,6 +128,14 @@ def _kind(v: Any) -> str:
     return type(v).__name__
 
 
+def _closest(name: str, known: list[str]) -> str | None:
+    """The known name closest to ``name``, if one is close; bounded, as hostile input may be long."""
+    if len(name) > 100 or len(known) > 1000:
+        return None
+    close = difflib.get_close_matches(name, known, n=1)
+    return close[0] if close else None
+
+
 def _index(node: list, seg: str, loc: tuple, text: str) -> int:
     where = clip(".".join(str(p) for p in loc))
     if re.fullmatch(r"\d+", seg):
@@ -153,8 +161,8 @@ def _index(node: list, seg: str, loc: tuple, text: str) -> int:
         if isinstance(e, dict) and e.get("name") == seg:
             return k
     known = [n for n in names if isinstance(n, str)]
-    close = difflib.get_close_matches(seg, known, n=1) if len(seg) <= 100 and len(known) <= 1000 else []
-    hint = f"; did you mean {quote(close[0], 80)}?" if close else ""
+    close = _closest(seg, known)
+    hint = f"; did you mean {quote(close, 80)}?" if close else ""
     listing = ", ".join(quote(n, 80) for n in known[:20]) or "(none have a name)"
     listing += f", … ({len(known):,} in all)" if len(known) > 20 else ""
     raise OverrideError(
@@ -205,10 +213,8 @@ table (``--set 'materials.sand={density = 2650.0}'``) still adds one."""
 
 def _no_such_entry(text: str, section: str, name: str, node: dict) -> OverrideError:
     names = sorted(str(k) for k in node)
-    hint = ""
-    close = difflib.get_close_matches(name, names, n=1)
-    if close:
-        hint = f" (did you mean {quote(close[0], 80)}?)"
+    close = _closest(name, names)
+    hint = f" (did you mean {quote(close, 80)}?)" if close else ""
     have = ", ".join(quote(n, 40) for n in names[:12]) or "none"
     return OverrideError(
         f"override {quote(text)}: the deck has no {NAMED_ENTRIES[section]} named {quote(name, 80)}"
