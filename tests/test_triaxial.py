@@ -514,7 +514,23 @@ def test_tied_membrane_ends_hold_the_end_grains_and_follow_the_platen(packing, t
     m = cell.measurements(sim)
     ring_pressure = R0 * radial.sum() / (2 * m["volume"])
     assert ring_pressure > 0.003 * m["sigma3"]  # the rings carry load (~1 % here)
+    assert m["ring_srr"] == pytest.approx(ring_pressure, rel=1e-12)  # reported: the rings' share
     assert m["lw_srr"] == pytest.approx(m["sigma3"] + ring_pressure, rel=0.03)
+    # σ₁ as a laboratory reads it: the deviator load F − σ₃ π R² over the specimen's mean section V/H
+    # (the cap: the top platen and the ring fixed to it)
+    area = m["volume"] / m["height"]
+    force = float(cell.top.force[2]) + float(high.force[2])
+    deviator = force - m["sigma3"] * math.pi * R0**2
+    assert m["sigma1"] == pytest.approx(m["sigma3"] + deviator / area, rel=1e-12)
+    assert m["ring_axial_share"] == pytest.approx(float(high.force[2]) / force, rel=1e-12)
+    # the boundary's axial load (platen, membrane and the rings' rims) is the grains' own (equilibrium)
+    assert m["szz_boundary"] == pytest.approx(m["lw_szz"], rel=0.01)
+    # no end grain's centre stands past the platen radius plus its own radius (brute force alike)
+    d = cell._mean_diameter(sim)
+    near = (x[:, 2] < d) | (x[:, 2] > top_z - d)
+    assert m["end_overhang"] == pytest.approx(float(np.max(np.hypot(x[near, 0], x[near, 1]) - r[near])) - R0,
+                                              abs=1e-15)
+    assert m["end_overhang"] < 0.0
 
 
 @pytest.mark.integration

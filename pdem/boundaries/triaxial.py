@@ -60,13 +60,18 @@ stages listed in ``mould_stages`` (e.g. while grains are poured and settle), whi
 servoed down to a small seating stress; the membrane takes over in ``consolidation_stage`` (its
 pressure rising over ``ramp_time``) and ``shear_stage``.
 
-Measured every series row: ``sigma1`` (top platen force / current cross-section V/H), ``sigma3``
+Measured every series row: ``sigma1`` (from the top platen's force F and the current mean
+cross-section A = V/H: with tied ends as a laboratory reads it, σ₃ + (F − σ₃ π R²)/A, the deviator
+load over the volume-corrected area; with free ends F/A), ``sigma3``
 (realised: total radial membrane force / lateral area), ``eps_a`` (axial strain from the start of
 shearing, compression positive), ``eps_v`` (volumetric strain, from the membrane's enclosed volume),
 ``q`` = σ₁ − σ₃, ``p`` = (σ₁ + 2σ₃)/3, ``height``, ``radius`` (mean of the cells), and the average
 stress of the grains from their contacts (Love–Weber, ``lw_szz``, ``lw_srr``): σ = (1/V) Σ_c l_c ⊗ f_c
 over pair contacts (branch vectors), platen contacts and membrane forces (levers from the grain
-centres), an independent check of the boundary stresses. Lengths in m, stresses in Pa.
+centres), an independent check of the boundary stresses; ``end_overhang``, how far the end grains'
+centres (within one mean diameter of a platen) stand beyond the platen radius plus their own radius
+(positive: a grain past the platen's edge); with tied ends ``ring_srr``, the rings' part of the
+grains' mean radial stress (lw_srr ≈ σ₃ + ring_srr). Lengths in m, stresses in Pa.
 """
 
 from __future__ import annotations
@@ -492,12 +497,39 @@ class TriaxialCell(Boundary):
         vol = self._volume
         return vol / self.height() if vol == vol else math.pi * self.params.radius**2
 
-    def _servo(self, sim: Any, target: float, area: float, scale: float) -> None:
+    def _tied(self) -> bool:
+        """True while tied membrane ends hold the specimen (their rings stand on the platens)."""
+        return bool(self.rings) and self.rings[0].active
+
+    def _cap_load(self) -> float:
+        """The axial force the grains exert on the top cap [N]: the top platen's, plus its ring's
+        with tied ends (the ring is fixed to the platen, as a laboratory cap's side is; its rim
+        carries part of the axial load once the specimen barrels below it). Collective."""
+        force = float(self.top.force[2])
+        if self._tied():
+            force += float(self.rings[1].force[2])
+        return force
+
+    def _sigma1(self, force: float, sigma3: float, area: float) -> float:
+        """The axial stress σ₁ read from the top cap's force ``force``, as a laboratory reads it.
+
+        Tied ends (the membrane sealed to caps of radius R): the load cell measures the deviator
+        load P = F − σ₃ π R² (the cell pressure presses on the cap), spread over the specimen's
+        current mean cross-section A = V/H (the volume-corrected area of ASTM D7181), so
+        σ₁ = σ₃ + (F − σ₃ π R²) / A; for a membrane that meets the caps at R this is, by
+        equilibrium, the mean axial stress of a cylinder of section A. Free ends (no cap: the
+        membrane meets infinite platens wherever the end grains stand): σ₁ = F / A."""
+        if self._tied():
+            return sigma3 + (force - sigma3 * math.pi * self.params.radius**2) / area
+        return force / area
+
+    def _servo(self, sim: Any, target: float, area: float, scale: float, sigma3: float = 0.0) -> None:
         """Top platen velocity from the axial stress (grains push it up): proportional, with the
         gain max_speed / ``scale`` (full speed while nothing touches it), capped every step so that
         the loop gain gain (K dt + 2 C) / area of the platen's contacts stays ≤ 1
-        (:func:`pdem.contact.stability.servo_gain`; :attr:`loop_gain` keeps the uncapped one)."""
-        sigma1 = float(self.top.force[2]) / area
+        (:func:`pdem.contact.stability.servo_gain`; :attr:`loop_gain` keeps the uncapped one).
+        ``sigma3``: the cell pressure now, for σ₁ as read with tied ends (:meth:`_sigma1`)."""
+        sigma1 = self._sigma1(self._cap_load(), sigma3, area)
         vmax = self.params.max_speed
         gain, self.loop_gain = servo_gain(sim, self.top, vmax / max(scale, 1e-300), area)
         v = float(np.clip(gain * (target - sigma1), -vmax, vmax))
@@ -507,7 +539,9 @@ class TriaxialCell(Boundary):
         # consolidation is isotropic: the platen's target follows the membrane's pressure ramp (a
         # platen driven to the full σ₃ at once overloads the few chains that first carry it)
         if self.phase == "consolidate" and isinstance(self.top.motion, RigidBody):
-            self.top.motion.force = (0.0, 0.0, -self.pressure(sim) * self._area())
+            # (tied ends: a deviator load of nil, F = σ₃ π R² on the cap; free ends: σ₃ over the section)
+            area = math.pi * self.params.radius**2 if self._tied() else self._area()
+            self.top.motion.force = (0.0, 0.0, -self.pressure(sim) * area)
         elif self.phase == "prepare" and self.mould is not None and self.mould.active:
             seat = self._seat_stress()
             if not self.force_control:
@@ -515,7 +549,8 @@ class TriaxialCell(Boundary):
             elif not self._seated:  # force control: come down at full speed until the grains are met
                 self.motion.velocity = np.array([0.0, 0.0, -self.params.max_speed])
         elif self.phase == "consolidate" and isinstance(self.top.motion, Controlled):
-            self._servo(sim, max(self.pressure(sim), self._seat_stress()), self._area(), self.params.sigma3)
+            pressure = self.pressure(sim)
+            self._servo(sim, max(pressure, self._seat_stress()), self._area(), self.params.sigma3, pressure)
         elif self.phase == "shear":
             if self.h0 is None:
                 self.h0 = self.height()
@@ -726,15 +761,22 @@ class TriaxialCell(Boundary):
             vol, radius = self._volume, self._radius
         h = self.height()
         area = vol / h if vol == vol and h > 0 else math.pi * self.params.radius**2
-        sigma1 = float(self.top.force[2]) / area
         # realised σ3: the pressure the membrane forces exert (their radial virial, exact over ranks)
         sigma3 = self._membrane_pressure(sim)
+        cap = self._cap_load()
+        sigma1 = self._sigma1(cap, sigma3 if sigma3 == sigma3 else self.pressure(sim), area)
         # the specimen's mean σ_zz from its boundary loads (equilibrium): the top platen at h, the
-        # membrane's loads at their points; equals σ1 for a straight specimen
+        # membrane's loads at their points; equals σ1 for a straight specimen. Tied ends: the rings'
+        # axial loads, taken at their rims (h − L and L), where they carry them
         axial = getattr(self, "_axial_virial", np.zeros(0))
         vol_applied = getattr(self, "_applied_volume", math.nan)
+        rings_zz = 0.0
+        if self._tied():
+            low, high = self.rings
+            length = high.sizes["length"]
+            rings_zz = float(high.force[2]) * (h - length) + float(low.force[2]) * length
         szz_boundary = (
-            (float(self.top.force[2]) * h - sim.exact_sum(axial)) / vol_applied
+            (float(self.top.force[2]) * h + rings_zz - sim.exact_sum(axial)) / vol_applied
             if self.phase in ("consolidate", "shear") and vol_applied > 0 else sigma1
         )
         out = {
@@ -750,6 +792,10 @@ class TriaxialCell(Boundary):
             "eps_v": (self.v0 - vol) / self.v0 if self.v0 else 0.0,
         }
         out.update(self._love_weber(sim, vol))
+        if self.active:
+            out["end_overhang"] = self._end_overhang(sim)
+        if self._tied():  # the top ring's share of the cap's axial load (its rim)
+            out["ring_axial_share"] = float(self.rings[1].force[2]) / cap if cap > 0 else math.nan
         # inertial number of the loading, I = ε̇ d sqrt(ρ/p) (grain density from their mass and volume)
         # (a column of every shear row, also the first after a resume: a series keeps its columns)
         if self.phase == "shear":
@@ -760,6 +806,21 @@ class TriaxialCell(Boundary):
             pm = out["p"]
             out["inertial"] = self.params.strain_rate * d * math.sqrt(rho / pm) if pm > 0 else math.nan
         return out
+
+    def _end_overhang(self, sim: Any) -> float:
+        """How far the end grains' centres stand beyond the platens' edge plus their own radius,
+        max(ρ − r − R) over the grains whose centres lie within one mean diameter of a platen [m]:
+        positive when an end grain's centre is further out than the platen radius plus its radius,
+        i.e. when the grain stands past the platen's edge, which a laboratory cell does not allow;
+        −inf with no end grain (exact maximum over ranks)."""
+        p, n, live = self._own(sim)
+        x, r = p.x[:n][live], p.r[:n][live]
+        d = self._mean_diameter(sim)
+        zb, zt = self.bottom.reference_point[2], self.top.reference_point[2]
+        ends = (x[:, 2] - zb < d) | (zt - x[:, 2] < d)
+        rho = np.hypot(x[ends, 0] - self.axis_xy[0], x[ends, 1] - self.axis_xy[1])
+        local = float(np.max(rho - r[ends])) - self.params.radius if rho.size else -math.inf
+        return all_max(sim.comm, local)
 
     def _mean_diameter(self, sim) -> float:
         """The mean diameter of the grains in the cell (exact sums: the same on any rank count),
@@ -804,6 +865,18 @@ class TriaxialCell(Boundary):
                 if sb is not None:  # against the full axial boundary load (platen + membrane)
                     eb = _rel_error(lz[shear], sb[shear])
                     out["lw_szz_boundary_error_mean"], out["lw_szz_boundary_error_p95"] = _error_stats(eb)
+            over = key("end_overhang")
+            if over is not None and np.isfinite(over[shear]).any():  # > 0: an end grain past the platen
+                out["end_overhang_max"] = float(np.nanmax(over[shear]))
+            ring = key("ring_srr")
+            if ring is not None and np.isfinite(ring[shear]).any():  # tied ends: the rings' radial share
+                share = ring[shear] / s3[shear]
+                out["ring_srr_share_mean"] = float(np.nanmean(share))
+                out["ring_srr_share_max"] = float(np.nanmax(share))
+            axial = key("ring_axial_share")
+            if axial is not None and np.isfinite(axial[shear]).any():  # tied ends: the top ring's rim
+                out["ring_axial_share_mean"] = float(np.nanmean(axial[shear]))
+                out["ring_axial_share_max"] = float(np.nanmax(axial[shear]))
             inert = key("inertial")
             if inert is not None and np.isfinite(inert[shear]).any():
                 out["inertial_number_max"] = float(np.nanmax(inert[shear]))
@@ -854,6 +927,7 @@ class TriaxialCell(Boundary):
             lever = np.zeros((rr.size, 3))
             lever[:, 2] = sign * rr
             s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
+        ring_radial = 0.0  # the grains' outward push on the rings [N]
         for ring in self.rings:  # tied ends: the lever points to the nearest point of the ring
             sel = wc["wall"] == names.index(ring.name)
             if not (ring.active and sel.any()):
@@ -870,11 +944,17 @@ class TriaxialCell(Boundary):
             n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
             lever = n * (r[k] - 0.5 * wc["overlap"][sel])[:, None]
             s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
+            ring_radial += math.fsum(np.einsum("ka,ka->k", wc["force"][sel][:, :2], d / rho[:, None]))
         _f, terms, _vir = getattr(self, "_applied", (None, np.zeros((0, 9)), None))
         # membrane forces act on owned grains: every rank's terms, summed exactly (any rank count)
         s += np.array([sim.exact_sum(terms[:, c]) for c in range(9)]).reshape(3, 3)
         sigma = -s / vol
-        return {"lw_szz": float(sigma[2, 2]), "lw_srr": float(0.5 * (sigma[0, 0] + sigma[1, 1]))}
+        out = {"lw_szz": float(sigma[2, 2]), "lw_srr": float(0.5 * (sigma[0, 0] + sigma[1, 1]))}
+        if self._tied():
+            # the rings' share of the grains' mean radial stress: their radial virial R Σ f_out over 2V
+            # (the membrane's is σ₃ 2V), so that lw_srr ≈ σ₃ + ring_srr
+            out["ring_srr"] = self.params.radius * ring_radial / (2.0 * vol)
+        return out
 
 
 def _rel_error(value: np.ndarray, ref: np.ndarray) -> np.ndarray:
