@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -455,3 +456,179 @@ def test_column_iterations_table_is_what_the_engine_takes(solver, scaling):
     sim.step()
     assert sim.integrator.n_unconverged == 0
     assert rules.column_iterations(solver, 8, scaling) == pytest.approx(sim.integrator.log[-1][1], rel=1e-9)
+
+
+# ------------------------------------------------------------------ DEM-C settings
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the shipped decks that carry DEM-C settings in [contact.complementarity]
+DEM_C_DECKS = sorted(
+    p.stem for p in (ROOT / "inputs").glob("*.toml")
+    if isinstance(tomllib.loads(p.read_text()).get("contact", {}).get("complementarity"), dict)
+)  # fmt: skip
+#: the decks that measure a wave, which rigid grains do not carry: no DEM-C settings are proposed
+WAVE_DECKS = ("shock_wave", "wave_chain")
+#: what a deck's DEM-C settings come to beyond each stage's solver and cap (docs/advise.md, "DEM-C
+#: settings"); recovery_speed only where a body enters a poured bed
+PROPOSED = {
+    "hopper": {"contact.complementarity.check_every": 5, "contact.complementarity.max_travel": 1.1,
+               "stages.discharge.contact.complementarity.relaxation": 0.4},
+    "triaxial": {"contact.complementarity.apgd_start": "warm", "contact.complementarity.tolerance": 1e-4,
+                 "contact.complementarity.max_travel": 0.2},
+    "direct_shear": {"contact.complementarity.apgd_start": "warm", "contact.complementarity.tolerance": 1e-5,
+                     "contact.complementarity.max_travel": 0.2},
+    "cone_drop": {"contact.complementarity.tolerance": 1e-4, "contact.complementarity.dt": 5e-5,
+                  "contact.complementarity.recovery_speed": 1e-3,
+                  "contact.complementarity.recovery_steps": 1},
+    "cone_penetration": {"contact.complementarity.recovery_speed": 1e-3},
+    "cone_penetration_full": {"contact.complementarity.recovery_speed": 1e-3},
+}  # fmt: skip
+
+
+def test_every_shipped_deck_with_dem_c_settings_is_covered():
+    assert sorted([*PROPOSED, *WAVE_DECKS]) == DEM_C_DECKS
+
+
+def stripped(name: str, tmp_path: Path) -> Path:
+    """The shipped deck ``name`` without its DEM-C settings ([contact.complementarity] and every
+    [stages.contact.complementarity]), written to ``tmp_path``; packing files (relative to the deck's
+    folder) by their absolute paths."""
+    from pdem.deck.toml_writer import dumps
+
+    deck = ROOT / "inputs" / f"{name}.toml"
+    raw = tomllib.loads(deck.read_text())
+    del raw["contact"]["complementarity"]
+    for stage in raw.get("stages", []):
+        table = stage.get("contact")
+        if isinstance(table, dict):
+            table.pop("complementarity", None)
+            if not table:
+                del stage["contact"]
+    resolved = load_deck(deck)
+    for k, (cls, params) in enumerate(zip(resolved.source_classes, resolved.deck.particles, strict=True)):
+        for key in getattr(cls, "path_keys", ()):
+            if getattr(params, key, None) is not None:
+                raw["particles"][k][key] = str(getattr(params, key))
+    out = tmp_path / deck.name
+    out.write_text(dumps(raw, f"{deck.name} without its DEM-C settings"))
+    return out
+
+
+def dem_c_stages(deck: Path, sets: list[str] = ()) -> dict[str, tuple[str, int]]:
+    """Each stage's DEM-C solver and iteration cap, as the deck (with ``sets``) runs them under
+    ``contact.law=complementarity``; loading it validates the deck and the ``--set`` texts."""
+    from pdem.deck.load import stage_contact_values
+
+    resolved = load_deck(deck, [*sets, "contact.law=complementarity"])
+    base = resolved.law_params.model_dump()
+    out = {}
+    for st in resolved.deck.stages:
+        p = {**base, **stage_contact_values(st.contact or {}, "complementarity")}
+        out[st.name] = (p["solver"], p["max_iterations"])
+    return out
+
+
+def cap_class(cap: int) -> str:
+    """Iteration caps by order: a few dozen sweeps (a fill, a flow), hundreds (an impact, a push), 500
+    and more (a quasi-static test)."""
+    return "tens" if cap <= 100 else "hundreds" if cap < 500 else "many"
+
+
+def set_texts(suggestions: dict) -> list[str]:
+    from pdem.deck.toml_writer import value
+
+    return [f"{k}={value(v)}" for k, v in suggestions.items()]
+
+
+@pytest.mark.parametrize("name", sorted(PROPOSED))
+def test_a_deck_stripped_of_its_dem_c_settings_is_proposed_the_ones_it_carries(name, tmp_path):
+    """Stripped of its DEM-C tables, a shipped deck runs the library's Jacobi × 200 everywhere; advise
+    suggests (never changes) settings that give every stage the solver and the class of cap the deck
+    carries, and the deck's other measured keys. --apply leaves the DEM-C table out."""
+    deck = stripped(name, tmp_path)
+    carried = dem_c_stages(ROOT / "inputs" / f"{name}.toml")
+    assert set(dem_c_stages(deck).values()) == {("jacobi", 200)}  # the premise: nothing left
+    advice = advise(deck, probe=False)
+    f = finding(advice, "dem_c_settings", "contact.complementarity")
+    assert f.verdict == "ok" and f.suggestions, f.reason
+    assert not [k for k in advice.changes if "complementarity" in k], advice.changes
+    proposed = dem_c_stages(deck, set_texts(f.suggestions))
+    for stage, (solver, cap) in carried.items():
+        assert proposed[stage][0] == solver, (stage, proposed, carried)
+        assert cap_class(proposed[stage][1]) == cap_class(cap), (stage, proposed, carried)
+    for key, want in PROPOSED[name].items():
+        assert f.suggestions.get(key) == pytest.approx(want), (key, f.suggestions)
+    assert ("contact.complementarity.recovery_speed" in f.suggestions) == name.startswith("cone")
+    out = apply(advice, tmp_path / "advised.toml")
+    assert "complementarity" not in tomllib.loads(out.read_text())["contact"]
+
+
+@pytest.mark.parametrize("law", ["hertz_mindlin", "complementarity"])
+@pytest.mark.parametrize("name", sorted(PROPOSED))
+def test_the_proposed_dem_c_settings_pass_pdem_check(name, law, tmp_path, capsys):
+    """Every suggested --set text is accepted by `pdem check --deck-only` on the stripped deck, as it
+    runs (DEM-P) and switched to DEM-C; a deck that runs DEM-C without a solver choice is warned."""
+    deck = stripped(name, tmp_path)
+    f = finding(advise(deck, [f"contact.law={law}"], probe=False), "dem_c_settings", "contact")
+    assert f.suggestions and f.verdict == ("warn" if law == "complementarity" else "ok")
+    sets = [x for t in set_texts(f.suggestions) for x in ("--set", t)]
+    for run_law in ("hertz_mindlin", "complementarity"):
+        assert main(["check", str(deck), "--deck-only", *sets, "--set", f"contact.law={run_law}"]) == 0
+    assert "valid" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", WAVE_DECKS)
+def test_a_wave_deck_stripped_of_its_dem_c_settings_gets_none(name, tmp_path):
+    """Rigid grains carry no wave: nothing is proposed, and the finding says why."""
+    f = finding(advise(stripped(name, tmp_path), probe=False), "dem_c_settings", "contact.complementarity")
+    assert f.suggestions == {} and "carry no wave" in f.reason and "DEM-P" in f.reason
+
+
+@pytest.mark.parametrize("name", DEM_C_DECKS)
+def test_a_deck_with_its_dem_c_settings_gets_no_dem_c_suggestion(name):
+    deck = ROOT / "inputs" / f"{name}.toml"
+    advice = advise(deck, probe=False)
+    f = finding(advice, "dem_c_settings", "contact.complementarity")
+    assert f.verdict == "ok" and f.suggestions == {}
+    assert not [k for k in advice.suggestions if "complementarity" in k]
+    for stage, (solver, cap) in dem_c_stages(deck).items():  # named stage by stage
+        assert f.numbers[f"stage {stage}"] == f"{solver} × {cap}"
+        assert f"{stage}: {solver} × {cap}" in f.reason
+
+
+def test_the_dropped_body_is_weighed_and_sets_the_step(tmp_path):
+    """The drop's ball against its beads, by the closed forms: 170 grain masses, above the ratio at
+    which Jacobi fails; the step keeps the body's travel per step at its impact speed (a 4× higher
+    drop: half the step); a light body is below the ratio and still gets APGD, saying so."""
+    deck = stripped("cone_drop", tmp_path)
+    ball = 700.0 * math.pi * 0.0254**3 / 6
+    bead = 2500.0 * 4 / 3 * math.pi * 0.0015**3
+    f = finding(advise(deck, probe=False), "dem_c_settings", "contact.complementarity")
+    assert f.numbers["drop: body / grain mass"] == pytest.approx(ball / bead, rel=1e-9)
+    assert 150 < ball / bead < 200 and "above 50" in f.reason
+    high = advise(deck, ["boundaries.pen.release_height=0.4"], probe=False)
+    high = finding(high, "dem_c_settings", "contact")
+    assert high.suggestions["contact.complementarity.dt"] == pytest.approx(2.5e-5, rel=0.05)
+    light = finding(advise(deck, ["boundaries.pen.density=100.0"], probe=False), "dem_c_settings", "")
+    assert light.numbers["drop: body / grain mass"] == pytest.approx(ball / bead / 7, rel=1e-9)
+    assert light.suggestions["contact.complementarity.solver"] == "apgd" and "below 50" in light.reason
+
+
+def test_a_dem_c_deck_that_gives_its_keys_in_contact_gets_suggestions_there(tmp_path):
+    """A deck that runs DEM-C with its keys in [contact] (no solver) is warned, and the suggestions
+    go to [contact], where a key may not be given twice; they pass the check. The shear box's plate
+    rests on the grains: its settings (APGD warm, cap 1,000, tolerance 1e-5)."""
+    own = '[contact.complementarity]\nsolver = "apgd"\nmax_iterations = 1000\n'
+    text = SHEAR.format(E="4.0e7", dt="", v="0.01", max_time="1.0")
+    assert own in text
+    text = text.replace(own, "max_iterations = 100\n")
+    text = text.replace('law = "hertz_mindlin"', 'law = "complementarity"')
+    deck = tmp_path / "demc.toml"
+    deck.write_text(text)
+    f = finding(advise(deck, probe=False), "dem_c_settings", "contact.complementarity")
+    assert f.verdict == "warn"
+    assert f.suggestions["contact.max_iterations"] == 1000 and f.suggestions["contact.apgd_start"] == "warm"
+    assert f.suggestions["contact.tolerance"] == 1e-5
+    assert not [k for k in f.suggestions if "complementarity" in k]
+    sets = [x for t in set_texts(f.suggestions) for x in ("--set", t)]
+    assert main(["check", str(deck), "--deck-only", *sets]) == 0

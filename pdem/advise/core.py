@@ -15,9 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from ..contact.stability import STIFFNESS_LIMIT
-from ..deck.load import LAW_STEP_KEYS
 from ..errors import InputError
-from . import rules
+from . import dem_c, rules
 from .scene import Scene, deck_scene, run_probe
 
 __all__ = ["Finding", "Advice", "advise", "apply"]
@@ -29,11 +28,12 @@ VERDICTS = ("ok", "warn", "change")
 class Finding:
     """One thing the advice looked at.
 
-    ``topic``: what (``step``, ``overlap``, ``inertial``, ``sample_size``, ``method``, ``scene``,
-    ``probe``); ``where``: the stage, boundary or material it belongs to; ``numbers``: the values
-    (SI units, names as in docs/advise.md); ``verdict``: ``ok``, ``warn`` or ``change``;
-    ``reason``: why, in words; ``source``: the rule's source; ``changes``: the ``--set`` changes it
-    makes (applied by ``--apply``); ``suggestions``: changes it proposes but does not apply.
+    ``topic``: what (``step``, ``overlap``, ``inertial``, ``stage_ends``, ``sample_size``, ``method``,
+    ``dem_c_settings``, ``scene``, ``probe``); ``where``: the stage, boundary, material or deck table it
+    belongs to; ``numbers``: the values (SI units, names as in docs/advise.md); ``verdict``: ``ok``,
+    ``warn`` or ``change``; ``reason``: why, in words; ``source``: the rule's source; ``changes``: the
+    ``--set`` changes it makes (applied by ``--apply``); ``suggestions``: changes it proposes but does
+    not apply.
     """
 
     topic: str
@@ -263,6 +263,7 @@ class _Advisor:
         self.stage_lengths()
         self.sample_size()
         self.method()
+        self.dem_c_settings()
         return self.findings
 
     # ------------------------------------------------------------------ helpers
@@ -647,24 +648,8 @@ class _Advisor:
             )
 
     def _stage_dem_c(self, index: int, base: Any) -> Any:
-        """DEM-C's parameters in stage ``index``: ``base`` with the stage's ``[stages.contact]``
-        values for complementarity on top (its own table, or also the top-level keys when the deck
-        runs DEM-C)."""
-        from ..deck.load import stage_contact_values
-
-        stages = self.resolved.deck.stages
-        table = stages[index].contact if index < len(stages) else {}
-        if not table:
-            return base
-        if isinstance(self.resolved.law_params, type(base)):
-            values = stage_contact_values(table, "complementarity")
-        else:  # a DEM-P deck: DEM-C's own table only
-            own = table.get("complementarity")
-            values = dict(own) if isinstance(own, dict) else {}
-        try:
-            return type(base).model_validate({**base.model_dump(), **values})
-        except Exception:  # noqa: BLE001 - checked when the deck switches law; the base settings stand
-            return base
+        """DEM-C's parameters in stage ``index`` (:func:`pdem.advise.dem_c.stage_params`)."""
+        return dem_c.stage_params(self.resolved, index, base)
 
     def _dt_setting(self, st, dt: float, t_r: float) -> dict[str, float]:
         """The key and value that give stage ``st`` the step ``dt`` [s] in the deck's own terms:
@@ -861,20 +846,8 @@ class _Advisor:
     # ------------------------------------------------------------------ method
     def method(self) -> None:
         sc = self.scene
-        from ..complementarity.method import Complementarity
-
-        table = self.raw.get("contact", {}) if isinstance(self.raw.get("contact"), dict) else {}
-        own_dt = None  # DEM-C's own step, [contact.complementarity] dt, in a deck that runs DEM-P
-        if isinstance(self.resolved.law_params, Complementarity.Params):  # the deck runs it
-            cparams = self.resolved.law_params
-        else:
-            sub = table.get("complementarity") if isinstance(table.get("complementarity"), dict) else {}
-            own_dt = sub.get("dt")
-            sub = {k: v for k, v in sub.items() if k not in LAW_STEP_KEYS}  # steps, not parameters
-            try:
-                cparams = Complementarity.Params.model_validate(sub)
-            except Exception:  # noqa: BLE001
-                cparams = Complementarity.Params()
+        # DEM-C's deck-wide parameters, and its own step ([contact.complementarity] dt) in a DEM-P deck
+        cparams, own_dt = dem_c.base_params(self.resolved, self.raw)
         r_min = min(g.r_min for g in sc.groups)
         if sc.rigid and sc.run_dt:
             h_c = float(sc.run_dt)
@@ -1013,6 +986,34 @@ class _Advisor:
             f"{ns_c} ns per contact and {solver} iteration (tools/dem_c_study.py --parts 3, 4,000 spheres); "
             "iterations of a column, same document part 1; the fixed costs a step and an iteration: the "
             "reduced direct shear's wall times, docs/study/crossover.md", nums))  # fmt: skip
+
+    # ------------------------------------------------------------------ DEM-C settings
+    def dem_c_settings(self) -> None:
+        """DEM-C's solver settings: the deck's own, named; or, for a deck that does not choose DEM-C's
+        solver, the settings measured for each kind of stage, as suggestions (``--apply`` leaves a
+        deck's DEM-C table as it is): :mod:`pdem.advise.dem_c`."""
+        sc, runs = self.scene, dem_c.runs_dem_c(self.resolved)
+        where = "contact.complementarity"
+        if dem_c.has_solver(self.raw, self.resolved):
+            text, nums = dem_c.describe(self.resolved, self.raw, sc)
+            self.findings.append(Finding(
+                "dem_c_settings", where, "ok", f"the deck carries DEM-C's settings: {text}",
+                "the deck's [contact.complementarity] and [stages.NAME.contact.complementarity]",
+                nums))  # fmt: skip
+            return
+        prop = dem_c.propose(sc, self.resolved, self.raw)
+        if runs:
+            lib, _ = dem_c.library()
+            head = ("the deck runs DEM-C without choosing its solver, so it runs the library's default "
+                    f"({lib['solver']} × {lib['max_iterations']})")  # fmt: skip
+        else:
+            head = "the deck carries no DEM-C solver choice"
+        head += (", and none is proposed: " if not prop.suggestions else
+                 "; suggested" + ("" if runs else " for --set contact.law=complementarity")
+                 + ", by the kind of each stage (docs/advise.md, DEM-C settings): ")  # fmt: skip
+        self.findings.append(Finding(
+            "dem_c_settings", where, "warn" if runs else "ok", head + prop.reason, prop.source,
+            prop.numbers, suggestions=prop.suggestions))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------

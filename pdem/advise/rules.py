@@ -120,6 +120,87 @@ COLUMN_ITERATIONS = {
 }
 
 # ---------------------------------------------------------------------------------------------
+# DEM-C settings by kind of stage (the dem_c_settings finding, docs/advise.md "DEM-C settings")
+# ---------------------------------------------------------------------------------------------
+# Each kind's settings are the ones a shipped deck was measured with. Solver keys go together (the
+# tolerance and cap were measured with the solver); the step is given as max_travel (the grains'
+# travel per step at 1 m/s, in units of r_min: h = max_travel r_min / (1 m/s)) or as a travel at the
+# scene's own speed.
+
+DEM_C_FILL = {"solver": "apgd", "tolerance": 1e-4, "max_iterations": 60, "check_every": 5}
+"""Loose grains falling under gravity into a closed container: the hopper's fill (docs/dem_c.md, *The
+hopper at each method's best settings*; docs/experiments/hopper.md, *DEM-C*). At h = 1e-3 s APGD
+capped at 30–45 and Jacobi at 40–150 iterations let grains into the plug or the cone (an overlap past
+0.25 r near step 90); 50 held on seeds 1–4 with little margin (45 failed on seed 2); 60 is kept."""
+
+DEM_C_FILL_TRAVEL = 1.1
+"""max_travel of the fill and the discharge: the hopper's step, h = 1.1 r_min / (1 m/s) = 9.9e-4 s
+(inputs/hopper.toml; APGD capped at 50 failed in the fill at 2e-3 s, docs/experiments/hopper.md)."""
+
+DEM_C_FILL_LANDING_SPEED = 1.2
+"""[m/s] The speed the hopper's fill grains land at: a free fall from the top of the fill region to the
+orifice, 7.3 cm, sqrt(2 g 0.073) = 1.20 m/s. A fill whose grains land faster gets a proportionally
+smaller max_travel, so that they travel no further per step at landing than they did there."""
+
+DEM_C_FLOW = {"solver": "jacobi", "tolerance": 1e-4, "max_iterations": 10, "relaxation": 0.4,
+              "check_every": 5}  # fmt: skip
+"""A gravity-driven flow (the hopper's discharge): 10 block-scaled Jacobi sweeps at ω = 0.4 hold it
+(flow rate +1.85 % from DEM-P over seeds 1–6, docs/experiments/hopper.md, *DEM-C*; docs/dem_c.md,
+*Block scaling*); ω = 0.4 is below every measured 2/λ_max of its loaded contacts (0.412–0.587),
+ω = 0.55 and 0.6 failed at the orifice's opening. The tolerance and check_every are the fill's,
+which the deck's discharge inherits."""
+
+DEM_C_CONFINED = {"solver": "apgd", "apgd_start": "warm", "tolerance": 1e-4, "max_iterations": 500}
+"""A sample held by a device at a confining stress (the triaxial cell; docs/experiments/triaxial.md,
+*DEM-C*): φ within 2° of DEM-P's stiff limit on the means of three specimens; against the rigid limit
+cap 250 gave q_peak −6.1 %, 1,000 −1.4 % in 1.7× the time (most steps end at the cap); the warm
+start lowered the median residual 3.4× and took the deviator from a third of DEM-P's to 80–90 %
+(docs/dem_c.md, *Warm start*)."""
+
+DEM_C_CONFINED_PLATE = {"solver": "apgd", "apgd_start": "warm", "tolerance": 1e-5, "max_iterations": 1000,
+                        "check_every": 5}  # fmt: skip
+"""A device whose stress is carried by a free plate resting on the grains (the shear box): at cap 200
+the plate's load swung between 0 and 3× the target (mean |σ/σ_target − 1| 0.52), at 1,000 0.09
+(docs/dem_c.md, *Sliding contacts*); APGD warm at 1,000, tolerance 1e-5 m/s, check_every 5 held σ_n
+within ±2 % at four stresses and came within 1.0° / 1.4° of DEM-P's stiff limit
+(docs/experiments/direct_shear.md, *DEM-C*)."""
+
+DEM_C_CONFINED_TRAVEL = 0.2
+"""max_travel of a confined sample: the automatic step the triaxial (5.7e-4 s) and the reduced shear
+box (6e-4 s) ran at; four times it held on the reduced triaxial and failed at full size
+(docs/experiments/triaxial.md, *DEM-C*)."""
+
+DEM_C_IMPACT = {"solver": "apgd", "tolerance": 1e-4, "max_iterations": 300}
+"""A free body dropped into a bed (inputs/cone_drop.toml; docs/experiments/cone_penetration.md, *Drops
+with both methods*): depth 0.944–1.063 of DEM-P's for a ball of 170 bead masses and cones of 37 and
+82, 150–170 iterations a step, 2–8 % of the steps at the cap; a cap of 1,000 moved the depth by 1 %
+(*What the DEM-C depth depends on*)."""
+
+DEM_C_IMPACT_TRAVEL = 5.0e-5 * math.sqrt(2 * 9.81 * 0.1) / 1.5e-3
+"""The body's travel per step at its impact speed, in units of r_min (0.047): the drop deck's step,
+5e-5 s, for a ball falling 10 cm onto beads of r = 1.5 mm; at twice the step (0.093 r_min) the depth
+moved by 1 % (docs/experiments/cone_penetration.md, *What the DEM-C depth depends on*)."""
+
+HEAVY_BODY_MASS_RATIO = 50.0
+"""Body mass / grain mass above which projected Jacobi is not to be used: it did not converge in 200
+iterations at 84:1, where APGD did in ~90 (docs/notes/engine.md, commit b45e04c; docs/dem_c.md,
+*Rigid-body walls*), nor at the drop deck's 170:1 (inputs/cone_drop.toml). 50 stays below the
+smallest ratio at which it failed; no run measured Jacobi below it."""
+
+DEM_C_RECOVERY_SPEED = 1e-3
+"""[m/s] recovery_speed for a bed poured with soft grains that a body then enters (with
+:data:`DEM_C_RECOVERY_STEPS`, as the cone decks' depths were measured): removed within one step,
+the poured overlaps threw the drop bed's top layers up at ~0.1 m/s (7.5e-4 J after 100 steps, 5.9e-7 J
+with the cap) and left it looser (docs/dem_c.md, *Initial overlaps and the recovery speed*); the drop's
+depths were measured with the cap and a 0.02 s settling (docs/experiments/cone_penetration.md, *What
+the DEM-C depth depends on*). Not for
+a sample a device consolidates: a cap below the solver's residual piles up penetrations (the small
+triaxial at a cap of 1.6e-4 m/s: an overlap of 0.29 r by step 54, the same section)."""
+
+DEM_C_RECOVERY_STEPS = 1
+"""recovery_steps with :data:`DEM_C_RECOVERY_SPEED`: the cap alone removes the initial overlaps."""
+
+# ---------------------------------------------------------------------------------------------
 # device rules
 # ---------------------------------------------------------------------------------------------
 # A device's own numbers (the minimum sizes of its test with their sources, the stress near a cone's
@@ -242,4 +323,3 @@ LIVE_BOUND_PREFACTOR = 0.246 * 0.01947**0.25
 def live_bound_ratio(delta_over_d: float) -> float:
     """Predicted live step bound / T_R at the mean overlap ratio δ/d (inf without contacts)."""
     return LIVE_BOUND_PREFACTOR * delta_over_d**-0.25 if delta_over_d > 0 else math.inf
-

@@ -141,6 +141,25 @@ class Scene:
             for name, params in self.boundaries.items()
         }
 
+    @property
+    def grain_mass(self) -> float:
+        """The grains' mean mass [kg] (NaN when no group's count and density are known)."""
+        known = [g for g in self.groups if math.isfinite(g.count) and math.isfinite(g.density)]
+        n = sum(g.count for g in known)
+        return sum(g.count * g.density * g.mean_volume for g in known) / n if n > 0 else math.nan
+
+    def body_mass(self, name: str) -> float | None:
+        """The mass [kg] of the free body boundary ``name`` drops, when the boundary says it: its
+        instance's ``mass`` (made from the parameters alone, nothing built), else None."""
+        try:
+            body = self.boundary_class(name)(name, self.boundaries[name])
+        except Exception:  # noqa: BLE001 - a boundary that cannot be made without a simulation
+            return None
+        mass = getattr(body, "mass", None)
+        if isinstance(mass, int | float) and not isinstance(mass, bool) and math.isfinite(mass) and mass > 0:
+            return float(mass)
+        return None
+
     def acts_in(self, name: str, stage: str) -> bool:
         """Is boundary ``name`` doing something in ``stage`` (its ``stage_roles``)?"""
         p = self.boundaries[name]
