@@ -615,9 +615,11 @@ def test_the_dropped_body_is_weighed_and_sets_the_step(tmp_path):
 
 
 def test_a_dem_c_deck_that_gives_its_keys_in_contact_gets_suggestions_there(tmp_path):
-    """A deck that runs DEM-C with its keys in [contact] (no solver) is warned, and the suggestions
-    go to [contact], where a key may not be given twice; they pass the check. The shear box's plate
-    rests on the grains: its settings (APGD warm, cap 1,000, tolerance 1e-5)."""
+    """A deck that runs DEM-C with its keys in [contact] (no solver) is warned, and the deck-wide
+    suggestions go to [contact], where a key may not be given twice; they pass the check. The fill
+    (the deck-wide table: its first stage) gets a fill's settings (APGD capped at 60) even inside
+    the box; from the consolidation on the shear box's plate rests on the grains: its settings
+    (APGD warm, cap 1,000, tolerance 1e-5) in those stages' tables."""
     own = '[contact.complementarity]\nsolver = "apgd"\nmax_iterations = 1000\n'
     text = SHEAR.format(E="4.0e7", dt="", v="0.01", max_time="1.0")
     assert own in text
@@ -627,8 +629,11 @@ def test_a_dem_c_deck_that_gives_its_keys_in_contact_gets_suggestions_there(tmp_
     deck.write_text(text)
     f = finding(advise(deck, probe=False), "dem_c_settings", "contact.complementarity")
     assert f.verdict == "warn"
-    assert f.suggestions["contact.max_iterations"] == 1000 and f.suggestions["contact.apgd_start"] == "warm"
-    assert f.suggestions["contact.tolerance"] == 1e-5
-    assert not [k for k in f.suggestions if "complementarity" in k]
+    assert f.suggestions["contact.max_iterations"] == 60 and f.suggestions["contact.solver"] == "apgd"
+    for stage in ("consolidate", "shear"):
+        key = f"stages.{stage}.contact.complementarity."
+        assert f.suggestions[key + "max_iterations"] == 1000 and f.suggestions[key + "apgd_start"] == "warm"
+        assert f.suggestions[key + "tolerance"] == 1e-5
+    assert not [k for k in f.suggestions if k.startswith("contact.complementarity")]
     sets = [x for t in set_texts(f.suggestions) for x in ("--set", t)]
     assert main(["check", str(deck), "--deck-only", *sets]) == 0

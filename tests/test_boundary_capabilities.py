@@ -109,6 +109,7 @@ stages = ["consolidate", "shear"]
 RENAME = {
     "boundaries.box.normal_stress": "boundaries.lid.target_stress",
     "boundaries.box.": "boundaries.lid.",
+    "boundaries.box": "boundaries.lid",  # the boundary named in a finding's reason
 }
 
 

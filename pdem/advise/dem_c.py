@@ -6,11 +6,12 @@ Each stage is classified from what the scene knows (:mod:`pdem.advise.scene`: th
 
 * ``wave``: a boundary launches or times a wave. Rigid grains carry none: nothing is proposed;
 * ``impact``: a boundary drops a free body into the grains (its mass over the grains' is reported);
+* ``fill``: loose grains inserted in the stage fall under gravity (even inside a device that holds
+  them later);
 * ``confined``: a device holds the sample (its ``extent``); with a stress carried by a plate on the
   grains (an ``on_weight`` loading), the plate's settings;
 * ``flow``: a loading whose rate gravity sets (a ``note`` and no quasi-static rate: a discharge);
 * ``push``: a quasi-static rate outside a device (a body pushed into a bed): no measured settings;
-* ``fill``: loose grains inserted in the stage fall under gravity;
 * ``prepares``: nothing of its own (a settling): the settings of the stage it prepares;
 * ``none``: no rule fits: the library defaults.
 
@@ -239,6 +240,18 @@ def classify(scene: Scene) -> list[StageKind]:
                 dict(rules.DEM_C_IMPACT), None if dt else default_travel, dt,
                 f"APGD capped at {rules.DEM_C_IMPACT['max_iterations']}: {why_apgd}; {step}",
                 SOURCES["impact"], nums))  # fmt: skip
+        elif fills:
+            v = math.sqrt(2 * scene.gravity * scene.fall_height) if scene.fall_height > 0 else 0.0
+            travel = rules.DEM_C_FILL_TRAVEL
+            if v > rules.DEM_C_FILL_LANDING_SPEED:
+                travel = rules.round_sig(travel * rules.DEM_C_FILL_LANDING_SPEED / v, 2, "down")
+            groups = ", ".join(f"particles.{g.index}" for g in fills)
+            kinds.append(StageKind(
+                s, "fill", f"{groups}: loose grains fall under gravity", dict(rules.DEM_C_FILL), travel,
+                rule=f"grains landing on a closed bottom: APGD capped at 60, check_every 5, max_travel "
+                f"{travel:g}" + (f" (they land at ~{v:.2g} m/s, faster than the hopper's "
+                f"{rules.DEM_C_FILL_LANDING_SPEED:g} m/s)" if travel < rules.DEM_C_FILL_TRAVEL else ""),
+                source=SOURCES["fill"], numbers={f"{s}: landing speed [m/s]": v}))  # fmt: skip
         elif held:
             plate = any(devices[n] for n in held)
             kinds.append(StageKind(
@@ -266,18 +279,6 @@ def classify(scene: Scene) -> list[StageKind]:
                 "every step at the cap) were 17–29 % below DEM-P's q_c and did not close as the step "
                 "shrank; a converged push was not run. The library defaults are proposed (the push deck "
                 "carries Jacobi capped at 200, h = 1e-4 s)", source=SOURCES["push"]))  # fmt: skip
-        elif fills:
-            v = math.sqrt(2 * scene.gravity * scene.fall_height) if scene.fall_height > 0 else 0.0
-            travel = rules.DEM_C_FILL_TRAVEL
-            if v > rules.DEM_C_FILL_LANDING_SPEED:
-                travel = rules.round_sig(travel * rules.DEM_C_FILL_LANDING_SPEED / v, 2, "down")
-            groups = ", ".join(f"particles.{g.index}" for g in fills)
-            kinds.append(StageKind(
-                s, "fill", f"{groups}: loose grains fall under gravity", dict(rules.DEM_C_FILL), travel,
-                rule=f"grains landing on a closed bottom: APGD capped at 60, check_every 5, max_travel "
-                f"{travel:g}" + (f" (they land at ~{v:.2g} m/s, faster than the hopper's "
-                f"{rules.DEM_C_FILL_LANDING_SPEED:g} m/s)" if travel < rules.DEM_C_FILL_TRAVEL else ""),
-                source=SOURCES["fill"], numbers={f"{s}: landing speed [m/s]": v}))  # fmt: skip
         else:
             kinds.append(StageKind(s, "prepares", "nothing of its own: no boundary loads the grains, none "
                                    "are inserted"))  # fmt: skip
