@@ -9,8 +9,10 @@
 
 Each run is ``pdem DECK --set boundaries.NAME.KEY=S`` (``sigma3`` of the deck's ``triaxial``
 boundary, or ``normal_stress`` of its ``shear_box``) plus the extra ``--set``s, into
-``OUT/<stress>``, one after the other. A run whose ``summary.json`` exists is kept and skipped
-(the study can be stopped and started again); a failed run stops the study with its exit code.
+``OUT/<stress>``, one after the other. A finished run whose record (``study_run.json``, as
+``pdem study`` writes it) shows the same overrides is kept and skipped (the study can be stopped
+and started again; a run made by hand into that folder is made again); a failed run stops the
+study with its exit code.
 ``--constant-stiffness MATERIAL`` scales that material's Young's modulus with the stress (E × S /
 S_deck): soft grains are characterised by κ = (E/p)^(2/3) (overlaps ~ d/κ), and at a fixed E a
 friction angle can fall as the stress rises only because κ falls (docs/experiments/triaxial.md); at

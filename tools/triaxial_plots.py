@@ -8,6 +8,7 @@ grows) and writes ``triaxial.png`` (in the first directory unless ``--png``) wit
 q/p and q against ε_a, ε_v against ε_a (contraction positive), the boundary stresses σ₁, σ₃
 against the grains' own (Love–Weber) stresses, and the specimen's outer radius against height at
 the start of the shear and at ε_a = ``--profile-at`` (default 15 %: bulging) — and
+prints how far the end grains stand past the platens' edge and, with tied ends, the rings' shares;
 ``triaxial_curves.csv`` (ε_a, q, p, ε_v, σ₁, σ₃ of every row while shearing) and
 ``triaxial_profile.csv`` beside it. Several outputs (e.g. three confining pressures, or DEM-P
 and DEM-C) are drawn on the same axes, labelled by directory name.
@@ -131,7 +132,7 @@ def main(argv=None) -> int:
         label = out.name
         ax[0].plot(100 * ea, q / p, label=f"{label}: q/p")
         ax[1].plot(100 * ea, 100 * ev, label=label)
-        ax[2].plot(100 * ea, s[f"{b}.sigma1"] / 1e3, label=f"{label}: σ1 (platen)")
+        ax[2].plot(100 * ea, s[f"{b}.sigma1"] / 1e3, label=f"{label}: σ1 (cap)")
         ax[2].plot(100 * ea, s[f"{b}.lw_szz"] / 1e3, "--", label=f"{label}: σzz (grains)")
         ax[2].plot(100 * ea, s[f"{b}.sigma3"] / 1e3, label=f"{label}: σ3 (membrane)")
         ax[2].plot(100 * ea, s[f"{b}.lw_srr"] / 1e3, "--", label=f"{label}: σrr (grains)")
@@ -158,6 +159,20 @@ def main(argv=None) -> int:
                   f"(mean); bulge (middle − ends) / r0 = {100 * prof['bulge']:.1f} %; mean radius "
                   f"+{100 * prof['growth']:.1f} %, max − min over the height {100 * prof['spread']:.1f} % "
                   f"of r0 (at the start {100 * prof['spread0']:.1f} %)")  # fmt: skip
+        over = s.get(f"{b}.end_overhang")
+        if over is not None and np.isfinite(over).any():  # > 0: an end grain past the platen's edge
+            line = (f"{out}: end grains (centres within one diameter of a platen): furthest "
+                    f"{1e3 * np.nanmax(over):+.2f} mm beyond the platen radius plus their own radius "
+                    f"({'none past the edge' if np.nanmax(over) <= 0 else 'past the edge'})")  # fmt: skip
+            ring, axial = s.get(f"{b}.ring_srr"), s.get(f"{b}.ring_axial_share")
+            if ring is not None and np.isfinite(ring).any():
+                share = ring / s[f"{b}.sigma3"]
+                line += (f"; the rings carry {100 * np.nanmean(share):.1f} % of σ3 radially (max "
+                         f"{100 * np.nanmax(share):.1f} %)")  # fmt: skip
+            if axial is not None and np.isfinite(axial).any():
+                line += (f" and {100 * np.nanmean(axial):.1f} % of the cap's axial load (max "
+                         f"{100 * np.nanmax(axial):.1f} %)")  # fmt: skip
+            print(line)
     ax[0].set(xlabel="axial strain ε_a [%]", ylabel="q / p", title="stress ratio")
     ax[1].set(xlabel="axial strain ε_a [%]", ylabel="volumetric strain ε_v [%] (contraction > 0)",
               title="volume change")  # fmt: skip

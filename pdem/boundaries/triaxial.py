@@ -43,8 +43,9 @@ consolidation with σ₁ 113 % above σ₃ without the cap and within 0.13 % wit
 frictionless platens the end grains then slide outwards and the specimen flares at its ends (an
 hourglass). ``"tied"`` seals the membrane to the platens as in a laboratory cell: a rigid ring of
 the platen radius, ``tie_length`` high (one mean diameter by default), stands on each platen while
-the membrane acts (the top one follows the top platen); the specimen barrels instead, and the rings'
-radial loads are part of the grains' own stress (Love–Weber), not of σ₃.
+the membrane acts (the top one follows the top platen); the specimen barrels instead, the rings'
+radial loads are part of the grains' own stress (Love–Weber), not of σ₃, and σ₁ is read from the
+cap (the top platen and its ring) as a laboratory reads it (:meth:`TriaxialCell._sigma1`).
 
 **Stages**: the cell holds the specimen in ``mould_stages`` (the mould and the seating platen),
 ``consolidation_stage`` and ``shear_stage``, and shears on through ``later_shear_stages`` (at the
