@@ -25,10 +25,10 @@ bed's overlaps are deck-wide.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..deck.toml_writer import key as toml_key
 from . import rules
 from .scene import Scene
 
@@ -46,8 +46,6 @@ _READS = {
 #: the keys that give DEM-C's step, and the recovery keys: a deck's own choice is kept
 STEP_KEYS = ("dt", "dt_fraction", "max_travel", "reference_speed")
 RECOVERY_KEYS = ("recovery_speed", "recovery_steps")
-
-_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 SOURCES = {
     "fill": "docs/dem_c.md, The hopper at each method's best settings (the fill: APGD at 30–45 and Jacobi "
@@ -320,10 +318,6 @@ def _who(names: list[str], one: str, many: str) -> str:
     return f"{', '.join(names[:-1])} and {names[-1]} {many}"
 
 
-def _seg(name: str) -> str:
-    return name if _BARE.match(name) else '"' + name.replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
 def _in_contact(table: dict, key: str) -> bool:
     """Does a deck that runs DEM-C give its keys in ``table`` itself ([contact] or a stage's): ``key``
     (which may not be given twice), or any key and no [complementarity] subtable?"""
@@ -343,8 +337,8 @@ def _stage_key(raw: dict, resolved: Any, stage: str, key: str) -> str:
     stages = raw.get("stages") if isinstance(raw.get("stages"), list) else []
     table = next((t.get("contact") for t in stages if isinstance(t, dict) and t.get("name") == stage), None)
     if runs_dem_c(resolved) and isinstance(table, dict) and _in_contact(table, key):
-        return f"stages.{_seg(stage)}.contact.{key}"
-    return f"stages.{_seg(stage)}.contact.{LAW}.{key}"
+        return f"stages.{toml_key(stage)}.contact.{key}"
+    return f"stages.{toml_key(stage)}.contact.{LAW}.{key}"
 
 
 def _given(raw: dict, resolved: Any) -> dict[str, Any]:
@@ -446,7 +440,7 @@ def propose(scene: Scene, resolved: Any, raw: dict) -> Proposal:
                "the residual piles up penetrations)" if confined else "")
         )  # fmt: skip
     reason = _kinds_text(kinds) + ". " + "; ".join(notes)
-    own = [k.stage for k in used[1:] if any(key.startswith(f"stages.{_seg(k.stage)}.") for key in sugg)]
+    own = [k.stage for k in used[1:] if any(s.startswith(f"stages.{toml_key(k.stage)}.") for s in sugg)]
     if own:
         reason += (f". [contact.complementarity] holds stage {top.stage}'s settings; "
                    + (f"stage {own[0]} gets its" if len(own) == 1 else f"stages {', '.join(own)} get their")

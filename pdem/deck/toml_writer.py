@@ -14,13 +14,14 @@ import math
 import re
 from typing import Any
 
-__all__ = ["dumps"]
+__all__ = ["dumps", "key", "value"]
 
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
 _INLINE_WIDTH = 100
 
 
-def _key(k: str) -> str:
+def key(k: str) -> str:
+    """``k`` as a TOML key segment: bare when it may be, else a quoted string."""
     return k if _BARE.match(k) else _string(k)
 
 
@@ -48,7 +49,7 @@ def value(v: Any) -> str:
     if isinstance(v, dict):
         if not v:
             return "{}"
-        return "{ " + ", ".join(f"{_key(str(k))} = {value(x)}" for k, x in v.items()) + " }"
+        return "{ " + ", ".join(f"{key(str(k))} = {value(x)}" for k, x in v.items()) + " }"
     if v is None:
         raise TypeError("None has no TOML representation; leave the key out")
     raise TypeError(f"cannot write a {type(v).__name__} as TOML: {v!r}")
@@ -81,10 +82,10 @@ def _emit(lines: list[str], path: tuple[str, ...], table: dict, header: str | No
             lines.append("")
         lines.append(header)
     for k, v in plain:
-        lines.append(f"{_key(str(k))} = {value(v)}")
+        lines.append(f"{key(str(k))} = {value(v)}")
     for k, v in subs:
         sub = path + (str(k),)
-        dotted = ".".join(_key(p) for p in sub)
+        dotted = ".".join(key(p) for p in sub)
         if isinstance(v, dict):
             _emit(lines, sub, v, f"[{dotted}]")
         else:
