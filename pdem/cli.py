@@ -189,8 +189,9 @@ def _print_summary(summary: dict, out: Path) -> None:
         )
     solver = summary.get("solver")
     if solver:
+        loads = solver.get("load_stopped_steps")
         if not solver["unconverged_steps"]:
-            note = "; every step converged"
+            note = "; every step converged" + (" (on its residual or on the walls' loads)" if loads else "")
         elif solver.get("stage_settings"):  # [stages.contact]: the caps differ by stage
             note = (
                 f"; {solver['unconverged_steps']} step(s) hit their stage's max_iterations before reaching "
@@ -202,6 +203,11 @@ def _print_summary(summary: dict, out: Path) -> None:
                 f"; {solver['unconverged_steps']} step(s) hit max_iterations = {solver['max_iterations']} "
                 f"before reaching tolerance = {solver['tolerance']:g} m/s (largest residual "
                 f"{solver['max_residual']:.3g} m/s; see solver_<stage>.csv)"
+            )
+        if loads:
+            note += (
+                f"; {loads} step(s) stopped when the walls' loads had settled within load_tolerance = "
+                f"{solver['load_tolerance']:g}, before the residual reached the tolerance"
             )
         print(
             f"pdem: DEM-C ({solver['solver']}): {solver['mean_iterations']:.1f} iterations per step "

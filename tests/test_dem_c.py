@@ -991,3 +991,62 @@ def test_serial_jacobi_sweeps_in_one_kernel_call_give_the_python_loops_bits(tole
     assert np.array_equal(la, lb)
     its = la[:, 1]
     assert its.max() == 60 and (tolerance < 1e-10 or its.min() < 60)
+
+
+def test_apgd_load_tolerance_stops_when_the_walls_loads_settle():
+    """``load_tolerance``: a solve also stops once every wall's load has changed by at most that
+    fraction of the largest wall load over two windows of 10 iterations in a row. From the same
+    state of a packing in a box, the step solved to 1e-12 m/s is the reference: stopped on the loads
+    at 1e-3 it takes fewer iterations, its floor load is within 1 % of the reference's, the step is
+    counted as load-stopped (not unconverged) and the counters survive a checkpoint. Without walls
+    in contact (nothing to measure) the option changes nothing."""
+    base = _packing("apgd", tolerance=1e-10, max_iterations=5000)
+    base.run(steps=150)
+    state = base.state_dict()
+
+    def one_step(**kw):
+        sim = _packing("apgd", add=False, max_iterations=20000, **kw)
+        sim.load_state(state)
+        sim.step()
+        return sim
+
+    ref = one_step(tolerance=1e-12)
+    fast = one_step(tolerance=1e-12, load_tolerance=1e-3)
+    assert ref.integrator.last_residual <= 1e-12
+    it_ref, it_fast = ref.integrator.last_iterations, fast.integrator.last_iterations
+    assert 20 <= it_fast < 0.5 * it_ref, (it_fast, it_ref)
+    assert fast.integrator.last_residual > 1e-12  # stopped on the loads, not on the residual
+    weight = ref.walls["side4"].force  # the floor (box_planes: x, x, y, y, z lo, z hi)
+    assert weight[2] < 0.0
+    for k in range(6):
+        w = f"side{k}"
+        assert np.linalg.norm(fast.walls[w].force - ref.walls[w].force) <= 1e-2 * np.linalg.norm(weight), w
+    stats = fast.integrator.stats()
+    assert stats["load_stopped_steps"] == 1 and stats["unconverged_steps"] == 0
+    assert fast.integrator.summary()["load_stopped_steps"] == 1
+    again = _packing("apgd", add=False, tolerance=1e-12, max_iterations=20000, load_tolerance=1e-3)
+    again.load_state(fast.state_dict())
+    assert again.integrator.stats()["load_stopped_steps"] == 1
+
+    # a block of touching grains in free fall, shaken, far above a floor: contacts between grains but
+    # no wall rows, so no load ever "settles" and the option changes nothing
+    def falling(**kw):
+        sim = make_sim("apgd", mu=0.4, dt=2e-4, tolerance=1e-12, max_iterations=300, **kw)
+        g = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+        v = np.random.default_rng(5).normal(0.0, 0.05, size=g.shape)
+        sim.add_particles(g * 2 * R + 50 * R, R, material="glass", velocities=v)
+        floor(sim)
+        sim.step()
+        assert sim.integrator.last_iterations > 20  # a real solve
+        return sim
+
+    a, b = falling(), falling(load_tolerance=1e-3)
+    assert b.integrator.stats()["load_stopped_steps"] == 0
+    for key in ("x", "v", "w"):
+        assert np.array_equal(a.get_particles()[key], b.get_particles()[key]), key
+
+
+def test_load_tolerance_is_validated():
+    for bad in (0.0, 1.0, -1e-3):
+        with pytest.raises(Exception, match="load_tolerance"):
+            pdem.Simulation(law="complementarity", load_tolerance=bad)

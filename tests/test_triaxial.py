@@ -467,6 +467,22 @@ def test_dem_c_resume_while_grains_are_fast_is_bitwise(tmp_path, ranks):
     _dem_c_resumes_bitwise(tmp_path, (20, 60, 40), (50,), *cap, ranks=ranks)
 
 
+@pytest.mark.integration
+def test_dem_c_apgd_stopped_on_the_walls_loads_resumes_bitwise_on_other_ranks(tmp_path):
+    """APGD warm-started, checked every 5 iterations and stopped when the walls' loads settle
+    (``load_tolerance``, the setting the shipped triaxial deck carries): its stop is decided on exact
+    global sums, so a run stopped in the consolidation and in the shear on 2 ranks and resumed on 3
+    ends bit for bit as the serial run, and the solves really stop on the loads."""
+    import json
+
+    keys = {"solver": '"apgd"', "apgd_start": '"warm"', "check_every": 5, "tolerance": 1e-5,
+            "load_tolerance": 1e-3}
+    apgd = [a for k, v in keys.items() for a in ("--set", f"contact.complementarity.{k}={v}")]
+    _dem_c_resumes_bitwise(tmp_path, (20, 60, 40), (50, 95), *apgd, ranks=(2, 3))
+    solver = json.loads((tmp_path / "full" / "summary.json").read_text())["solver"]
+    assert solver["load_stopped_steps"] > 5, solver  # 17 of the 120 steps (2026-11-29)
+
+
 def test_a_misspelt_mould_stage_is_a_deck_error(tmp_path):
     from pathlib import Path
 

@@ -1092,6 +1092,30 @@ def body_impulse_partials(cb, cn, gam, nc, body):
 
 
 @njit
+def wall_load_partials(G, cn, wrows, wk, nwalls):
+    """Exact partials of every wall's load Σ (γ_n n + γ_t) over the rows ``wrows`` (``wk[q]``: the
+    wall of row ``wrows[q]``), from the impulses in columns ``G`` (G[k, c]): row 3 k + d of the first
+    result holds component d of wall k's sum as exact doubles, their number in the row's last entry;
+    the second the plain sums of its non-finite terms (APGD's ``load_tolerance``)."""
+    nr = 3 * nwalls
+    acc, buf, bits = exact_accumulator()
+    parts = np.zeros((nr, acc.shape[0] + 1))  # no more digits than the accumulator has, and the count
+    special = np.zeros(nr)
+    for r in range(nr):
+        k = r // 3
+        d = r % 3
+        acc[:] = 0
+        for q in range(wrows.shape[0]):
+            if wk[q] == k:
+                c = wrows[q]
+                special[r] += exact_add(acc, buf, bits, G[0, c] * cn[c, d] + G[1 + d, c])
+        digits = exact_partials(acc)
+        parts[r, : digits.shape[0]] = digits
+        parts[r, -1] = digits.shape[0]
+    return parts, special
+
+
+@njit
 def contact_velocities_raw(cb, cn, ca, cvw, cbias, croll, cmu, v, w, nc, uraw, u, corrected):
     """u = Dᵀ v + b for every contact into ``uraw`` and, with ``corrected``, ũ (u_n + μ_c |u_t|) into
     ``u``, in one pass (``u`` may be ``uraw``: then it ends as ũ). Rows of 8 or of 4 (no rolling)."""

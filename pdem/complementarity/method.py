@@ -78,7 +78,7 @@ class ComplementarityParams(LawParams):
     #: solver settings a resume may change (e.g. a tighter solve from a checkpoint)
     resumable: ClassVar[frozenset[str]] = frozenset(
         {"solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation", "scaling",
-         "load_mass_scaling"}
+         "load_mass_scaling", "load_tolerance"}
     )  # fmt: skip
 
     solver: Literal["jacobi", "apgd", "gauss_seidel"] = Field(
@@ -130,6 +130,17 @@ class ComplementarityParams(LawParams):
         "then run up to k − 1 iterations past convergence. Jacobi's steps at the cap run the same "
         "sweeps; APGD returns its best checked iterate, so its results change. 1 (default): every "
         "iteration",
+    )
+    load_tolerance: float | None = Field(
+        default=None,
+        gt=0,
+        lt=1,
+        description="APGD only: also stop a solve when the loads on the walls (each wall's summed "
+        "contact force, the quantity a boundary measures) have settled: measured every 10 iterations "
+        "(on checked ones), the largest change of a wall's load over 10 iterations is at most this "
+        "fraction of the largest wall load twice in a row. The grains' residual may then still be above "
+        "``tolerance``; such steps are counted as ``load_stopped_steps``, not as unconverged. "
+        "Default: off (stop on the residual or the cap only)",
     )
     load_mass_scaling: bool = Field(
         True,
@@ -297,6 +308,8 @@ class Stepper(Integrator):
         self.law = law
         self.n_unconverged = 0
         self.n_stalls = 0  # APGD solves stopped by a line search that could not accept a step
+        self.n_load_stops = 0  # APGD solves stopped because the walls' loads settled (load_tolerance)
+        self.load_stopped = False  # the last solve did
         self.n_resolves = 0  # steps solved again because the per-contact envelope missed a contact
         # steps after which a contact left out by a fixed or global envelope overlapped (reported,
         # not solved again: that envelope is the user's choice)
@@ -653,9 +666,11 @@ class Stepper(Integrator):
         sim = self.sim
         it, res, nc = sp.it, sp.res, sp.nc
         sim.add_work_time(self._modelled_work(nc, it, sp.n_tot + sp.nb, sp.npairs + sp.nw))
-        converged = res <= self.p.tolerance
-        if not converged:
+        if self.load_stopped:
+            self.n_load_stops += 1
+        elif not res <= self.p.tolerance:
             self.n_unconverged += 1
+        self.load_stopped = False
         self.last_iterations = it
         self.last_residual = res
         self.last_contacts = nc
@@ -823,6 +838,7 @@ class Stepper(Integrator):
                     self.n_missed_steps,
                     self.n_short_steps,
                     self.n_scaled_steps,
+                    self.n_load_stops,
                 ]
             ),
             "solver/max_mass_ratio": np.array(self.max_mass_ratio),
@@ -839,6 +855,7 @@ class Stepper(Integrator):
             self.n_missed_steps = counters[5] if len(counters) > 5 else 0
             self.n_short_steps = counters[6] if len(counters) > 6 else 0
             self.n_scaled_steps = counters[7] if len(counters) > 7 else 0
+            self.n_load_stops = counters[8] if len(counters) > 8 else 0
             self.max_mass_ratio = float(state.get("solver/max_mass_ratio", 1.0))
             self.max_residual = float(state["solver/max_residual"])
             self.initial_overlap = float(state.get("solver/initial_overlap", 0.0))  # older checkpoints: 0
@@ -850,6 +867,7 @@ class Stepper(Integrator):
             "residual": float(self.last_residual),
             "steps": float(self.n_steps),
             "unconverged_steps": float(self.n_unconverged),
+            "load_stopped_steps": float(self.n_load_stops),
             "mean_iterations": self.total_iterations / max(self.n_steps, 1),
             "max_residual": float(self.max_residual),
         }
@@ -871,6 +889,8 @@ class Stepper(Integrator):
             "mean_iterations": self.total_iterations / max(self.n_steps, 1),
             "max_residual": self.max_residual,
             "line_search_stalls": self.n_stalls,
+            "load_tolerance": p.load_tolerance,
+            "load_stopped_steps": self.n_load_stops,
             "envelope_resolves": self.n_resolves,
             "missed_contact_steps": self.n_missed_steps,
             "envelope_short_steps": self.n_short_steps,
@@ -1112,6 +1132,8 @@ class Stepper(Integrator):
             return 0, 0.0
         solve = _ApgdSolve(self, nc, v_free, w_free, P, L)
         solve.start(warm=pr.apgd_start == "warm")
+        if pr.load_tolerance is not None:
+            solve.watch_loads(pr.load_tolerance)
         it = 0
         while it < pr.max_iterations:
             it += 1
@@ -1121,11 +1143,12 @@ class Stepper(Integrator):
             if trial is None:  # stalled: stop this solve, keeping its best iterate
                 self.n_stalls += 1
                 break
-            if solve.stop(trial, check, pr.tolerance):
+            if solve.stop(trial, check, pr.tolerance, it):
                 break
             solve.next_point(trial)
         self.gam[:nc] = solve.best.T
         self._sync_velocities(nc, v_free, w_free, P, L)
+        self.load_stopped = solve.load_stopped
         return it, solve.best_res
 
 
@@ -1133,6 +1156,9 @@ class _ApgdSolve:
     """One APGD solve of a step (:meth:`Stepper._apgd`, which documents the method): its work arrays,
     its global sums and its phases. The iterates live in columns (array[k, c]: component k of
     contact c), as Jacobi's, so that the passes stream (``ck.apgd_*``)."""
+
+    #: iterations between two measurements of the walls' loads (load_tolerance)
+    LOAD_WINDOW = 10
 
     def __init__(self, st: Stepper, nc: int, v_free, w_free, P, L) -> None:
         self.st = st
@@ -1164,6 +1190,12 @@ class _ApgdSolve:
         # the trial's three dot products per contact, and the contacts' residuals
         self.D = buf[(9 * width + 2) * nc : (9 * width + 6) * nc].reshape(4, nc)
         self.no_trial = np.empty((width, 0))
+        # load_tolerance (watch_loads): off until asked for
+        self.load_tol: float | None = None
+        self.prev_loads: np.ndarray | None = None
+        self.load_passes = 0
+        self.load_it = -self.LOAD_WINDOW  # the iteration of the last load measurement
+        self.load_stopped = False
 
     # ------------------------------------------------------------------ the solve's operations
     def reduce(self, pairs, maxima=()):
@@ -1313,16 +1345,55 @@ class _ApgdSolve:
             self.lip *= 2.0
             self.t = 1.0 / self.lip
 
-    def stop(self, trial: tuple, check: bool, tolerance: float) -> bool:
-        """On a checked iteration: the accepted iterate's residual, kept as the best iterate when it
-        is the lowest so far; True when it is below ``tolerance``."""
+    def stop(self, trial: tuple, check: bool, tolerance: float, it: int) -> bool:
+        """On a checked iteration (``it``): the accepted iterate's residual, kept as the best iterate
+        when it is the lowest so far; True when it is below ``tolerance``, or when the walls' loads
+        have settled (:meth:`loads_settled`, with ``load_tolerance``)."""
         if not check:
             return False
         res = trial[1][0]
         if res < self.best_res:
             self.best_res = res
             self.best[:] = self.g_new
-        return res <= tolerance
+        if res <= tolerance:
+            return True
+        if self.load_tol is not None and it - self.load_it >= self.LOAD_WINDOW and self.loads_settled(it):
+            # the loads belong to this iterate: return it, whatever its residual
+            self.best_res = res
+            self.best[:] = self.g_new
+            self.load_stopped = True
+            return True
+        return False
+
+    def watch_loads(self, tol: float) -> None:
+        """Also stop when the walls' loads have settled (``load_tolerance``): the counted rows of
+        each wall's contacts, for the exact per-wall sums of :meth:`loads_settled`."""
+        st = self.st
+        rows = self.rows
+        i = st.cb[rows, 0]
+        wrows = rows[(i < 0) | (i >= st.sim.particles.n)]  # −1: a fixed wall; ≥ n: a rigid body
+        self.wrows, self.wk = wrows, st.csrc[wrows, 0]
+        self.nwalls = len(st.sim.contact_store.walls)
+        self.load_tol = tol
+
+    def loads_settled(self, it: int) -> bool:
+        """The walls' loads of the current iterate ``it`` (each wall's summed contact impulse, an
+        exact global sum per wall and component, so every rank decides alike), measured on checked
+        iterations at least :attr:`LOAD_WINDOW` apart: True on the second measurement in a row whose
+        largest change of a wall's load since the last one is at most ``load_tol`` × the largest wall
+        load. (The window is in iterations, not checks, so that the test means the same at any
+        ``check_every``.)"""
+        self.load_it = it
+        parts, special = ck.wall_load_partials(self.g_new, self.st.cn, self.wrows, self.wk, self.nwalls)
+        sums = [(parts[r, : int(parts[r, -1])], special[r]) for r in range(parts.shape[0])]
+        loads = np.array(exact_reduce(self.comm, sums)[0]).reshape(-1, 3)
+        prev, self.prev_loads = self.prev_loads, loads
+        if prev is None:
+            return False
+        scale = math.sqrt(float(np.max((loads * loads).sum(axis=1), initial=0.0)))
+        change = math.sqrt(float(np.max(((loads - prev) ** 2).sum(axis=1), initial=0.0)))
+        self.load_passes = self.load_passes + 1 if 0.0 < scale and change <= self.load_tol * scale else 0
+        return self.load_passes >= 2
 
     def next_point(self, trial: tuple) -> None:
         """The next y: a restart (y = γ, θ = 1) when ũ(y)·(γ − γ_k) > 0, else Nesterov's

@@ -62,7 +62,7 @@ ALLOWED = (
     "run.max_overlap, run.max_particles, run.balance_threshold, run.decomposition, title and the "
     "contact law's solver settings (DEM-C: "
     "contact.solver, tolerance, max_iterations, check_every, apgd_start, relaxation, scaling, "
-    "load_mass_scaling); to change anything else start a new run"
+    "load_tolerance, load_mass_scaling); to change anything else start a new run"
 )
 
 
