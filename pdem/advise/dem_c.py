@@ -37,9 +37,10 @@ __all__ = ["StageKind", "Proposal", "classify", "propose", "base_params", "stage
 LAW = "complementarity"
 
 #: the solver keys that are measured together; which of them a solver reads
-SOLVER_KEYS = ("solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation")
+SOLVER_KEYS = ("solver", "tolerance", "max_iterations", "check_every", "apgd_start", "relaxation",
+               "load_tolerance")  # fmt: skip
 _READS = {
-    "apgd": ("solver", "tolerance", "max_iterations", "check_every", "apgd_start"),
+    "apgd": ("solver", "tolerance", "max_iterations", "check_every", "apgd_start", "load_tolerance"),
     "jacobi": ("solver", "tolerance", "max_iterations", "check_every", "relaxation"),
     "gauss_seidel": ("solver", "tolerance", "max_iterations", "relaxation"),
 }
@@ -258,9 +259,11 @@ def classify(scene: Scene) -> list[StageKind]:
                 dict(rules.DEM_C_CONFINED_PLATE if plate else rules.DEM_C_CONFINED),
                 rules.DEM_C_CONFINED_TRAVEL,
                 rule=("a free plate carries the stress: APGD warm at a cap of 1,000 (at 200 its load swung "
-                      "0–3× the target), tolerance 1e-5 m/s, check_every 5, the automatic step"
+                      "0–3× the target), tolerance 1e-5 m/s, check_every 5, stopped when the walls' "
+                      "loads settle to 1e-3 (0.28× the iterations), the automatic step"
                       if plate else "quasi-static and confined: APGD warm, cap 500 (250: q_peak −6.1 %, "
-                      "1,000: −1.4 % in 1.7× the time), tolerance 1e-4 m/s, the automatic step"),
+                      "1,000: −1.4 % in 1.7× the time), tolerance 1e-4 m/s, stopped when the walls' loads "
+                      "settle to 1e-3 (0.36× the iterations), the automatic step"),
                 source=SOURCES["plate" if plate else "confined"]))  # fmt: skip
         elif flows:
             kinds.append(StageKind(
@@ -382,14 +385,14 @@ def propose(scene: Scene, resolved: Any, raw: dict) -> Proposal:
     top = used[0]
     for key in _reads(top.settings):  # the kind's keys, and the library's where the deck gives another
         want = top.settings.get(key, lib[key])
-        if key in top.settings or (key in given and given[key] != want):
+        if want is not None and (key in top.settings or (key in given and given[key] != want)):
             sugg[_top_key(raw, resolved, key)] = want
     effective = {**lib, **given, **{k: top.settings.get(k, lib[k]) for k in _reads(top.settings)}}
     for k in used[1:]:
         here = {**effective, **_given_in_stage(raw, resolved, k.stage)}
         for key in _reads(k.settings):
             want = k.settings.get(key, lib[key])
-            if here.get(key) != want:
+            if here.get(key) != want and want is not None:  # (an option's "off" cannot be written)
                 sugg[_stage_key(raw, resolved, k.stage, key)] = want
     notes: list[str] = []
     # the step, deck-wide: the smallest any stage asks for
