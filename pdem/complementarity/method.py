@@ -43,7 +43,8 @@ Solvers (``solver``):
 
 The residual of a step is max_c |γ_c − Π_K(γ_c − B_c u_c)| / B_c [m/s] (with the corrected u_n when
 ``cone = "corrected"``: then it measures Coulomb's law); iterations stop when it is below
-``tolerance`` or at ``max_iterations``. Each step's iteration count and residual are recorded
+``tolerance`` or at ``max_iterations``, and for APGD with ``load_tolerance`` also when the walls' loads
+have settled (:meth:`_ApgdSolve.loads_settled`). Each step's iteration count and residual are recorded
 (:meth:`Stepper.drain_records`, through which the deck runner drains them into
 ``solver_<stage>.csv``; undrained, only the last ``Stepper.log_keep`` are kept); steps that hit the
 cap unconverged are counted.
