@@ -297,9 +297,16 @@ def cmd_check(argv: list[str]) -> int:
     args = p.parse_args(argv)
     resolved = load_deck(args.deck, args.sets)
     deck = resolved.deck
+    comm = _comm()  # under mpiexec the ranks share the scene's work (a pour), as in a run
     # progress lines on stderr while a long scene is made (a pour): only after some seconds
-    scene = "" if args.deck_only else "; " + Runner(resolved, progress=sys.stderr, dry=True).check_scene()
+    scene = (
+        ""
+        if args.deck_only
+        else "; " + Runner(resolved, comm=comm, progress=sys.stderr, dry=True).check_scene()
+    )
     nb = len(resolved.boundaries)
+    if comm.rank != 0:
+        return 0
     print(
         f"{args.deck}: valid ({len(deck.stages)} stage(s): {', '.join(s.name for s in deck.stages)}; "
         f"law {deck.contact.law}; {nb} boundar{'y' if nb == 1 else 'ies'}{scene})"

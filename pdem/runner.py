@@ -519,6 +519,7 @@ class Runner:
             seed=self.deck.run.seed + k,
             material=mat,
             where=f"particles.{k}",
+            comm=sim.comm,
         )
         vel = (
             out.velocities

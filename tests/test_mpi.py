@@ -539,3 +539,45 @@ def test_jacobi_bound_tool_agrees_on_1_and_2_ranks(tmp_path):
     assert tables[1][-1, 2] > 50  # loaded contacts at the last measure: a pile has formed
     assert np.array_equal(tables[1][:, :3], tables[2][:, :3])
     assert np.allclose(tables[2][:, 3:], tables[1][:, 3:], rtol=1e-9, atol=0.0)
+
+
+_POUR_SCRIPT = textwrap.dedent(
+    """
+    import hashlib, sys
+    from pdem.materials import Material
+    from pdem.parallel.comm import default_comm
+    from pdem.sources import pluviate
+    from pdem.sources.regions import BoxRegion, CylinderRegion
+    from pdem.sources.sizes import Uniform
+    comm = default_comm()
+    mat = Material("g", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.1, friction=0.3)
+    if sys.argv[1] == "cylinder":
+        container = CylinderRegion((0.001, -0.002, 0.0), 0.008, 0.05)
+    else:
+        container = BoxRegion((0.0, 0.0, 0.0), (0.012, 0.009, 0.05))
+    x, r = pluviate(container, Uniform(0.9e-3, 1.1e-3), int(sys.argv[2]), mat, seed=3, comm=comm)
+    line = hashlib.sha256(x.tobytes() + r.tobytes()).hexdigest() + f" {len(r)}"
+    lines = comm.allgather(line)
+    if comm.rank == 0:
+        print("\\n".join(lines))
+    """
+)
+
+
+@pytest.mark.parametrize(
+    "container,n,ranks",
+    [("cylinder", 300, 2), pytest.param("box", 400, 3, marks=pytest.mark.integration)],
+)
+def test_pour_shared_over_ranks_is_the_serial_pour(tmp_path, container, n, ranks):
+    """A pour (``source = "pluviate"``) runs as one MPI simulation over the run's ranks: every rank
+    gets the whole packing, bitwise the packing of the serial pour (the same script on one rank)."""
+    script = tmp_path / "pour.py"
+    script.write_text(_POUR_SCRIPT)
+    out = {}
+    for k in (1, ranks):
+        proc = subprocess.run([MPIEXEC, "-n", str(k), sys.executable, str(script), container, str(n)],
+                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[k] = proc.stdout.split("\n")[:k]
+    assert len(set(out[ranks])) == 1, out  # every rank holds the same packing
+    assert out[ranks][0] == out[1][0] and out[1][0].endswith(f" {n}")

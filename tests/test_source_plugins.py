@@ -277,6 +277,34 @@ def test_generate_must_return_a_source_output():
     assert out.positions.dtype == np.float64 and len(out) == 1 and out.velocities is None
 
 
+def test_only_a_collective_source_is_given_the_communicator():
+    """``generate`` of a source that does not declare ``collective`` is called as the contract has
+    always said (no ``comm``: a plugin written before it keeps working); a ``collective`` one is
+    given the run's communicator, a serial one when there is none."""
+    from pdem.parallel.comm import SerialComm
+
+    seen = []
+
+    class Plain(Source):
+        def generate(self, *, base_dir, seed, material):
+            return SourceOutput(np.zeros((1, 3)), np.ones(1))
+
+    class Shared(Source):
+        collective = True
+
+        def generate(self, *, base_dir, seed, material, comm):
+            seen.append(comm)
+            return SourceOutput(np.zeros((1, 3)), np.ones(1))
+
+    params = SourceParams(source="x", material="glass")
+    mine = SerialComm()
+    kw = dict(base_dir=Path("."), seed=0, material=Material("glass"))
+    assert len(produce(Plain(params), **kw, comm=mine)) == 1
+    produce(Shared(params), **kw, comm=mine)
+    produce(Shared(params), **kw)
+    assert seen[0] is mine and isinstance(seen[1], SerialComm) and seen[1] is not mine
+
+
 # ------------------------------------------------------------------------------------------- duplicate names
 
 

@@ -39,9 +39,12 @@ A source class derives from :class:`Source` and declares
 Units are SI (m, m/s). Determinism: ``generate`` must return bitwise the same arrays for the same
 parameters and ``seed`` (``run.seed`` plus the index of the table in the deck) on any machine and
 process; it is called on every MPI rank, and each rank keeps the spheres in its own subdomain, so it
-must not communicate or depend on the rank. Particle ids are given in the order returned: return the
-spheres in a spatially coherent order (:func:`pdem.sources.spatial_order`) so that neighbours in
-space are near in memory.
+must not communicate or depend on the rank — unless the class sets ``collective = True``: then
+``generate`` is also given ``comm=`` (the run's communicator, a serial one outside MPI), is called by
+every rank together, may share its work over the ranks (``pluviate`` runs its pour as one MPI
+simulation) and must still return, on every rank, bitwise the arrays it returns serially. Particle
+ids are given in the order returned: return the spheres in a spatially coherent order
+(:func:`pdem.sources.spatial_order`) so that neighbours in space are near in memory.
 """
 
 from __future__ import annotations
@@ -170,6 +173,8 @@ class Source:
     #: the source settles its grains with pdem before the run (a pour): ``pdem advise`` predicts the
     #: time that takes
     settles: ClassVar[bool] = False
+    #: ``generate`` takes ``comm=`` and is called by every rank together (see the module docstring)
+    collective: ClassVar[bool] = False
     #: parameters naming input files relative to the deck (``pdem advise --apply`` makes them absolute)
     path_keys: ClassVar[tuple[str, ...]] = ()
 
@@ -216,13 +221,19 @@ class Source:
 
 
 def produce(
-    source: Source, *, base_dir: Path, seed: int, material: Material, where: str = ""
+    source: Source, *, base_dir: Path, seed: int, material: Material, where: str = "", comm: Any = None
 ) -> SourceOutput:
     """Call ``source.generate`` and check that it honours the contract (a :class:`SourceOutput`);
-    ``where`` (e.g. ``"particles.2"``) is named in the error."""
+    ``where`` (e.g. ``"particles.2"``) is named in the error. ``comm``: the run's communicator, given
+    to a ``collective`` source (None: serial)."""
     label = f"particle source '{source.params.source}'" + (f" ({where})" if where else "")
+    kwargs: dict[str, Any] = {}
+    if source.collective:
+        from ..parallel.comm import SerialComm
+
+        kwargs["comm"] = comm if comm is not None else SerialComm()
     try:
-        out: Any = source.generate(base_dir=Path(base_dir), seed=int(seed), material=material)
+        out: Any = source.generate(base_dir=Path(base_dir), seed=int(seed), material=material, **kwargs)
     except PluginError as exc:
         raise PluginError(f"{label}: {exc}") from exc
     if not isinstance(out, SourceOutput):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
@@ -387,13 +387,14 @@ class PluviateSource(Source):
 
     Params = PluviateParams
     settles = True
+    collective = True  # the pour is one MPI simulation over the run's ranks
 
     @classmethod
     def estimate_count(cls, data: dict, context: dict) -> tuple[float, str] | None:
         """``n``."""
         return _capacity.fill_count(data, by_fraction=False)
 
-    def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
+    def generate(self, *, base_dir: Path, seed: int, material: Material, comm: Any = None) -> SourceOutput:
         from . import pluviate
 
         p = self.params
@@ -408,5 +409,6 @@ class PluviateSource(Source):
             fill_fraction=p.fill_fraction,
             max_time=p.max_time,
             rest_speed=p.rest_speed,
+            comm=comm,
         )
         return SourceOutput(x, r)

@@ -38,6 +38,7 @@ def pluviate(
     max_time: float = 2.0,
     check_every: int = 500,
     progress: Callable[[float, float], None] | None = None,
+    comm=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pour ``n`` spheres into ``container`` and let them settle; return (positions, radii).
 
@@ -50,6 +51,11 @@ def pluviate(
     speed); if that does not happen within ``max_time`` simulated seconds a :class:`GeometryError`
     is raised. ``progress(t, v_rms)`` is called at each check. Output is spatially ordered.
     Inside a run, the pour reports its progress (:mod:`pdem.sources.progress`).
+
+    ``comm``: an MPI communicator (default: serial). The pour is then one MPI simulation, its space
+    split over the ranks like a run's; every rank must call, and every rank gets the whole packing,
+    bitwise the same as a serial pour's (the engine's results do not depend on the rank count, and
+    the rest test sums the speeds exactly).
     """
     from ..geometry.shapes import Cylinder, Plane
     from ..simulation import Simulation
@@ -75,7 +81,7 @@ def pluviate(
         )
     x, r = random_fill(column, sizes, n=n, seed=seed)
 
-    sim = Simulation()
+    sim = Simulation(comm=comm)
     sim.add_material(material)
     sim.add_particles(x, r)
     sim.add_wall(Plane(lo, (0, 0, 1)), name="floor")
@@ -95,7 +101,8 @@ def pluviate(
     wall0 = time.perf_counter()
     while True:
         sim.run(steps=check_every)
-        v_rms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", sim.particles.v, sim.particles.v))))
+        v = sim.particles.v[: sim.particles.n_owned]
+        v_rms = math.sqrt(sim.exact_sum(np.einsum("ij,ij->i", v, v)) / n)  # the same on every rank
         if progress is not None:
             progress(sim.time, v_rms)
         report(
