@@ -377,12 +377,15 @@ def test_dem_c_cost_follows_each_stages_solver_on_the_hopper_deck():
 
 _REDUCED_TRIAXIAL = ["particles.0.n=1400", "particles.0.region.radius=0.027", "boundaries.cell.radius=0.027",
                      "boundaries.cell.height=0.2"]  # studies/triaxial_crossover.toml  # fmt: skip
+# the DEM-C settings studies/direct_shear_crossover.toml gives the example (those of inputs/direct_shear.toml)
+_DS_DEM_C = ["contact.complementarity.apgd_start=warm", "contact.complementarity.check_every=5",
+             "contact.complementarity.load_tolerance=1e-3"]  # fmt: skip
 # the decks of the committed crossover charts (docs/study/crossover.md): deck, the spec's sets, the
 # stiffness keys varied together, the deck's own stiffness, the chart
 CROSSOVER_CHARTS = {
     "hopper": ("hopper.toml", [], ["materials.glass.youngs_modulus", "materials.steel.youngs_modulus"],
                1e7, "hopper.json"),
-    "direct_shear": ("examples/direct_shear_small.toml", [], ["materials.glass.youngs_modulus"], 4e7,
+    "direct_shear": ("examples/direct_shear_small.toml", _DS_DEM_C, ["materials.glass.youngs_modulus"], 4e7,
                      "direct_shear_peak.json"),
     "triaxial": ("triaxial.toml", _REDUCED_TRIAXIAL, ["materials.glass.youngs_modulus"], 1e8,
                  "triaxial.json"),

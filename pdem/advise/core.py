@@ -887,8 +887,12 @@ class _Advisor:
             ns_table = rules.NS_PER_CONTACT_ITERATION
             ns_st = ns_table.get(str(sp.solver), max(ns_table.values()))
             iteration_s = rules.ITERATION_OVERHEAD_S + contacts * ns_st * 1e-9
-            work_c += t / h_c * (rules.STEP_OVERHEAD_S + float(sp.max_iterations) * iteration_s)
-            per_stage.append(f"{st.name}: {sp.solver} × {sp.max_iterations}")
+            its = rules.dem_c_iterations(str(sp.solver), int(sp.max_iterations), sp.load_tolerance)
+            work_c += t / h_c * (rules.STEP_OVERHEAD_S + its * iteration_s)
+            per_stage.append(
+                f"{st.name}: {sp.solver} × {sp.max_iterations}"
+                + (f" (stopped on the walls' loads: ~{its:.0f})" if its < sp.max_iterations else "")
+            )
         if t_total <= 0:
             self.findings.append(
                 Finding(
@@ -951,16 +955,19 @@ class _Advisor:
             )
         reason += (
             f" Iterations: the cap ({cparams.max_iterations}), because pdem's measured DEM-C runs end "
-            "their solves at or near it (direct shear 632–714 of 1,000, the triaxial's shear at 500); "
+            "their solves at or near it (direct shear 632–714 of 1,000, the triaxial's shear at 500), "
+            f"or ~{rules.LOAD_STOPPED_ITERATIONS} where APGD stops on the walls' loads (load_tolerance ≥ "
+            f"{rules.LOAD_STOPPED_MIN_TOLERANCE:g}: 134–178 measured on the triaxial and direct shear); "
             f"a column of {layers:.0f} grains needs ~{estimate:,.0f} {solver} iterations cold "
             f"({'~N²' if solver != 'apgd' else '~N'}), a lower bound. Z = 5.5 is assumed, and the fixed "
             "costs are one scene's (boundaries that cost more per step, like a membrane, are not "
             "counted), and both methods are costed over the same simulated time. Against pdem's "
             "measured crossover charts (docs/study/crossover.md) the model names the cheaper method in "
-            "all but one case: DEM-C/DEM-P 0.15× for the hopper (measured 0.42–0.56×); 12× for the "
-            "reduced direct shear (measured 7.3–8.7×) and 0.24× at glass stiffness (0.37× by the "
-            "measured fit); 7.6× for the reduced triaxial (measured 3.5×) and 0.30× at glass stiffness "
-            "(0.15× by the fit); on the drop with APGD capped at 300 it gives 0.92× at glass stiffness "
+            "all but one case: DEM-C/DEM-P 0.15× for the hopper (measured 0.42–0.56×); 2.2× for the "
+            "reduced direct shear with its solves stopped on the walls' loads (measured 2.1–2.4×) and "
+            "0.043× at glass stiffness (0.11× by the measured fit); 2.8× for the reduced triaxial "
+            "(measured 1.1×) and 0.11× at glass stiffness (0.05× by the fit); on the drop with APGD "
+            "capped at 300 it gives 0.92× at glass stiffness "
             "where DEM-P was 2.2–2.7× cheaper, DEM-C having simulated 1.3–1.7× DEM-P's time to rest "
             "(docs/advise.md). DEM-C's unconverged solves change the results"
         )

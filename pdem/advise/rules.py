@@ -103,6 +103,27 @@ the Python between its kernels): the reduced direct shear's APGD took 0.21 ms an
 (1,764 steps, 714 iterations a step, 261 s), its 960 contacts 0.09 ms by
 :data:`NS_PER_CONTACT_ITERATION` (docs/study/crossover.md, 2026-11-29)."""
 
+LOAD_STOPPED_ITERATIONS = 180
+"""APGD iterations a step when its solves stop on the walls' loads (``load_tolerance`` ≥ 1e-3): the
+measured means were 178 (reduced triaxial, cap 500), 140 (full triaxial, cap 500), 136 (reduced
+direct shear, cap 1,000) and 134 (full direct shear, cap 1,000) (docs/dem_c.md, *Stopping on the
+walls' loads*; 2026-11-29). A tighter tolerance stops few solves (1e-4: 499 of 500): costed at the
+cap."""
+
+LOAD_STOPPED_MIN_TOLERANCE = 1e-3
+"""The smallest ``load_tolerance`` at which :data:`LOAD_STOPPED_ITERATIONS` was measured."""
+
+
+def dem_c_iterations(solver: str, cap: int, load_tolerance: float | None) -> float:
+    """The APGD/Jacobi/Gauss–Seidel iterations a DEM-C step is costed at: the cap, as pdem's measured
+    runs end their solves at or near it, or :data:`LOAD_STOPPED_ITERATIONS` (at most the cap) for an
+    APGD that stops on the walls' loads at a tolerance of at least
+    :data:`LOAD_STOPPED_MIN_TOLERANCE`."""
+    if solver == "apgd" and load_tolerance is not None and load_tolerance >= LOAD_STOPPED_MIN_TOLERANCE:
+        return float(min(cap, LOAD_STOPPED_ITERATIONS))
+    return float(cap)
+
+
 PARTICLE_STEPS_PER_SECOND = 1.35e6
 """Whole DEM-P steps of a small scene, particle-steps per second on one core (the reduced direct
 shear: 350 beads, 40,385 steps in 10.5 s, docs/experiments/direct_shear.md); used only to predict
