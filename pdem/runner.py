@@ -481,6 +481,13 @@ class Runner:
         sim.balance_threshold = run.balance_threshold
         if deck.domain.periodic:
             sim.set_periodic(deck.domain.lo, deck.domain.hi, deck.domain.periodic)
+        if any(load("sources", params.source).keeps_rows for params in deck.particles or []):
+            from .sources.api import ROW_FIELD
+
+            sim.register_field(
+                ROW_FIELD, "int64", output=True, default=-1,
+                doc="the grain's row in its packing file (from 0); -1: from another source",
+            )  # fmt: skip
         for name, params in self.resolved.boundaries.items():
             cls = load("boundaries", params.type)
             self.boundaries[name] = _plugin_call(
@@ -529,6 +536,11 @@ class Runner:
         motion: Any = params.motion
         if out.fixed is not None and out.fixed.any():  # e.g. a lattice's fixed_edges
             motion = np.where(out.fixed, "fixed", params.motion)
+        extra: dict[str, Any] = {}
+        if source.keeps_rows and out.rows is not None:
+            from .sources.api import ROW_FIELD
+
+            extra[ROW_FIELD] = out.rows
         sim.add_particles(
             out.positions,
             out.radii,
@@ -537,6 +549,7 @@ class Runner:
             motion=motion,
             fixed_translation=getattr(params, "fixed_translation", ""),
             fixed_rotation=getattr(params, "fixed_rotation", ""),
+            **extra,
         )
 
     # ---------------------------------------------------------------------------- measuring
@@ -631,6 +644,8 @@ class Runner:
             "material": p["material"].astype(np.int32),
             "contacts": contacts,
         }
+        if "row" in p:  # a packing file's rows (sources with keeps_rows), in every snapshot
+            particles["row"] = p["row"]
         walls = [
             WallState(
                 w.name, int(w.kinds[0]), (w.rows if w.n_rows > 1 else w.params).copy(), w.force, w.torque

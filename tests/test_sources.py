@@ -651,3 +651,54 @@ def test_pluviation_is_not_at_rest_before_its_column_has_fallen():
 
     with pytest.raises(GeometryError, match="max_time"):
         pluviate(box, Uniform(0.9e-3, 1.1e-3), 60, mat, seed=2, max_time=0.01)
+
+
+def test_file_rows_are_kept_in_every_snapshot_and_checkpoint(tmp_path):
+    """A packing file's spheres get ids in space (the default order) and each keeps its file row as
+    the particle field ``row``: every snapshot (HDF5 and VTK) and the checkpoint carry it, and the
+    first frame's positions are the file's rows it names. ``order = "file"`` gives ids = rows. Grains
+    of another table (a lattice) have row -1."""
+    import h5py
+    import meshio
+
+    from pdem.cli import main
+    from pdem.io.checkpoint import read_checkpoint
+
+    x, r = random_fill(BoxRegion((0, 0, 0), (0.006, 0.006, 0.006)), Uniform(0.45e-3, 0.55e-3), n=80, seed=4)
+    perm = np.random.default_rng(9).permutation(len(r))
+    x, r = x[perm], r[perm]
+    write_spheres_text(tmp_path / "a.txt", x, r)
+    lattice = (
+        '\n[[particles]]\nsource = "lattice"\nmaterial = "glass"\nlattice = "sc"\nradius = 4e-4\n'
+        "region = { type = \"box\", lo = [0.0, 0.0, 0.012], hi = [0.0041, 0.0041, 0.0141] }\n"
+    )
+    rows = {}
+    for order in (None, "file"):
+        text = _FILE_DECK.format(path="a.txt", order=order or "x").replace("400", "20")
+        text = text.replace('order = "x"\n', "").replace('formats = ["hdf5"]', 'formats = ["hdf5", "vtk"]')
+        text = text.replace("every_steps = 20", "every_steps = 10")
+        text = text.replace("[boundaries.box]", lattice + "[boundaries.box]")
+        deck = tmp_path / f"{order}.toml"
+        deck.write_text(text)
+        out = tmp_path / f"out_{order}"
+        assert main([str(deck), "--output", str(out), "--quiet"]) == 0
+        with h5py.File(out / "particles.h5", "r") as f:
+            frames = [f[f"frames/{k}"] for k in sorted(f["frames"])]
+            first = {k: frames[0][k][()] for k in ("id", "x", "row")}
+            assert all("row" in g for g in frames)
+            assert all(np.array_equal(g["row"][()], first["row"]) for g in frames)  # rows follow the grains
+        file_rows = first["row"] >= 0
+        assert np.count_nonzero(~file_rows) >= 25 and np.all(first["row"][~file_rows] == -1)
+        assert sorted(first["row"][file_rows].tolist()) == list(range(80))
+        assert np.array_equal(first["x"][file_rows], x[first["row"][file_rows]])  # the row maps back
+        vtk = sorted((out / "vtk").glob("*.vtu")) if (out / "vtk").is_dir() else sorted(out.rglob("*.vtu"))
+        mesh = meshio.read(vtk[0])
+        assert np.array_equal(np.sort(mesh.point_data["row"]), np.sort(first["row"]))
+        state, _ = read_checkpoint(out / "checkpoints" / "latest.h5")
+        order_ids = np.argsort(state["particles/id"])
+        assert np.array_equal(np.asarray(state["particles/row"])[order_ids], first["row"])
+        rows[order] = first
+    # the default is space order: not the file's; "file" numbers the grains by row
+    assert not np.array_equal(rows[None]["row"][:80], np.arange(80))
+    assert np.array_equal(rows["file"]["row"][:80], np.arange(80))
+    assert np.array_equal(rows["file"]["id"][:80], np.arange(80))

@@ -60,7 +60,7 @@ __all__ = [
 _T = TypeVar("_T")
 
 #: Fields written whatever ``fields`` says, when present in the frame.
-_ALWAYS = (*REQUIRED_FIELDS, "r")
+_ALWAYS = (*REQUIRED_FIELDS, "r", "row")
 
 
 def make_temp_file(path: Path, suffix: str = ".tmp") -> tuple[int, str]:

@@ -32,6 +32,8 @@ PARTICLE_FIELDS: dict[str, str] = {
     "mass": "mass [kg]",
     "material": "material index (int32)",
     "contacts": "number of contacts (int32)",
+    "row": "the grain's row in its packing file, from 0 (int64; -1: from another source); present when a "
+    "source reads a file",
 }
 
 #: Fields every frame carries and every writer always writes.

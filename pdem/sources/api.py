@@ -70,7 +70,11 @@ from ..deck.schema import (
 from ..errors import PluginError
 from ..materials import Material
 
+ROW_FIELD = "row"
+"""The particle field that keeps the ``rows`` of sources that set ``keeps_rows``."""
+
 __all__ = [
+    "ROW_FIELD",
     "Source",
     "SourceParams",
     "SourceOutput",
@@ -122,15 +126,18 @@ class SourceParams(_DeckModel):
 @dataclass(frozen=True)
 class SourceOutput:
     """What a source produces: ``positions`` (n, 3) [m], ``radii`` (n,) [m] and optionally
-    ``velocities`` (n, 3) [m/s] (None: every sphere gets the table's ``velocity``) and ``fixed``
+    ``velocities`` (n, 3) [m/s] (None: every sphere gets the table's ``velocity``), ``fixed``
     (n,) bool: spheres that never move whatever the table's ``motion`` (None: none; a lattice's
-    ``fixed_edges``). Converted to float64 (bool) arrays; a wrong shape is a
+    ``fixed_edges``) and ``rows`` (n,) int: each sphere's place in the source's input, counted from
+    0 (a packing file's data row), kept by the run as the particle field ``row`` when the source
+    class sets ``keeps_rows``. Converted to float64 (bool, int64) arrays; a wrong shape is a
     :class:`~pdem.errors.PluginError`."""
 
     positions: np.ndarray
     radii: np.ndarray
     velocities: np.ndarray | None = None
     fixed: np.ndarray | None = None
+    rows: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         x = np.ascontiguousarray(np.asarray(self.positions, dtype=np.float64))
@@ -158,6 +165,11 @@ class SourceOutput:
             if fx.shape != r.shape:
                 raise PluginError(f"SourceOutput: fixed must have shape {r.shape}; got {fx.shape}")
             object.__setattr__(self, "fixed", fx)
+        if self.rows is not None:
+            rows = np.ascontiguousarray(np.asarray(self.rows, dtype=np.int64))
+            if rows.shape != r.shape:
+                raise PluginError(f"SourceOutput: rows must have shape {r.shape}; got {rows.shape}")
+            object.__setattr__(self, "rows", rows)
 
     def __len__(self) -> int:
         return int(self.radii.shape[0])
@@ -175,6 +187,10 @@ class Source:
     settles: ClassVar[bool] = False
     #: ``generate`` takes ``comm=`` and is called by every rank together (see the module docstring)
     collective: ClassVar[bool] = False
+    #: ``generate`` gives ``rows`` (a file's row of each sphere): a run with such a source keeps them
+    #: as the particle field ``row`` (:data:`ROW_FIELD`), written to every output, so that a user can
+    #: map the grains back to the input; -1 for grains of sources without rows
+    keeps_rows: ClassVar[bool] = False
     #: parameters naming input files relative to the deck (``pdem advise --apply`` makes them absolute)
     path_keys: ClassVar[tuple[str, ...]] = ()
 
