@@ -297,7 +297,13 @@ def cmd_check(argv: list[str]) -> int:
     args = p.parse_args(argv)
     resolved = load_deck(args.deck, args.sets)
     deck = resolved.deck
-    comm = _comm()  # under mpiexec the ranks share the scene's work (a pour), as in a run
+    from .parallel.agree import launched_comm
+
+    comm = launched_comm()  # under mpiexec the ranks share the scene's work (a pour), as in a run
+    if comm is None:  # serial: MPI is not started for a check
+        from .parallel.comm import SerialComm
+
+        comm = SerialComm()
     # progress lines on stderr while a long scene is made (a pour): only after some seconds
     scene = (
         ""
