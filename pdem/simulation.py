@@ -47,7 +47,7 @@ from .integrate import _kernels as integ
 from .materials import Material, MaterialTable
 from .neighbor.list import SKIN_MAX, SKIN_MIN, SKIN_STEPS, NeighbourList  # noqa: F401 - re-exported
 from .parallel.comm import SerialComm, all_max, all_min, any_rank, gather_by_id
-from .parallel.exact import exact_sum, global_count
+from .parallel.exact import exact_column_sums, exact_sum, global_count
 from .parallel.work import WorkModel
 from .plugins import load_contact_law
 from .state.particles import FREE, REMOVED, Field, ParticleStore, dof_mask, new_particles
@@ -500,6 +500,12 @@ class Simulation:
         """Correctly rounded sum over all ranks (collective; independent of the partition)."""
         return exact_sum(self.comm, values)
 
+    def exact_column_sums(self, rows) -> np.ndarray:
+        """Column-wise correctly rounded sums of a (k, m) array over all ranks (collective;
+        independent of the partition). Each rank sends only a few partials per column, so a sum over
+        many terms (every contact) holds no other rank's terms."""
+        return exact_column_sums(self.comm, rows)
+
     def particle_sum(self, values) -> float:
         """Correctly rounded sum of a per-particle quantity of the owned particles over all ranks
         (collective; independent of the partition). Unlike :meth:`exact_sum` it is right before an
@@ -933,19 +939,67 @@ class Simulation:
         _, first = np.unique(key, return_index=True)
         return {k: v[first] for k, v in allc.items()}
 
+    def own_contacts(self) -> dict[str, np.ndarray]:
+        """This rank's share of :meth:`contacts` (not collective): every touching pair is counted on
+        exactly one rank, the one that owns its lower-id grain (a pair that meets across a periodic
+        face is counted once). The keys of :meth:`contacts`, and ``branch`` [m], the vector from
+        grain i's centre to grain j's (through the periodic face where they meet there). The ranks'
+        shares together are :meth:`contacts`; a sum over them with :meth:`exact_column_sums` is the
+        same on any rank count, with no rank holding every contact."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        pi, pj, d, dist, touching = self._touching()
+        ids_i, ids_j = p.id[pi], p.id[pj]
+        keep = touching & (np.where(ids_i < ids_j, pi, pj) < p.n_owned)
+        flip = ids_i[keep] > ids_j[keep]  # orient every contact as id_i < id_j, as contacts() does
+        sign = np.where(flip, -1.0, 1.0)[:, None]
+        force = self.contact_store.force[keep] * sign
+        branch = d[keep] * sign
+        dk = dist[keep]
+        return {
+            "id_i": np.where(flip, ids_j[keep], ids_i[keep]),
+            "id_j": np.where(flip, ids_i[keep], ids_j[keep]),
+            "overlap": p.r[pi[keep]] + p.r[pj[keep]] - dk,
+            "normal_force": np.einsum("ij,ij->i", force, branch / dk[:, None]),
+            "force": force,
+            "branch": branch,
+        }
+
+    def count_contacts(self) -> int:
+        """Number of touching pairs over all ranks, each once (collective; ``len`` of
+        :meth:`contacts` without gathering them)."""
+        if not self._prepared:
+            self._prepare()
+        p = self.particles
+        pi, pj, _, _, touching = self._touching()
+        ids_i, ids_j = p.id[pi], p.id[pj]
+        return self.count(int(np.count_nonzero(touching & (np.where(ids_i < ids_j, pi, pj) < p.n_owned))))
+
     def wall_contacts(self) -> dict[str, np.ndarray]:
         """Wall contacts of the last step, all ranks (collective), ordered by (wall, row, id):
         ``wall`` (index into ``list(sim.walls)``), ``row`` (facet of a mesh wall, else 0), ``id`` of
         the particle, ``overlap`` [m] (DEM-C: may be slightly negative, a contact in the envelope),
         ``force`` on the wall [N] (on the particle: its negative) and ``torque`` on the wall about its
         reference point [N m]."""
+        local = self.own_wall_contacts()
+        del local["x"], local["r"]
+        if self.comm.size > 1:
+            gathered = self.comm.allgather(local)
+            local = {k: np.concatenate([q[k] for q in gathered]) for k in local}
+        order = np.lexsort((local["id"], local["row"], local["wall"]))
+        return {k: v[order] for k, v in local.items()}
+
+    def own_wall_contacts(self) -> dict[str, np.ndarray]:
+        """This rank's wall contacts (not collective; its own grains'), ordered by (wall, row, id):
+        the keys of :meth:`wall_contacts`, and the grain's centre ``x`` [m] and radius ``r`` [m]."""
         from .geometry._kernels import wall_gaps
 
         if not self._prepared:
             self._prepare()
         p = self.particles
         cs = self.contact_store
-        parts = {k: [] for k in ("wall", "row", "id", "overlap", "force", "torque")}
+        parts = {k: [] for k in ("wall", "row", "id", "x", "r", "overlap", "force", "torque")}
         for k in range(len(self._wall_list)):
             for row in range(int(cs.wall_rows[k]), int(cs.wall_rows[k + 1])):
                 a = int(cs.cstart[row]) if row < cs.cstart.shape[0] - 1 else 0
@@ -955,16 +1009,16 @@ class Simulation:
                 parts["wall"].append(np.full(c, k, np.int64))
                 parts["row"].append(np.full(c, row - int(cs.wall_rows[k]), np.int64))
                 parts["id"].append(p.id[idx].copy())
+                parts["x"].append(p.x[idx].copy())
+                parts["r"].append(p.r[idx].copy())
                 parts["overlap"].append(-gap)
                 parts["force"].append(cs.out_val[a : a + c, 0:3].copy())
                 parts["torque"].append(cs.out_val[a : a + c, 3:6].copy())
+        vectors = ("x", "force", "torque")
         local = {
-            k: (np.concatenate(v) if v else (np.zeros((0, 3)) if k in ("force", "torque") else np.zeros(0)))
+            k: np.concatenate(v) if v else (np.zeros((0, 3)) if k in vectors else np.zeros(0))
             for k, v in parts.items()
         }
-        if self.comm.size > 1:
-            gathered = self.comm.allgather(local)
-            local = {k: np.concatenate([q[k] for q in gathered]) for k in local}
         order = np.lexsort((local["id"], local["row"], local["wall"]))
         return {k: v[order] for k, v in local.items()}
 

@@ -581,3 +581,64 @@ def test_pour_shared_over_ranks_is_the_serial_pour(tmp_path, container, n, ranks
         out[k] = proc.stdout.split("\n")[:k]
     assert len(set(out[ranks])) == 1, out  # every rank holds the same packing
     assert out[ranks][0] == out[1][0] and out[1][0].endswith(f" {n}")
+
+
+_OWN_CONTACTS_SCRIPT = textwrap.dedent(
+    """
+    import numpy as np, pdem
+    from pdem.geometry.shapes import Plane
+    from pdem.parallel.comm import default_comm
+    from pdem.sources import random_fill
+    from pdem.sources.regions import BoxRegion
+    from pdem.sources.sizes import Uniform
+    comm = default_comm()
+    sim = pdem.Simulation(comm=comm)
+    sim.add_material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.3,
+                     friction=0.4)
+    x, r = random_fill(BoxRegion((0, 0, 0), (0.012, 0.012, 0.008)), Uniform(0.45e-3, 0.55e-3), n=700, seed=5)
+    sim.add_particles(x, r)
+    sim.set_periodic((0.0, 0.0, -0.01), (0.012, 0.012, 0.05), "xy")
+    sim.add_wall(Plane((0, 0, 0), (0, 0, 1)), name="floor")
+    sim.gravity = (0.0, 0.0, -9.81)
+    sim.dt = 5e-6
+    sim.run(steps=4000)
+    full, walls = sim.contacts(), sim.wall_contacts()
+    own = comm.allgather(sim.own_contacts())
+    mine = {k: np.concatenate([o[k] for o in own]) for k in own[0]}
+    order = np.lexsort((mine["id_j"], mine["id_i"]))
+    mine = {k: v[order] for k, v in mine.items()}
+    ok = all(np.array_equal(mine[k], full[k]) for k in full)
+    p = sim.get_particles()
+    branch = p["x"][mine["id_j"]] - p["x"][mine["id_i"]]
+    branch -= np.round(branch / 0.012) * 0.012 * np.array([1, 1, 0])  # the nearest periodic image
+    ok &= bool(np.allclose(mine["branch"], branch, rtol=0, atol=1e-12))
+    ok &= sim.count_contacts() == len(full["id_i"]) > 200
+    ow = comm.allgather(sim.own_wall_contacts())
+    ow = {k: np.concatenate([o[k] for o in ow]) for k in ow[0]}
+    o2 = np.lexsort((ow["id"], ow["row"], ow["wall"]))
+    ok &= all(np.array_equal(ow[k][o2], walls[k]) for k in walls) and len(walls["id"]) > 20
+    ok &= bool(np.array_equal(ow["r"][o2], p["r"][walls["id"]]))
+    terms = np.einsum("ka,kb->kab", sim.own_contacts()["branch"], sim.own_contacts()["force"]).reshape(-1, 9)
+    sums = sim.exact_column_sums(terms)
+    if comm.rank == 0:
+        print(ok, sums.tobytes().hex(), len(full["id_i"]))
+    """
+)
+
+
+@pytest.mark.parametrize("ranks", [2, pytest.param(3, marks=pytest.mark.integration)])
+def test_own_contacts_are_a_partition_of_the_contacts(tmp_path, ranks):
+    """Each rank's ``own_contacts`` (and ``own_wall_contacts``), together, are ``contacts()`` (and
+    ``wall_contacts()``) exactly, with every pair once, including pairs across rank boundaries and
+    across the periodic faces; the branch vectors are the nearest images'; ``count_contacts`` is
+    their number; a stress sum over the shares with ``exact_column_sums`` is bitwise the serial one."""
+    script = tmp_path / "own.py"
+    script.write_text(_OWN_CONTACTS_SCRIPT)
+    out = {}
+    for k in (1, ranks):
+        proc = subprocess.run([MPIEXEC, "-n", str(k), sys.executable, str(script)],
+                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[k] = proc.stdout.split()
+        assert out[k][0] == "True", out[k]
+    assert out[1] == out[ranks]

@@ -907,34 +907,27 @@ class TriaxialCell(Boundary):
 
     def _love_weber(self, sim: Any, vol: float) -> dict[str, float]:
         """Average stress of the grains, compression positive: −(1/V) Σ lever ⊗ force over every
-        force on every grain (pairs: −l ⊗ f with the branch vector; platens; membrane)."""
+        force on every grain (pairs: −l ⊗ f with the branch vector; platens; rings; membrane). Each
+        rank adds the terms of its own contacts and grains; the sums are exact, so the result is the
+        same on any rank count and no rank holds every contact (collective)."""
         if not (vol == vol and vol > 0):
             return {"lw_szz": math.nan, "lw_srr": math.nan}
-        parts = sim.get_particles()  # collective
-        ids, x, r = parts["id"], parts["x"], parts["r"]
-        c = sim.contacts()  # collective, each contact once
-        s = np.zeros((3, 3))
-        if len(c["id_i"]):
-            xi = x[np.searchsorted(ids, c["id_i"])]
-            xj = x[np.searchsorted(ids, c["id_j"])]
-            s -= np.einsum("ka,kb->ab", xj - xi, c["force"])  # Σ (x_i − x_j) ⊗ f_j
-        wc = sim.wall_contacts()  # collective
+        c = sim.own_contacts()
+        levers, forces = [c["branch"]], [-c["force"]]  # Σ (x_i − x_j) ⊗ f_j
+        wc = sim.own_wall_contacts()
         names = list(sim.walls)
         for wall, sign in ((self.bottom, -1.0), (self.top, 1.0)):
             sel = wc["wall"] == names.index(wall.name)
-            if not sel.any():
-                continue
-            rr = r[np.searchsorted(ids, wc["id"][sel])] - 0.5 * wc["overlap"][sel]
-            lever = np.zeros((rr.size, 3))
-            lever[:, 2] = sign * rr
-            s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
-        ring_radial = 0.0  # the grains' outward push on the rings [N]
+            lever = np.zeros((int(sel.sum()), 3))
+            lever[:, 2] = sign * (wc["r"][sel] - 0.5 * wc["overlap"][sel])
+            levers.append(lever)
+            forces.append(-wc["force"][sel])
+        radial = np.zeros(0)  # the grains' outward push on the rings [N], one term per contact
         for ring in self.rings:  # tied ends: the lever points to the nearest point of the ring
             sel = wc["wall"] == names.index(ring.name)
-            if not (ring.active and sel.any()):
+            if not ring.active:
                 continue
-            k = np.searchsorted(ids, wc["id"][sel])
-            xc = x[k]
+            xc = wc["x"][sel]
             d = xc[:, :2] - self.axis_xy
             rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-300)
             zb = ring.shape.base_center[2] + ring.offset[2]
@@ -943,18 +936,26 @@ class TriaxialCell(Boundary):
             near[:, 2] = np.clip(xc[:, 2], zb, zb + ring.sizes["length"])
             n = near - xc
             n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
-            lever = n * (r[k] - 0.5 * wc["overlap"][sel])[:, None]
-            s += np.einsum("ka,kb->ab", lever, -wc["force"][sel])
-            ring_radial += math.fsum(np.einsum("ka,ka->k", wc["force"][sel][:, :2], d / rho[:, None]))
-        _f, terms, _vir = getattr(self, "_applied", (None, np.zeros((0, 9)), None))
-        # membrane forces act on owned grains: every rank's terms, summed exactly (any rank count)
-        s += np.array([sim.exact_sum(terms[:, c]) for c in range(9)]).reshape(3, 3)
-        sigma = -s / vol
+            levers.append(n * (wc["r"][sel] - 0.5 * wc["overlap"][sel])[:, None])
+            forces.append(-wc["force"][sel])
+            push = np.einsum("ka,ka->k", wc["force"][sel][:, :2], d / rho[:, None])
+            radial = np.concatenate([radial, push])
+        lever, force = np.concatenate(levers), np.concatenate(forces)
+        terms = np.einsum("ka,kb->kab", lever, force).reshape(-1, 9)
+        # membrane forces act on owned grains: their lever ⊗ force terms, one row per grain
+        _f, membrane, _vir = getattr(self, "_applied", (None, np.zeros((0, 9)), None))
+        membrane = np.asarray(membrane, dtype=float).reshape(-1, 9)
+        col = np.zeros((len(terms) + len(membrane) + len(radial), 10))  # 9 components, the rings' push
+        col[: len(terms), :9] = terms
+        col[len(terms) : len(terms) + len(membrane), :9] = membrane
+        col[len(terms) + len(membrane) :, 9] = radial
+        total = sim.exact_column_sums(col)
+        sigma = -total[:9].reshape(3, 3) / vol
         out = {"lw_szz": float(sigma[2, 2]), "lw_srr": float(0.5 * (sigma[0, 0] + sigma[1, 1]))}
         if self._tied():
             # the rings' share of the grains' mean radial stress: their radial virial R Σ f_out over 2V
             # (the membrane's is σ₃ 2V), so that lw_srr ≈ σ₃ + ring_srr
-            out["ring_srr"] = self.params.radius * ring_radial / (2.0 * vol)
+            out["ring_srr"] = self.params.radius * float(total[9]) / (2.0 * vol)
         return out
 
 

@@ -16,7 +16,8 @@ import numpy as np
 from .._jit import njit
 
 __all__ = [
-    "exact_sum", "exact_sums", "global_count", "dot_partials", "dot_partials_columns", "exact_reduce",
+    "exact_sum", "exact_sums", "exact_column_sums", "global_count", "dot_partials", "dot_partials_columns",
+    "exact_reduce",
     "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials",
 ]  # fmt: skip
 
@@ -255,6 +256,34 @@ def dot_partials_columns(a, b, rows, all_rows):
                     buf[o + q] = ak[c] * bk[c]
         special += exact_add_many(acc, bins, buf, m * ncol)
     return _acc_digits(acc), special
+
+
+@njit
+def column_partials(rows, c):
+    """Σ_q rows[q, c] as a few doubles whose sum is exact, and the plain sum of the non-finite terms
+    (0.0 if none); combine ranks' results with :func:`exact_reduce`."""
+    acc = np.zeros(_BINS, dtype=np.int64)
+    bins = exact_bins()
+    n = rows.shape[0]
+    buf = np.empty(EXACT_MANY_MAX)
+    special = 0.0
+    for q0 in range(0, n, EXACT_MANY_MAX):
+        m = min(EXACT_MANY_MAX, n - q0)
+        for q in range(m):
+            buf[q] = rows[q0 + q, c]
+        special += exact_add_many(acc, bins, buf, m)
+    return _acc_digits(acc), special
+
+
+def exact_column_sums(comm, rows: np.ndarray) -> np.ndarray:
+    """Column-wise correctly rounded sums of a (k, m) array over all ranks (collective), as
+    :func:`exact_sums` gives them, from each rank's partials: one small gather, whatever k, so no
+    rank holds another's terms."""
+    rows = np.ascontiguousarray(rows, dtype=np.float64)
+    if rows.ndim == 1:
+        rows = rows[:, None]
+    out, _ = exact_reduce(comm, [column_partials(rows, c) for c in range(rows.shape[1])])
+    return np.array(out, dtype=np.float64)
 
 
 _SHORT = 8  # partials per sum in exact_reduce's first gather
