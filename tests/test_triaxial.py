@@ -294,7 +294,10 @@ def test_dem_c_consolidates_under_load_control(packing):
     """Rigid grains: the top platen is a free plate under σ3 A (solved with the grains). The
     platen stress averages σ3, and the grains' own (Love–Weber) stress, from the impulses of every
     contact, agrees with the boundary's (rigid grains touch at a gap ≥ 0: a contact counted only
-    when it overlapped left most of them out, and the grains' stress read ~20–65 % of it)."""
+    when it overlapped left most of them out, and the grains' stress read ~20–65 % of it). The
+    boundary's σ_zz is the platen's load with the membrane's axial virial (``szz_boundary``): the
+    gradient membrane also pushes on the specimen's rounded ends, which the platen alone (σ1) does
+    not see (here σ_zz ≈ 1.17 σ1)."""
     sim, cell = _cell(packing, law="complementarity")
     sim.set_law("complementarity", solver="apgd")
     sim.set_stage("consolidate")
@@ -304,7 +307,8 @@ def test_dem_c_consolidates_under_load_control(packing):
     assert isinstance(sim.walls["cell.top"].motion, pdem.api.RigidBody)
     s1 = np.array([m["sigma1"] for m in rows])
     assert np.mean(s1) == pytest.approx(SIGMA3, rel=0.1)
-    assert np.mean([m["lw_szz"] for m in rows]) == pytest.approx(np.mean(s1), rel=0.1)
+    szz = np.mean([m["szz_boundary"] for m in rows])
+    assert np.mean([m["lw_szz"] for m in rows]) == pytest.approx(szz, rel=0.02)
     assert np.mean([m["lw_srr"] for m in rows]) == pytest.approx(SIGMA3, rel=0.1)
 
 
