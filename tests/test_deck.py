@@ -702,3 +702,14 @@ def test_run_dt_and_dt_fraction_are_exclusive(tmp_path):
     with pytest.raises(InputError) as info:
         load_deck(deck)
     assert "run.dt_fraction" in str(info.value) and "give one" in str(info.value)
+
+
+def test_million_deck_validates_and_makes_a_million_grains_per_rank_output():
+    """inputs/examples/million.toml (the deck docs/performance.md measures 10⁶ grains on) validates,
+    its source makes 10⁶ grains by the memory check's estimate, and its output is per rank."""
+    from pdem.deck.capacity import estimate_sources
+
+    path = ROOT / "inputs" / "examples" / "million.toml"
+    resolved = load_deck(path)
+    assert resolved.deck.output.parallel == "per_rank"
+    assert sum(c for _, c, _ in estimate_sources(tomllib.loads(path.read_text()), path.parent)) == 1_000_000
