@@ -946,12 +946,9 @@ class Simulation:
         grain i's centre to grain j's (through the periodic face where they meet there). The ranks'
         shares together are :meth:`contacts`; a sum over them with :meth:`exact_column_sums` is the
         same on any rank count, with no rank holding every contact."""
-        if not self._prepared:
-            self._prepare()
         p = self.particles
-        pi, pj, d, dist, touching = self._touching()
+        pi, pj, d, dist, keep = self._own_touching()
         ids_i, ids_j = p.id[pi], p.id[pj]
-        keep = touching & (np.where(ids_i < ids_j, pi, pj) < p.n_owned)
         flip = ids_i[keep] > ids_j[keep]  # orient every contact as id_i < id_j, as contacts() does
         sign = np.where(flip, -1.0, 1.0)[:, None]
         force = self.contact_store.force[keep] * sign
@@ -969,12 +966,17 @@ class Simulation:
     def count_contacts(self) -> int:
         """Number of touching pairs over all ranks, each once (collective; ``len`` of
         :meth:`contacts` without gathering them)."""
+        return self.count(int(np.count_nonzero(self._own_touching()[4])))
+
+    def _own_touching(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_touching` with the mask narrowed to the pairs this rank counts: those whose
+        lower-id grain it owns (one copy of a pair across ranks or a periodic face)."""
         if not self._prepared:
             self._prepare()
         p = self.particles
-        pi, pj, _, _, touching = self._touching()
-        ids_i, ids_j = p.id[pi], p.id[pj]
-        return self.count(int(np.count_nonzero(touching & (np.where(ids_i < ids_j, pi, pj) < p.n_owned))))
+        pi, pj, d, dist, touching = self._touching()
+        lower = np.where(p.id[pi] < p.id[pj], pi, pj)
+        return pi, pj, d, dist, touching & (lower < p.n_owned)
 
     def wall_contacts(self) -> dict[str, np.ndarray]:
         """Wall contacts of the last step, all ranks (collective), ordered by (wall, row, id):
