@@ -240,3 +240,39 @@ def test_exact_column_sums_are_the_correctly_rounded_column_sums():
     bad[20, 3] = np.nan
     got = exact_column_sums(SerialComm(), bad)
     assert got[0] == np.inf and math.isnan(got[3]) and got[1] == math.fsum(rows[:, 1])
+
+
+@pytest.mark.parametrize("k", [2, 3])
+def test_exact_sum_over_ranks_sends_partials_and_gives_the_fsum_of_all_terms(k):
+    """``exact_sum`` / ``exact_sums`` on several ranks reduce each rank's terms to partials (no rank
+    receives another's terms) and give ``math.fsum`` of all of them, bit for bit, on any split."""
+    from pdem.parallel.exact import exact_sum, exact_sums
+
+    rng = np.random.default_rng(11 + k)
+    n = 3000
+    big = rng.standard_normal(n) * np.exp2(rng.integers(-200, 200, n))
+    terms = np.concatenate([big, -big[::-1] + rng.standard_normal(n) * 1e-9])
+    rows = np.stack([terms, rng.standard_normal(2 * n)], axis=1)
+    order = rng.permutation(2 * n)
+    cuts = np.sort(rng.choice(np.arange(1, 2 * n), k - 1, replace=False))
+    shares = np.split(order, cuts)
+    shared = {"slots": [None] * k, "barrier": threading.Barrier(k, timeout=30)}
+    results, errors = [None] * k, []
+
+    def run(r):
+        try:
+            comm = _ThreadComm(r, shared)
+            results[r] = (exact_sum(comm, terms[shares[r]]), exact_sums(comm, rows[shares[r]]))
+        except Exception as exc:  # reported below
+            errors.append(exc)
+            shared["barrier"].abort()
+
+    threads = [threading.Thread(target=run, args=(r,)) for r in range(k)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    for one, cols in results:
+        assert one == math.fsum(terms)
+        assert [float(v) for v in cols] == [math.fsum(rows[:, 0]), math.fsum(rows[:, 1])]

@@ -2,9 +2,10 @@
 
 A floating-point sum depends on the order of its terms, hence on how particles are spread over
 ranks. Anything that can change the trajectory (stage end conditions, servo inputs) or that is
-reported (wall loads, energies, discharged mass) is therefore summed *exactly*: every rank's terms
-are gathered and :func:`math.fsum` returns the correctly rounded value of their exact sum, which does
-not depend on their order or partition.
+reported (wall loads, energies, discharged mass) is therefore summed *exactly*: the result is the
+correctly rounded value of the terms' exact sum, which does not depend on their order or partition.
+Serially :func:`math.fsum` gives it; on several ranks each rank reduces its terms to a few partials
+(a fixed-point accumulator, below) and only those are gathered, so no rank holds another's terms.
 """
 
 from __future__ import annotations
@@ -23,20 +24,21 @@ __all__ = [
 
 
 def exact_sum(comm, values) -> float:
-    """Correctly rounded sum of ``values`` over all ranks (a collective call)."""
+    """Correctly rounded sum of ``values`` over all ranks (a collective call). On several ranks each
+    sends only the partials of its terms (:func:`exact_column_sums`), never the terms."""
     local = np.ascontiguousarray(values, dtype=np.float64).ravel()
     if comm.size == 1:
         return math.fsum(local)
-    return math.fsum(np.concatenate(comm.allgather(local)))
+    return float(exact_column_sums(comm, local[:, None])[0])
 
 
 def exact_sums(comm, rows: np.ndarray) -> np.ndarray:
     """Column-wise correctly rounded sums of a (k, m) array over all ranks (collective)."""
     rows = np.ascontiguousarray(rows, dtype=np.float64)
-    if comm.size > 1:
-        rows = np.concatenate(comm.allgather(rows.reshape(-1, rows.shape[-1] if rows.ndim > 1 else 1)))
     if rows.ndim == 1:
         rows = rows[:, None]
+    if comm.size > 1:
+        return exact_column_sums(comm, rows)
     return np.array([math.fsum(rows[:, c]) for c in range(rows.shape[1])])
 
 
