@@ -395,7 +395,8 @@ def cmd_resume(argv: list[str]) -> int:
     p.add_argument("checkpoint", type=Path, help="a checkpoint, e.g. OUTPUT/checkpoints/latest.h5")
     _common(p, resume=True)
     args = p.parse_args(argv)
-    state, meta = read_checkpoint(args.checkpoint)
+    comm = _comm()
+    state, meta = read_checkpoint(args.checkpoint, comm=comm)  # on several ranks: each its share
     point = ResumePoint.from_checkpoint(state, meta)
     if args.steps is not None and args.steps <= point.step:
         raise InputError(
@@ -413,7 +414,6 @@ def cmd_resume(argv: list[str]) -> int:
     else:
         out, what, append = args.output, "--output", False
         series_from = source if source.is_dir() else None
-    comm = _comm()
     _check_before_run(resolved, out, what, comm)
     overrides = tuple(json.loads(meta.get("overrides", "[]"))) + tuple(args.sets)
     runner = Runner(

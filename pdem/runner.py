@@ -713,7 +713,7 @@ class Runner:
             # the scene box snapshots have grown to, so a resumed run draws infinite walls alike
             "frame_bounds": json.dumps([b.tolist() for b in bounds]) if bounds is not None else "",
         }
-        state = sim.state_dict()  # collective
+        state = sim.state_dict(local=sim.comm.size > 1)  # collective; on several ranks each its own share
         return self.output.write_checkpoint(sim.step_count, state, meta)
 
     # ---------------------------------------------------------------------------- running

@@ -71,6 +71,7 @@ class Simulation:
     def __init__(self, comm=None, law: str | ContactLaw = "hertz_mindlin", **law_params: Any) -> None:
         self.comm = comm if comm is not None else SerialComm()
         self._decomp = None  # a Decomposition when running on several ranks, or periodic
+        self._share = None  # (layout, saved forces) of a checkpoint share being restored
         self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
         self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
         self.removals = Removals(self)  # particles taken out (outflows), and the global count
@@ -486,6 +487,19 @@ class Simulation:
 
         p = self.particles
         n = p.n_owned
+        if self._share is not None:  # a checkpoint read back in shares: no rank holds every particle
+            from .parallel.exchange import scatter
+
+            layout, saved = self._share
+            width = self.neighbours.ghost_width
+            self._decomp = Decomposition.from_shares(
+                self.comm, p.x[:n], layout, self.decomposition_dims, min_width=width, box=self.box
+            )
+            self._decomp.check_ghost_width(width)
+            self.neighbours.fit_skin_range()
+            self._share = scatter(self, saved)
+            self.removals.n_expected = global_count(self.comm, p.n_owned)
+            return
         self._decomp = Decomposition(
             self.comm, p.x[:n], self.decomposition_dims, min_width=self.neighbours.ghost_width, box=self.box
         )
@@ -526,26 +540,36 @@ class Simulation:
         return global_count(self.comm, int(np.count_nonzero(p.motion[: p.n_owned] != REMOVED)))
 
     # ------------------------------------------------------------------ checkpoint state
-    def state_dict(self) -> dict[str, object]:
+    def state_dict(self, local: bool = False) -> dict[str, object]:
         """Everything needed to continue bitwise-identically: particles ordered by id (every field
         registered with ``checkpoint``; forces included: velocity Verlet starts a step from them),
         contact history keyed by id pairs, per-wall history by particle id, wall positions, time and
         step. Independent of the storage order and (with MPI) of the number of ranks
-        (:func:`pdem.io.state.simulation_state`; collective)."""
+        (:func:`pdem.io.state.simulation_state`; collective). Every rank gets the whole state, unless
+        ``local``: then each gets its own particles and their contacts
+        (:class:`pdem.io.state.CheckpointShare`), which :meth:`load_state` also takes, on any number
+        of ranks."""
         from .io.state import simulation_state
 
-        return simulation_state(self)
+        return simulation_state(self, local=local)
+
+    def decomposition_layout(self) -> dict | None:
+        """The decomposition's ranks, grid and cut planes (None without one)."""
+        return self._decomp.layout() if self._decomp is not None else None
 
     def load_state(self, state: dict[str, object]) -> None:
         """Restore :meth:`state_dict` into a simulation built with the same materials, law and walls
         but no particles (:func:`pdem.io.state.restore_simulation`), and prepare it to go on."""
-        from .io.state import restore_forces, restore_simulation
+        from .io.state import CheckpointShare, restore_forces, restore_simulation
 
         saved = restore_simulation(self, state)
         self._next_id = int(state["scalars/next_id"])
         self._restored = {k: v for k, v in state.items() if k.startswith("solver/")}
         self._started = True
+        if isinstance(state, CheckpointShare) and self.comm.size > 1:  # spread by the first preparation
+            self._share = (state.layout, saved)
         self._prepare()
+        saved, self._share = (self._share or saved), None
         restore_forces(self.particles, saved)
 
     @property

@@ -224,10 +224,13 @@ class ContactStore:
             "wall_keys": self.wall_keys[wrows],
             "wall_hist": self.wall_hist[wrows],
         }
-        # rows received in an earlier migration pass, not yet carried (a particle can move on)
+        # rows received in an earlier migration pass, not yet carried (a particle can move on), and a
+        # restored checkpoint's rows while they are held (a first step's migration takes them along)
         for kind, kname, hname in (("pair", "pair_keys", "pair_hist"), ("wall", "wall_keys", "wall_hist")):
-            if ids.size and self._pending[kind]:
-                pk, ph = self._pending_rows(kind)
+            sources = [self._pending_rows(kind)] if ids.size and self._pending[kind] else []
+            if ids.size and self._held is not None and self._held[kind][0].size:
+                sources.append(self._held[kind])
+            for pk, ph in sources:
                 sel = nk.keys_with_ids(pk, ids, kind == "pair")
                 if sel.size:
                     out[kname] = np.concatenate([out[kname], pk[sel]])
@@ -242,6 +245,28 @@ class ContactStore:
         for kind, kname, hname in (("pair", "pair_keys", "pair_hist"), ("wall", "wall_keys", "wall_hist")):
             if parcel[kname].size:
                 self._pending[kind].append((parcel[kname], parcel[hname]))
+                if self._held is not None:  # rows of a restored checkpoint, still held, came along
+                    keys = np.concatenate([self._held[kind][0], parcel[kname]])
+                    hist = np.concatenate([self._held[kind][1], parcel[hname]]).reshape(-1, self.history_size)
+                    keys, first = np.unique(keys, return_index=True)
+                    self._held[kind] = (keys, hist[first])
+
+    def adopt_received(self) -> None:
+        """Make the rows received so far the whole history, held as a restored checkpoint's: after a
+        checkpoint read back in shares was spread over the ranks (:func:`pdem.parallel.exchange.scatter`),
+        which handed every row (this rank's own included) over as received."""
+        self.keys, self.hist = self._pending_rows("pair")
+        self._pending["pair"] = []
+        self.pi = self.pj = np.zeros(0, dtype=np.int64)
+        self.key_order = None
+        self.force = np.zeros((0, 3))
+        self.hold_restored()
+
+    def clear_rows(self) -> None:
+        """Forget every history row (its particles were handed over: :meth:`adopt_received` follows)."""
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.hist = np.zeros((0, self.history_size))
+        self._pending = {"pair": [], "wall": []}
 
     def _pending_rows(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
         """The rows set aside for ``kind`` ("pair" or "wall"), sorted by key, each key once."""

@@ -26,6 +26,10 @@ state names its boundaries). The full validation of the stored deck (plugins, pa
 
 **Format 1** files (written before the checksums existed) are still read, validated structurally
 only: a flipped bit that leaves a plausible value cannot be detected in them.
+
+**Format 3** is a checkpoint written per rank by a run on several ranks: a manifest (this module's
+rules) and one part per rank, each with its own checksums, listed in the manifest with the SHA-256 of
+its checksums (:mod:`pdem.io.parted`). Read whole, it is format 2's state.
 """
 
 from __future__ import annotations
@@ -50,13 +54,16 @@ __all__ = [
     "dataset_digest",
     "attribute_digest",
     "CHECKPOINT_FORMAT",
+    "PARTED_FORMAT",
     "READABLE_FORMATS",
     "BadCheckpointError",
 ]
 
 CHECKPOINT_FORMAT = 2
+#: a checkpoint written per rank: a manifest and one part per rank (:mod:`pdem.io.parted`)
+PARTED_FORMAT = 3
 #: formats :func:`read_checkpoint` reads (1: no checksums, checked structurally only)
-READABLE_FORMATS = (1, 2)
+READABLE_FORMATS = (1, 2, 3)
 FORMAT_ATTR = "pdem_checkpoint_format"
 CHECKSUMS_ATTR = "pdem_checksums"
 
@@ -143,38 +150,51 @@ def attribute_digest(name: str, value: object) -> str:
 
 
 # ------------------------------------------------------------------------------------ writing
+def write_hdf5(path: Path, state: dict[str, object], attrs: dict[str, object], fmt: int) -> str:
+    """Write ``state`` as datasets and ``attrs`` as root attributes of a new file ``path``, with the
+    format number and the checksums of every dataset and attribute; returns the checksums' text."""
+    with h5py.File(path, "w") as fh:
+        fh.attrs[FORMAT_ATTR] = fmt
+        for key, val in attrs.items():
+            fh.attrs[key] = val
+        datasets = {}
+        for key, val in state.items():
+            arr = np.asarray(val)
+            ds = fh.create_dataset(key, data=arr)
+            back = arr  # the digest of what a reader gets back: the same array, unless HDF5 converts it
+            if arr.dtype.hasobject or arr.dtype.str != ds.dtype.str or arr.shape != ds.shape:
+                back = np.asarray(ds[()])
+            datasets[key] = {
+                "dtype": back.dtype.str,
+                "shape": list(back.shape),
+                "sha256": dataset_digest(key, back),
+            }
+        attributes = {k: attribute_digest(k, v) for k, v in fh.attrs.items()}
+        text = json.dumps({"datasets": datasets, "attributes": attributes})
+        fh.attrs[CHECKSUMS_ATTR] = text
+        fh.flush()
+    return text
+
+
+def point_latest(path: Path) -> None:
+    """Make ``latest.h5`` beside ``path`` name it (atomically)."""
+    latest = path.with_name("latest.h5")
+    ltmp = path.with_name("latest.h5.tmp")
+    if ltmp.exists() or ltmp.is_symlink():
+        ltmp.unlink()
+    os.symlink(path.name, ltmp)
+    os.replace(ltmp, latest)
+
+
 def write_checkpoint(path: Path, state: dict[str, object], meta: dict[str, object]) -> Path:
     """Write ``state`` (arrays by slash-separated key) and ``meta`` (strings / numbers) atomically,
     with the checksums of every dataset and attribute (see the module doc)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     try:
-        with h5py.File(tmp, "w") as fh:
-            fh.attrs[FORMAT_ATTR] = CHECKPOINT_FORMAT
-            for key, val in meta.items():
-                fh.attrs[key] = val
-            datasets = {}
-            for key, val in state.items():
-                arr = np.asarray(val)
-                ds = fh.create_dataset(key, data=arr)
-                back = arr  # the digest of what a reader gets back: the same array, unless HDF5 converts it
-                if arr.dtype.hasobject or arr.dtype.str != ds.dtype.str or arr.shape != ds.shape:
-                    back = np.asarray(ds[()])
-                datasets[key] = {
-                    "dtype": back.dtype.str,
-                    "shape": list(back.shape),
-                    "sha256": dataset_digest(key, back),
-                }
-            attributes = {k: attribute_digest(k, v) for k, v in fh.attrs.items()}
-            fh.attrs[CHECKSUMS_ATTR] = json.dumps({"datasets": datasets, "attributes": attributes})
-            fh.flush()
+        write_hdf5(tmp, state, meta, CHECKPOINT_FORMAT)
         os.replace(tmp, path)
-        latest = path.with_name("latest.h5")
-        ltmp = path.with_name("latest.h5.tmp")
-        if ltmp.exists() or ltmp.is_symlink():
-            ltmp.unlink()
-        os.symlink(path.name, ltmp)
-        os.replace(ltmp, latest)
+        point_latest(path)
     except OSError as exc:
         raise CheckpointError(
             f"cannot write checkpoint {path}: {exc}; check disk space and permissions"
@@ -234,9 +254,32 @@ def _bad(path: Path, problems: list[str]) -> BadCheckpointError:
     return BadCheckpointError(f"{head}: {text}; {_remedy(path)}")
 
 
-def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+def read_hdf5(path: Path) -> tuple[dict[str, object], dict[str, np.ndarray]]:
+    """Every root attribute and every dataset of an HDF5 file, unchecked (h5py's errors pass)."""
+    state: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as fh:
+        raw = dict(fh.attrs.items())
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                state[name] = obj[()]
+
+        fh.visititems(visit)
+    return raw, state
+
+
+#: what h5py raises for a damaged or foreign file
+READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
+
+
+def read_checkpoint(path: Path, comm=None) -> tuple[dict[str, np.ndarray], dict[str, object]]:
     """Read a checkpoint back: (state arrays by key, metadata attributes), after checking it (see the
-    module doc); raises :class:`BadCheckpointError` naming every problem found."""
+    module doc); raises :class:`BadCheckpointError` naming every problem found.
+
+    A checkpoint written per rank (format 3, :mod:`pdem.io.parted`) is read whole without ``comm`` or
+    on one rank; on several ranks (collective) each rank reads and checks only its share of the parts
+    and gets a :class:`pdem.io.parted.CheckpointShare`, and every rank raises the same error when any
+    share is damaged."""
     from ..textutil import file_problem, quote
 
     path = Path(path)
@@ -252,34 +295,22 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object
             f"checkpoint {quote(str(path))} {problem}; give a checkpoint file written by pdem "
             "(e.g. OUTPUT/checkpoints/latest.h5)"
         )
-    state: dict[str, np.ndarray] = {}
-    raw: dict[str, object] = {}
     try:
-        with h5py.File(path, "r") as fh:
-            fmt = fh.attrs.get(FORMAT_ATTR)
-            if isinstance(fmt, bool | np.bool_) or not (
-                isinstance(fmt, int | np.integer) and int(fmt) in READABLE_FORMATS
-            ):
-                raise BadCheckpointError(
-                    f"{path} is not a pdem checkpoint: its attribute '{FORMAT_ATTR}' is {_quote(fmt)}, "
-                    f"pdem reads formats {', '.join(map(str, READABLE_FORMATS))}; give a checkpoint file "
-                    "written by pdem (OUTPUT/checkpoints/step_*.h5)"
-                )
-            fmt = int(fmt)
-            raw = dict(fh.attrs.items())
-
-            def visit(name, obj):
-                if isinstance(obj, h5py.Dataset):
-                    state[name] = obj[()]
-
-            fh.visititems(visit)
-    except BadCheckpointError:
-        raise
-    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
+        raw, state = read_hdf5(path)
+    except READ_ERRORS as exc:
         raise BadCheckpointError(
             f"cannot read checkpoint {_name(path)}: {_quote(str(exc))}; it is damaged (truncated?) or not "
             f"a checkpoint written by pdem; {_remedy(path)}"
         ) from exc
+    fmt = raw.get(FORMAT_ATTR)
+    readable = isinstance(fmt, int | np.integer) and int(fmt) in READABLE_FORMATS
+    if isinstance(fmt, bool | np.bool_) or not readable:
+        raise BadCheckpointError(
+            f"{path} is not a pdem checkpoint: its attribute '{FORMAT_ATTR}' is {_quote(fmt)}, "
+            f"pdem reads formats {', '.join(map(str, READABLE_FORMATS))}; give a checkpoint file "
+            "written by pdem (OUTPUT/checkpoints/step_*.h5)"
+        )
+    fmt = int(fmt)
     meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in raw.items() if k != CHECKSUMS_ATTR}
     if not any(k in meta for k in META_REQUIRED_1) and CHECKSUMS_ATTR not in raw:
         missing = [f"attribute '{k}'" for k in META_REQUIRED_1]
@@ -288,15 +319,25 @@ def read_checkpoint(path: Path) -> tuple[dict[str, np.ndarray], dict[str, object
             "(Simulation.state_dict files cannot be resumed with pdem resume); give a checkpoint of a "
             "pdem run (OUTPUT/checkpoints/step_*.h5)"
         )
+    if fmt == PARTED_FORMAT:
+        from .parted import read_parts
+
+        problems = checksum_problems(raw, state)
+        if problems:  # the manifest itself (the same file, the same verdict on every rank)
+            raise _bad(path, problems)
+        state, problems = read_parts(path, meta, state, comm)  # collective: the same list everywhere
+        if problems:
+            raise _bad(path, problems)
+        return state, meta
     problems = structure_problems(state, meta, fmt)
     if fmt >= 2 or CHECKSUMS_ATTR in raw:  # (also a format-2 file whose format number was changed)
-        problems += [p for p in _checksum_problems(raw, state) if p not in problems]
+        problems += [p for p in checksum_problems(raw, state) if p not in problems]
     if problems:
         raise _bad(path, problems)
     return state, meta
 
 
-def _checksum_problems(raw: dict[str, object], state: dict[str, np.ndarray]) -> list[str]:
+def checksum_problems(raw: dict[str, object], state: dict[str, np.ndarray]) -> list[str]:
     """What does not match the checksums the writer stored (see the module doc)."""
     text = raw.get(CHECKSUMS_ATTR)
     if text is None:

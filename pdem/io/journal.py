@@ -49,15 +49,22 @@ def _active(directory: Path) -> Path | None:
 
 
 def discard(directory: Path, path: Path) -> None:
-    """Drop ``path`` (a file in ``directory``'s tree): held in the open journal, else deleted."""
+    """Drop ``path`` (a file, or a folder such as a per-rank checkpoint's parts, in ``directory``'s
+    tree): held in the open journal, else deleted."""
     journal = _active(directory)
     path = Path(path)
+    folder = path.is_dir() and not path.is_symlink()
     if journal is None:
-        path.unlink()
+        if folder:
+            shutil.rmtree(path)
+        else:
+            path.unlink()
         return
     rel = os.path.relpath(path, directory)
     target = journal / "held" / rel
     target.parent.mkdir(parents=True, exist_ok=True)
+    if folder and target.exists():
+        shutil.rmtree(target)
     os.replace(path, target)
 
 

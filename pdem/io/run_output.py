@@ -30,6 +30,7 @@ from ..errors import InputError, PdemError
 from ..plugins import load
 from .checkpoint import write_checkpoint
 from .journal import Journal, discard, settle_stale
+from .parted import checkpoint_parts, stray_parts, write_parted
 from .paths import (
     LOCK,
     MARKER,
@@ -416,7 +417,12 @@ class RunOutput:
                 discard(out, path)
             elif m and int(m.group(1)) > start.step:
                 later.append(path)
+                parts = checkpoint_parts(path)  # a per-rank checkpoint's parts go with it
+                if parts is not None:
+                    later.append(parts)
         for path in later:
+            discard(out, path)
+        for path in stray_parts(ckdir):  # the parts of a checkpoint whose write a kill interrupted
             discard(out, path)
         latest = ckdir / "latest.h5"
         if latest.is_symlink() and not latest.exists():
@@ -546,8 +552,15 @@ class RunOutput:
 
     # ------------------------------------------------------------------------------ checkpoints
     def write_checkpoint(self, step: int, state: dict, meta: dict) -> Path:
-        """``checkpoints/step_<step>.h5`` (rank 0 writes; collective: every rank waits for it)."""
+        """``checkpoints/step_<step>.h5`` (collective). Serially one file; on several ranks each rank
+        writes its share (``state`` from ``state_dict(local=True)``) and rank 0 the manifest
+        (:mod:`pdem.io.parted`)."""
         path = self.out / "checkpoints" / f"step_{step:010d}.h5"
+        if self.comm.size > 1:
+            write_parted(path, state, meta, self.comm)
+            if self.root:
+                self.record()
+            return path
         if self.root:
             write_checkpoint(path, state, meta)
             self.record()

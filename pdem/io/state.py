@@ -23,10 +23,20 @@ import numpy as np
 
 from ..errors import CheckpointError
 from ..geometry.walls import Controlled
+from ..neighbor import _kernels as nk
 from ..parallel.comm import gather_by_id
 from ..state.particles import REMOVED
 
-__all__ = ["simulation_state", "restore_simulation", "restore_forces"]
+__all__ = ["simulation_state", "restore_simulation", "restore_forces", "CheckpointShare"]
+
+
+class CheckpointShare(dict):
+    """A rank's share of a checkpoint's state: its particles and their contacts only (the keys of
+    :meth:`pdem.Simulation.state_dict`), plus ``layout``: the writing run's decomposition
+    (``{"ranks", "dims", "cuts"}``) or None. Written by per-rank checkpoints, restored by
+    :meth:`pdem.Simulation.load_state`, which places every particle on its owner."""
+
+    layout: dict | None = None
 
 
 def _history(saved, hsize: int) -> np.ndarray:
@@ -38,18 +48,25 @@ def _history(saved, hsize: int) -> np.ndarray:
     return h.reshape(-1, hsize)
 
 
-def simulation_state(sim) -> dict[str, object]:
-    """The checkpoint state of ``sim`` (module docstring), prepared and checked first (collective)."""
+def simulation_state(sim, local: bool = False) -> dict[str, object]:
+    """The checkpoint state of ``sim`` (module docstring), prepared and checked first (collective).
+    ``local``: this rank's share only (:class:`CheckpointShare`): its particles, the
+    history of every pair with one of them and their wall-contact history; no particle data moves
+    between ranks."""
     sim.prepare()
     sim.check_deferred()  # a checkpoint holds only a checked state
     p = sim.particles
     n = p.n_owned
     live = p.motion[:n] != REMOVED
     names = p.names(checkpoint=True)
-    local = {k: getattr(p, k)[:n][live].copy() for k in names}
+    mine = {k: getattr(p, k)[:n][live].copy() for k in names}
     if sim.box is not None:  # wrapped (exact: the trajectory does not depend on it)
-        sim.box.wrap(local["x"])
-    g = gather_by_id(sim.comm, local)
+        sim.box.wrap(mine["x"])
+    if local:
+        order = np.argsort(mine["id"], kind="stable")
+        g = {k: v[order] for k, v in mine.items()}
+    else:
+        g = gather_by_id(sim.comm, mine)
     out: dict[str, object] = {f"particles/{k}": g[k] for k in names}
     store = sim.contact_store
     wall_list = store.walls
@@ -58,7 +75,12 @@ def simulation_state(sim) -> dict[str, object]:
     if store.walls_changed:
         store.pack_walls()
     walls = [store.wall_history_of(k) for k in range(len(wall_list))]
-    if sim.comm.size > 1:
+    if local:  # the rows of this rank's particles (a pair across ranks is in both shares)
+        ids = g["id"]
+        keep = nk.keys_with_ids(keys, ids, True)
+        keys, hist = keys[keep], hist[keep]
+        walls = [(r[m], i[m], h[m]) for r, i, h in walls for m in [np.isin(i, ids)]]
+    elif sim.comm.size > 1:
         parts = sim.comm.allgather((keys, hist, walls))
         keys = np.concatenate([q[0] for q in parts])
         hist = np.concatenate([q[1] for q in parts]).reshape(-1, store.history_size)
@@ -103,6 +125,10 @@ def simulation_state(sim) -> dict[str, object]:
     out.update(sim.integrator.state())  # e.g. DEM-C solver counters
     if sim.box is not None:
         out.update(sim.box.state())
+    if local:
+        share = CheckpointShare(out)
+        share.layout = sim.decomposition_layout()
+        return share
     return out
 
 
@@ -141,6 +167,7 @@ def restore_simulation(sim, state: dict[str, object]) -> dict[str, np.ndarray]:
     step, dt and the live bound's record. Returns the saved particle arrays (ordered by id) for
     :func:`restore_forces`, once the simulation is prepared."""
     _check_compatible(sim, state)
+    share = isinstance(state, CheckpointShare) and sim.comm.size > 1
     p = sim.particles
     g = {
         k: np.asarray(state[f"particles/{k}"])
@@ -151,14 +178,15 @@ def restore_simulation(sim, state: dict[str, object]) -> dict[str, np.ndarray]:
     store = sim.contact_store
     hsize = store.history_size
     store.keys = np.asarray(state["pairs/keys"], dtype=np.int64)
-    store.hist = _history(state["pairs/hist"], hsize)
+    store.hist = _history(state.get("pairs/hist", np.zeros(0)), hsize)
     store.pi = store.pj = np.zeros(0, dtype=np.int64)
     store.key_order = None
     store.force = np.zeros((0, 3))
     store.pair_capacity = max(8 * len(g["id"]), 64)
     for k, wall in enumerate(store.walls):
         key = f"walls/{wall.name}/"
-        whist = _history(state[key + "hist"], hsize)
+        empty = share and key + "hist" not in state  # a rank that read no part
+        whist = _history(np.zeros(0) if empty else state[key + "hist"], hsize)
         ids = np.asarray(state[key + "ids"]) if key + "ids" in state else g["id"]  # dense before 0.2
         rows = np.asarray(state[key + "rows"]) if key + "rows" in state else np.zeros(len(ids), np.int64)
         store.set_wall_history(k, rows, ids, whist)
@@ -176,7 +204,8 @@ def restore_simulation(sim, state: dict[str, object]) -> dict[str, np.ndarray]:
         wall.motion.restore({k2[len(prefix):]: v for k2, v in state.items() if k2.startswith(prefix)})
         if key + "motion_velocity" in state and isinstance(wall.motion, Controlled):  # before 0.2
             wall.motion.velocity = np.array(state[key + "motion_velocity"], dtype=float)
-    store.hold_restored()  # for every rebuild until the first step ends (DEM-C's wide lists)
+    if not share:  # (a share's rows are held once they are on their ranks: exchange.scatter)
+        store.hold_restored()  # for every rebuild until the first step ends (DEM-C's wide lists)
     sim.time = float(state["scalars/time"])
     sim.step_count = int(state["scalars/step"])
     sim.dt = float(state["scalars/dt"])
@@ -190,5 +219,7 @@ def restore_forces(particles, saved: dict[str, np.ndarray]) -> None:
     the arrays :func:`restore_simulation` returned into the owned particles, by id."""
     p = particles
     rows = np.searchsorted(saved["id"], p.id[: p.n_owned])
+    if rows.size and (rows.max() >= saved["id"].shape[0] or np.any(saved["id"][rows] != p.id[: p.n_owned])):
+        raise CheckpointError("the restored particles' saved forces are not on their ranks (internal error)")
     p.f[: p.n_owned] = saved["f"][rows]
     p.t[: p.n_owned] = saved["t"][rows]

@@ -88,6 +88,46 @@ class Decomposition:
             self.set_cuts([self._even_cuts(d) for d in range(3)])
         self.n_rebalances = 0
 
+    @classmethod
+    def from_shares(
+        cls, comm, x: np.ndarray, layout: dict | None = None, dims=None, min_width: float = 0.0, box=None
+    ) -> Decomposition:
+        """Subdomains for particles spread over the ranks in any way (collective): a per-rank
+        checkpoint read back, each rank holding the parts it read. The grid follows the particles'
+        global extent; the cut planes are the writing run's (``layout``: ranks, dims, cuts) when it
+        ran on as many ranks with the same grid, else the particle-count quantiles (histograms summed
+        over the ranks, as :meth:`rebalance`). No rank sees another's positions; results never depend
+        on where the cuts are."""
+        from mpi4py import MPI
+
+        x = np.asarray(x, dtype=float).reshape(-1, 3)
+        lo = np.full(3, np.inf) if not len(x) else x.min(axis=0)
+        hi = np.full(3, -np.inf) if not len(x) else x.max(axis=0)
+        lo = np.array([comm.allreduce(float(v), op=MPI.MIN) for v in lo])
+        hi = np.array([comm.allreduce(float(v), op=MPI.MAX) for v in hi])
+        corners = np.array([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((0, 3))
+        self = cls(comm, corners, dims=dims, min_width=min_width, box=box)
+        if not self.placed:
+            return self
+        same = (
+            isinstance(layout, dict)
+            and layout.get("ranks") == comm.size
+            and tuple(layout.get("dims") or ()) == self.dims
+            and all(len(c) == k - 1 for c, k in zip(layout.get("cuts") or [], self.dims, strict=False))
+        )
+        if same:
+            self.set_cuts([self._spread(np.asarray(c, dtype=float), d) for d, c in enumerate(layout["cuts"])])
+        else:
+            self.rebalance(x)
+            self.n_rebalances = 0
+        self._just_placed = True  # the first rebuild keeps these planes (the work measured is moot)
+        return self
+
+    def layout(self) -> dict:
+        """Ranks, grid and cut planes (JSON-able: kept with per-rank checkpoints)."""
+        cuts = [c.tolist() for c in self.cuts]
+        return {"ranks": int(np.prod(self.dims)), "dims": list(self.dims), "cuts": cuts}
+
     def _choose_dims(self, x_all: np.ndarray) -> tuple[int, ...]:
         """The grid: the one given, else the one with the least cut area over the particles' extent."""
         if x_all.shape[0]:

@@ -29,7 +29,7 @@ import numpy as np
 
 from ._kernels import pack_vw, pack_xvw, unpack_vw, unpack_xvw
 
-__all__ = ["migrate", "borders", "forward", "forward_values"]
+__all__ = ["migrate", "scatter", "borders", "forward", "forward_values"]
 
 # Which fields travel is the particle store's registry (pdem.state.particles.Field: migrate, ghost);
 # contact history travels with the particles through the contact store (rows keyed by ids).
@@ -93,6 +93,46 @@ def _migrate_pass(sim) -> None:
         for parcel in (from_down, from_up):
             if parcel is not None and len(parcel["id"]):
                 _unpack(sim, parcel)
+
+
+def scatter(sim, saved: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Send every owned particle to the rank that owns its position, in one all-to-all (collective):
+    the start of a run from a checkpoint read back in shares, whose particles sit on the ranks that
+    read them, anywhere in space. Each carries its fields, the history rows of its pairs and wall
+    contacts, and its saved force and torque (``saved``: ``id``, ``f``, ``t`` of the owned rows, in
+    storage order); returns the saved forces of the particles now owned, ordered by id.
+
+    No rank receives more than its own particles and their rows, so no rank ever holds all of them;
+    the received history is then held as a restored checkpoint's
+    (:meth:`pdem.contact.store.ContactStore.adopt_received`)."""
+    dec = sim.decomposition
+    p = sim.particles
+    store = sim.contact_store
+    n = p.n_owned
+    if not np.array_equal(saved.get("id", np.zeros(0, np.int64)), p.id[:n]):
+        raise RuntimeError("scatter: the saved forces are not in storage order")
+    dest = dec.owner(p.x[:n]) if n else np.zeros(0, dtype=np.int64)
+    names = p.names(migrate=True)
+    saved = {k: np.asarray(saved.get(k, np.zeros((0, 3)))).reshape(-1, 3) for k in ("f", "t")}  # (none read)
+    parcels = []
+    for r in range(dec.comm.size):
+        idx = np.flatnonzero(dest == r)
+        parcel = _pack(sim, idx)
+        parcel["saved_f"] = saved["f"][idx]
+        parcel["saved_t"] = saved["t"][idx]
+        parcels.append(parcel)
+    received = dec.comm.alltoall(parcels) if dec.comm.size > 1 else parcels
+    del parcels
+    p.n_owned = 0
+    store.clear_rows()
+    for parcel in received:
+        p.append_owned({k: v for k, v in parcel.items() if k in names})
+        store.merge(parcel)
+    store.adopt_received()
+    ids = p.id[: p.n_owned].copy()
+    order = np.argsort(ids, kind="stable")
+    forces = [np.concatenate([q[k] for q in received]).reshape(-1, 3) for k in ("saved_f", "saved_t")]
+    return {"id": ids[order], "f": forces[0][order], "t": forces[1][order]}
 
 
 def _pack(sim, idx: np.ndarray) -> dict:
