@@ -129,7 +129,7 @@ def test_deck_parallel_key(monkeypatch):
     assert validate_deck(_deck("per_rank", ["hdf5", "vtk"])).deck.output.parallel == "per_rank"
     out = validate_deck({k: v for k, v in _deck("auto", ["hdf5"]).items() if k != "output"}).deck.output
     assert out.parallel == "auto"
-    assert out.parallel_mode(10**7, 1) == "gather" and out.parallel_mode(10**6 - 1, 4) == "gather"
+    assert out.parallel_mode(10**7, 1) == "gather" and out.parallel_mode(64, 4) == "per_rank"
     assert out.parallel_mode(10**6, 2) == "per_rank"
     with pytest.raises(DeckError, match=r"output.parallel: must be one of .*did you mean 'per_rank'"):
         validate_deck(_deck("per-rank", ["hdf5"]))
@@ -200,14 +200,14 @@ RANKS = 2
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> dict[str, Path]:
-    """The deck on 2 ranks: default (auto → gathered at 300 particles) and per_rank."""
+    """The deck on 2 ranks: gathered and per_rank (the default on more than one rank)."""
     if MPIEXEC is None:
         pytest.skip("mpiexec not found (pip install mpich)")
     d = tmp_path_factory.mktemp("parallel_output")
     deck = d / "deck.toml"
     deck.write_text(DECK)
     out = {}
-    for mode, sets in (("gather", []), ("per_rank", ["--set", 'output.parallel="per_rank"'])):
+    for mode, sets in (("gather", ["--set", 'output.parallel="gather"']), ("per_rank", [])):
         cmd = [MPIEXEC, "-n", str(RANKS), sys.executable, "-m", "pdem.cli", str(deck)]
         cmd += ["--output", str(d / mode), "--quiet", *sets]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=d)

@@ -162,3 +162,26 @@ def test_removal_in_a_periodic_box_gives_the_same_bits(law, steps, monkeypatch):
     for u, w in zip(a, b, strict=True):
         assert np.array_equal(u, w)
     assert new.n_rebuilds < old.n_rebuilds
+
+
+def test_a_lost_particle_is_named_by_its_id():
+    """The count check's error names the first id no rank holds nor removed (found by block counts,
+    not by gathering every id)."""
+    from pdem.errors import LostParticleError
+
+    sim = pdem.Simulation()
+    sim.add_material("glass", density=RHO, youngs_modulus=E_MOD, poisson_ratio=NU)
+    x = np.stack([np.arange(5000) * 3e-3, np.zeros(5000), np.zeros(5000)], axis=1)
+    sim.set_periodic([-1.5e-3, -0.1, -0.1], [15.0 - 1.5e-3, 0.1, 0.1], axes="x")  # (the count is kept
+    sim.add_particles(x, 1e-3, material="glass")  # with a decomposition: MPI, or a periodic box)
+    sim.dt = 1e-7
+    sim.run(steps=1)
+    sim.check_particle_count()  # nothing lost
+    p = sim.particles
+    p.n_ghost = 0  # (the images go; the next rebuild makes them again)
+    row = int(np.flatnonzero(p.id[: p.n_owned] == 3170)[0])
+    last = p.n_owned - 1
+    p.swap_rows(np.array([row]), np.array([last]))
+    p.n_owned = last  # particle 3170 vanishes from the storage
+    with pytest.raises(LostParticleError, match=r"1 particle\(s\) lost .*first id 3170"):
+        sim.check_particle_count()

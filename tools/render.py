@@ -148,7 +148,7 @@ def _deck(output_dir: Path) -> dict:
         return {}
 
 
-def _particle_files(output_dir: Path) -> list[Path]:
+def particle_files(output_dir: Path) -> list[Path]:
     """``particles.h5``, or the per-rank pieces ``particles.rRRRR.h5`` in rank order."""
     ppath = output_dir / "particles.h5"
     if ppath.is_file():
@@ -167,7 +167,7 @@ def read_frame(output_dir: Path | str, frame: int = -1) -> Snapshot:
     """Particles and walls of frame ``frame`` (Python index over the stored frames); per-rank
     pieces are joined and ordered by id."""
     output_dir = Path(output_dir)
-    paths = _particle_files(output_dir)
+    paths = particle_files(output_dir)
     ppath = paths[0]
     with h5py.File(ppath, "r", locking=False) as f:
         keys = sorted(f["frames"]) if "frames" in f else []
@@ -264,7 +264,7 @@ def _stage_start(output_dir: Path, snap: Snapshot) -> int:
     """Index of the stored frame at the start of ``snap``'s stage: the frame nearest the first row of
     ``series_<stage>.csv`` (the stage's first state may be stored as the previous stage's last
     frame), else the stage's first frame."""
-    with h5py.File(_particle_files(output_dir)[0], "r", locking=False) as f:
+    with h5py.File(particle_files(output_dir)[0], "r", locking=False) as f:
         keys = sorted(f["frames"])
         times = np.array([float(f["frames"][k].attrs.get("time", np.nan)) for k in keys])
         stages = [str(f["frames"][k].attrs.get("stage", "")) for k in keys]

@@ -67,11 +67,16 @@ def radius_profile(
     return np.array(zs), np.array(radii)
 
 
+def has_frames(out: Path) -> bool:
+    """Did the run write HDF5 snapshots (``particles.h5``, or per-rank pieces)?"""
+    return (out / "particles.h5").is_file() or any(out.glob("particles.r*.h5"))
+
+
 def bulge_at(out: Path, boundary: str, eps: float) -> dict | None:
     """The radius profile at the stored frame nearest ε_a = ``eps`` and at the start of the shear
     (frames by time, from the series): the specimen bulges when its middle grows more than its ends."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from render import read_frame  # noqa: E402
+    from render import particle_files, read_frame  # noqa: E402
 
     try:
         import tomllib
@@ -87,7 +92,7 @@ def bulge_at(out: Path, boundary: str, eps: float) -> dict | None:
     t_eps, t0 = float(t[np.argmax(ea >= eps)]), float(t[0])  # t0: the first row of the shear
     import h5py
 
-    with h5py.File(out / "particles.h5", "r", locking=False) as f:
+    with h5py.File(particle_files(out)[0], "r", locking=False) as f:  # particles.h5, or rank 0's piece
         keys = sorted(f["frames"])
         times = np.array([float(f["frames"][k].attrs["time"]) for k in keys])
     frames = {}
@@ -142,7 +147,7 @@ def main(argv=None) -> int:
             for row in zip(ea, q, p, ev, s[f"{b}.sigma1"], s[f"{b}.sigma3"], s[f"{b}.lw_szz"],
                            s[f"{b}.lw_srr"], strict=True):  # fmt: skip
                 w.writerow([f"{v:.8g}" for v in row])
-        prof = bulge_at(out, b, args.profile_at) if (out / "particles.h5").is_file() else None
+        prof = bulge_at(out, b, args.profile_at) if has_frames(out) else None
         if prof is not None:
             f0, f1 = prof["frames"]["start"], prof["frames"]["now"]
             for f, ls in ((f0, ":"), (f1, "-")):

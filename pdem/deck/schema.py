@@ -1018,21 +1018,19 @@ class OutputSection(_DeckModel):
         "auto",
         description="how MPI runs write snapshots: 'gather' (rank 0 writes every particle), 'per_rank' "
         "(each rank writes its own file, rank 0 an index joining them: XDMF / PVTU), 'auto' (per_rank "
-        "on more than one rank with at least 1,000,000 particles when output starts, else gather)",
+        "on more than one rank, so that no rank holds every particle; one file serially)",
     )
 
     #: snapshot cadence when neither every_time nor every_steps is given
     DEFAULT_EVERY_STEPS: ClassVar[int] = 1000
     #: time-series cadence when neither series_every_time nor series_every_steps is given
     DEFAULT_SERIES_EVERY_STEPS: ClassVar[int] = 100
-    #: ``parallel = "auto"`` writes per-rank files from this many particles on (and more than one rank)
-    PER_RANK_ABOVE: ClassVar[int] = 1_000_000
-
     def parallel_mode(self, n_particles: int, n_ranks: int) -> str:
         """``"gather"`` or ``"per_rank"``: what ``parallel`` means for a run of ``n_particles`` on
-        ``n_ranks`` ranks."""
+        ``n_ranks`` ranks (``auto``: per rank on more than one rank, whatever the count, so that no
+        rank ever holds every particle for a snapshot)."""
         if self.parallel == "auto":
-            return "per_rank" if n_ranks > 1 and n_particles >= self.PER_RANK_ABOVE else "gather"
+            return "per_rank" if n_ranks > 1 else "gather"
         return self.parallel
 
     @classmethod

@@ -89,6 +89,25 @@ class Removals:
         p.permute(np.concatenate([np.flatnonzero(~gone), np.flatnonzero(gone)]))
         p.n_owned = n - k
 
+    def _first_missing(self) -> np.ndarray:
+        """The smallest id no rank holds or removed, as a 0- or 1-element array (collective): ids
+        counted in blocks with one integer reduction, then only the first short block's ids gathered,
+        so no rank receives every id."""
+        sim = self.sim
+        held = np.concatenate([sim.particles.id[: sim.particles.n_owned], *self.removed_ids])
+        top = max(int(sim.next_id), 1)
+        blocks = min(4096, top)
+        edges = np.linspace(0, top, blocks + 1).astype(np.int64)
+        counts = np.histogram(held, bins=edges)[0].astype(np.int64)
+        counts = all_sum_int_array(sim.comm, counts)
+        short = np.flatnonzero(counts < np.diff(edges))
+        if not short.size:
+            return np.zeros(0, np.int64)
+        lo, hi = int(edges[short[0]]), int(edges[short[0] + 1])
+        mine = held[(held >= lo) & (held < hi)]
+        every = np.concatenate(sim.comm.allgather(mine)) if sim.comm.size > 1 else mine
+        return np.setdiff1d(np.arange(lo, hi), every)[:1]
+
     def check_count(self) -> None:
         """No particle may be lost between ranks: owned counts must add up (collective)."""
         sim = self.sim
@@ -98,11 +117,7 @@ class Removals:
         total, removed = (int(c) for c in all_sum_int_array(sim.comm, counts))
         if total + removed == self.n_expected:
             return
-        ids = np.concatenate(sim.comm.allgather(sim.particles.id[: sim.particles.n_owned]))
-        gone = np.concatenate(
-            sim.comm.allgather(np.concatenate(self.removed_ids or [np.zeros(0, np.int64)]))
-        )
-        missing = np.setdiff1d(np.arange(sim.next_id), np.concatenate([ids, gone]))
+        missing = self._first_missing()
         raise LostParticleError(
             f"{self.n_expected - total - removed} particle(s) lost between ranks at step {sim.step_count} "
             f"(first id {missing[0] if missing.size else '?'}); this is a bug in the exchange, "
