@@ -515,19 +515,27 @@ class Runner:
                 self._insert_source(k, params)
 
     def _insert_source(self, k: int, params: Any) -> None:
-        from .sources.api import produce
+        from .sources.api import produce, produce_part
 
         sim = self.sim
         source = load("sources", params.source)(params)
         mat = sim.materials[sim.materials.index(params.material)]
-        out = produce(
-            source,
-            base_dir=self.resolved.base_dir,
-            seed=self.deck.run.seed + k,
-            material=mat,
-            where=f"particles.{k}",
-            comm=sim.comm,
-        )
+        args = dict(base_dir=self.resolved.base_dir, seed=self.deck.run.seed + k, material=mat,
+                    where=f"particles.{k}")  # fmt: skip
+        part = None
+        if sim.comm.size > 1 and source.partitioned:  # each rank makes its own grains only
+            dec = sim.decomposition
+            if dec is None or not dec.placed:
+                survey = source.survey(base_dir=args["base_dir"], seed=args["seed"], material=mat)
+                sim.place_decomposition(survey.sample)
+                dec = sim.decomposition
+            # a little wider than the subdomain: positions are snapped to a periodic box's grid
+            finite = np.isfinite(dec.sub_hi - dec.sub_lo)
+            pad = 1e-9 * np.maximum(np.where(finite, np.abs(dec.sub_hi) + np.abs(dec.sub_lo), 1.0), 1.0)
+            part = produce_part(source, lo=dec.sub_lo - pad, hi=dec.sub_hi + pad, **args)
+            out = part.output
+        else:
+            out = produce(source, comm=sim.comm, **args)
         vel = (
             out.velocities
             if out.velocities is not None
@@ -541,9 +549,7 @@ class Runner:
             from .sources.api import ROW_FIELD
 
             extra[ROW_FIELD] = out.rows
-        sim.add_particles(
-            out.positions,
-            out.radii,
+        kwargs = dict(
             material=params.material,
             velocities=vel,
             motion=motion,
@@ -551,6 +557,10 @@ class Runner:
             fixed_rotation=getattr(params, "fixed_rotation", ""),
             **extra,
         )
+        if part is not None:
+            sim.add_particle_part(out.positions, out.radii, part.index, part.total, **kwargs)
+        else:
+            sim.add_particles(out.positions, out.radii, **kwargs)
 
     # ---------------------------------------------------------------------------- measuring
     def measurements(self) -> dict[str, float]:

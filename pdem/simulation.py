@@ -56,6 +56,10 @@ from .state.removal import Removals
 __all__ = ["Simulation"]
 
 
+_ADD_KEYS = ("material", "velocities", "angular_velocities", "motion", "group", "fixed_translation",
+             "fixed_rotation")
+
+
 class Simulation:
     """A DEM simulation. See the module docstring for the API and the time step.
 
@@ -72,6 +76,7 @@ class Simulation:
         self.comm = comm if comm is not None else SerialComm()
         self._decomp = None  # a Decomposition when running on several ranks, or periodic
         self._share = None  # (layout, saved forces) of a checkpoint share being restored
+        self._early_decomp = False  # placed before the first preparation (place_decomposition)
         self.box: PeriodicBox | None = None  # periodic axes (set_periodic)
         self._snap = np.zeros(3)  # per-axis displacement rounding of the integrator (periodic axes)
         self.removals = Removals(self)  # particles taken out (outflows), and the global count
@@ -346,6 +351,60 @@ class Simulation:
         self._prepared = False
         return ids
 
+    def place_decomposition(self, sample) -> None:
+        """Split space over the ranks before the particles exist, at the quantiles of ``sample``
+        (centres, the same on every rank: a partitioned source's survey), so that each rank can make
+        only its own particles (:meth:`add_particle_part`). Collective; nothing happens serially
+        without a periodic box or once the cut planes are placed."""
+        from .parallel.decomposition import Decomposition
+
+        sample = np.asarray(sample, dtype=float).reshape(-1, 3)
+        if self._decomp is None:
+            if self.comm.size == 1 and self.box is None:
+                return
+            p = self.particles
+            n = p.n_owned  # particles of earlier sources, the same on every rank until now
+            dims = self.decomposition_dims
+            self._decomp = Decomposition(self.comm, sample, dims, min_width=0.0, box=self.box)
+            self._early_decomp = True
+            keep = self._decomp.owned_mask(p.x[:n])
+            p.permute(np.concatenate([np.flatnonzero(keep), np.flatnonzero(~keep)]))
+            p.n_owned = int(keep.sum())
+            self.removals.n_expected = n
+        elif not self._decomp.placed:
+            self._decomp.owned_mask(sample)  # places the provisional planes at the sample (collective)
+
+    def add_particle_part(self, positions, radii, index, total: int, **kwargs: Any) -> np.ndarray:
+        """Add this rank's share of a batch of ``total`` new particles: ``positions`` and ``radii``
+        (and any :meth:`add_particles` keyword, per particle or scalar) of some of them, ``index``
+        their places in the batch (ids are ``next_id + index``, as :meth:`add_particles` of the whole
+        batch would give); each rank keeps the ones it owns (given at least those). Collective in
+        effect: every rank calls it for the same batch, after :meth:`place_decomposition`. Returns
+        the ids kept."""
+        if self._decomp is None:
+            return self.add_particles(positions, radii, **kwargs)  # serial: the whole batch is given
+        index = np.asarray(index, dtype=np.int64)
+        fields = {k: v for k, v in kwargs.items() if k not in _ADD_KEYS}
+        opts = {k: v for k, v in kwargs.items() if k in _ADD_KEYS}
+        values, dof = new_particles(
+            self.particles, self.materials, self.box, self._next_id, positions, radii,
+            opts.get("material"), opts.get("velocities"), opts.get("angular_velocities"),
+            opts.get("motion", "free"), opts.get("group", 0), opts.get("fixed_translation", ""),
+            opts.get("fixed_rotation", ""), fields,
+        )  # fmt: skip
+        values["id"] = self._next_id + index
+        self._next_id += int(total)
+        keep = self._decomp.owned_mask(values["x"])
+        values = {k: a[keep] for k, a in values.items()}
+        self.particles.n_ghost = 0
+        self.removals.n_expected += int(total)
+        n0 = self.particles.n_owned
+        self.particles.append_owned(values)
+        if dof:
+            self._zero_locked(np.arange(n0, self.particles.n_owned))
+        self._prepared = False
+        return values["id"]
+
     def add_wall(
         self,
         shape,
@@ -462,6 +521,10 @@ class Simulation:
             self._decompose()
             n = p.n_owned
         elif self._decomp is not None:  # a later preparation: the skins the subdomains leave room for
+            if self._early_decomp:  # placed before the ghost width was known
+                self._early_decomp = False
+                self._decomp.widen(nl.ghost_width)
+                self._decomp.check_ghost_width(nl.ghost_width)
             nl.fit_skin_range()
         self._g = np.asarray(self.gravity, dtype=float)
         if self._g.shape != (3,) or not np.all(np.isfinite(self._g)):

@@ -248,20 +248,24 @@ _LARGEST = textwrap.dedent(
 )
 
 
-def test_a_resumed_two_rank_run_never_holds_every_particle_on_one_rank(tmp_path):
-    """512 grains: 2 ranks write per-rank checkpoints; 2 ranks resume (per-rank snapshots and
-    checkpoints on): no rank's particle storage (owned + ghosts) ever reaches all 512, and nothing
-    gathers particles by id. The same count without per-rank checkpoints (a fresh start, every
-    rank given every grain) is 512: the count sees a gather."""
+def test_a_two_rank_run_never_holds_every_particle_on_one_rank(tmp_path):
+    """512 grains from a lattice (a partitioned source: each rank makes its own) with per-rank
+    snapshots and checkpoints: no rank's particle storage (owned + ghosts) ever reaches all 512 and
+    nothing gathers particles by id, neither in a fresh 2-rank run nor in a 2-rank resume from its
+    per-rank checkpoint. The count is seen to catch a gather: a run whose lattice is made whole on
+    every rank (the source's partitioning switched off) reaches 512."""
     deck = DECK.replace("hi = [0.004, 0.004, 0.004]", "hi = [0.008, 0.008, 0.008]")
     (tmp_path / "deck.toml").write_text(deck)
-    sets = SETS + ["--set", "output.parallel='per_rank'"]
-    pdem(tmp_path, 2, "deck.toml", "--output", "run", "--steps", 20, *sets)
-    script = _LARGEST
-    pdem(tmp_path, 2, "largest", "resume", "run/checkpoints/latest.h5", script=script)
-    sizes = [json.loads((tmp_path / f"largest.{r}").read_text()) for r in (0, 1)]
-    assert 0 < max(sizes) < 512, sizes
-    pdem(tmp_path, 2, "fresh", "deck.toml", "--output", "fresh", "--steps", 1, *sets,
-         script=_LARGEST.replace("= refuse", "= comm.gather_by_id"), ok=True)
-    fresh = [json.loads((tmp_path / f"fresh.{r}").read_text()) for r in (0, 1)]
-    assert max(fresh) >= 512, fresh
+    sets = [*SETS, "--set", "output.parallel='per_rank'"]
+    pdem(tmp_path, 2, "fresh", "deck.toml", "--output", "run", "--steps", 20, *sets, script=_LARGEST)
+    pdem(tmp_path, 2, "resumed", "resume", "run/checkpoints/latest.h5", script=_LARGEST)
+    for label in ("fresh", "resumed"):
+        sizes = [json.loads((tmp_path / f"{label}.{r}").read_text()) for r in (0, 1)]
+        assert 0 < max(sizes) < 512, (label, sizes)
+    whole = _LARGEST.replace("= refuse", "= comm.gather_by_id").replace(
+        "from pdem.cli import main", "from pdem.cli import main\nimport pdem.sources.builtin as b\n"
+        "b.LatticeSource.partitioned = False"
+    )
+    pdem(tmp_path, 2, "whole", "deck.toml", "--output", "whole", "--steps", 1, *sets, script=whole)
+    sizes = [json.loads((tmp_path / f"whole.{r}").read_text()) for r in (0, 1)]
+    assert min(sizes) >= 512, sizes

@@ -702,3 +702,26 @@ def test_file_rows_are_kept_in_every_snapshot_and_checkpoint(tmp_path):
     assert not np.array_equal(rows[None]["row"][:80], np.arange(80))
     assert np.array_equal(rows["file"]["row"][:80], np.arange(80))
     assert np.array_equal(rows["file"]["id"][:80], np.arange(80))
+
+
+@pytest.mark.parametrize("lattice", ["sc", "fcc", "hcp"])
+@pytest.mark.parametrize("region", [
+    {"type": "box", "lo": [0.0, 0.0, 0.0], "hi": [0.011, 0.013, 0.017]},
+    {"type": "cylinder", "base_center": [0.001, 0.002, 0.0], "radius": 0.006, "height": 0.012},
+])  # fmt: skip
+def test_the_lattice_source_is_partitioned_by_contract(lattice, region):
+    """Each rank can make only its own lattice spheres: any box's part is bitwise generate()'s
+    spheres at the indices it names, and holds every sphere centred in the box; the survey counts,
+    bounds and samples them (pdem.testing.source_contract)."""
+    from pdem.materials import Material
+    from pdem.sources.builtin import LatticeParams, LatticeSource
+    from pdem.testing.source_contract import check_partitioned
+
+    params = LatticeParams.model_validate(
+        {"source": "lattice", "material": "glass", "lattice": lattice, "radius": 0.5e-3, "spacing": 1.05e-3,
+         "region": region}  # fmt: skip
+    )
+    source = LatticeSource(params)
+    assert source.partitioned
+    glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
+    check_partitioned(source, base_dir=Path("."), seed=3, material=glass)

@@ -45,6 +45,21 @@ every rank together, may share its work over the ranks (``pluviate`` runs its po
 simulation) and must still return, on every rank, bitwise the arrays it returns serially. Particle
 ids are given in the order returned: return the spheres in a spatially coherent order
 (:func:`pdem.sources.spatial_order`) so that neighbours in space are near in memory.
+
+**Partitioned sources** (``partitioned = True``) let a run on several ranks make only each rank's
+own spheres, so that no rank ever holds them all. Such a class also implements
+
+* ``survey(*, base_dir, seed, material) -> Survey``: how many spheres ``generate`` makes, the box
+  of their centres, the largest radius and a deterministic sample of at most
+  :data:`SURVEY_SAMPLE` centres (the same on every rank: the run places its cut planes at the
+  sample's quantiles before any sphere exists);
+* ``generate_part(*, base_dir, seed, material, lo, hi) -> SourcePart``: at least the spheres whose
+  centres lie in the closed box [lo, hi] (more are allowed; the run keeps the ones its rank owns),
+  each with its ``index`` in ``generate``'s order, and the total count. Every sphere must be
+  bitwise the one ``generate`` returns at that index (``pdem.testing.source_contract`` checks it).
+
+Neither may communicate. Sources that are not partitioned are generated on every rank, each keeping
+its own spheres.
 """
 
 from __future__ import annotations
@@ -75,6 +90,10 @@ ROW_FIELD = "row"
 
 __all__ = [
     "ROW_FIELD",
+    "SURVEY_SAMPLE",
+    "Survey",
+    "SourcePart",
+    "produce_part",
     "Source",
     "SourceParams",
     "SourceOutput",
@@ -175,6 +194,66 @@ class SourceOutput:
         return int(self.radii.shape[0])
 
 
+#: the most centres a :class:`Survey` samples
+SURVEY_SAMPLE = 65536
+
+
+@dataclass(frozen=True)
+class Survey:
+    """What a partitioned source tells before making its spheres (see the module docstring):
+    ``count``, ``lo`` and ``hi`` (3,) bounding the centres [m], ``r_max`` [m], ``sample`` (k, 3)
+    centres, k ≤ :data:`SURVEY_SAMPLE` (k > 0 when count > 0)."""
+
+    count: int
+    lo: np.ndarray
+    hi: np.ndarray
+    r_max: float
+    sample: np.ndarray
+
+
+@dataclass(frozen=True)
+class SourcePart:
+    """Some of a partitioned source's spheres: ``output`` (a :class:`SourceOutput`), ``index`` (n,)
+    their places in ``generate``'s order (increasing), ``total`` the number ``generate`` makes."""
+
+    output: SourceOutput
+    index: np.ndarray
+    total: int
+
+
+class Sampler:
+    """A deterministic sample of a stream of centres: every stride-th, the stride doubling whenever
+    the sample would pass :data:`SURVEY_SAMPLE`; also counts them and bounds them."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.stride = 1
+        self.parts: list[np.ndarray] = []
+        self.kept = 0
+        self.lo = np.full(3, np.inf)
+        self.hi = np.full(3, -np.inf)
+
+    def add(self, x: np.ndarray) -> None:
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        if not x.shape[0]:
+            return
+        self.lo = np.minimum(self.lo, x.min(axis=0))
+        self.hi = np.maximum(self.hi, x.max(axis=0))
+        index = self.count + np.arange(x.shape[0])
+        self.count += x.shape[0]
+        take = x[index % self.stride == 0]
+        self.parts.append(take)
+        self.kept += take.shape[0]
+        while self.kept > SURVEY_SAMPLE:  # keep every other one: those at multiples of 2 × stride
+            self.stride *= 2
+            self.parts = [np.concatenate(self.parts)[::2]]
+            self.kept = self.parts[0].shape[0]
+
+    def survey(self, r_max: float) -> Survey:
+        sample = np.concatenate(self.parts) if self.parts else np.zeros((0, 3))
+        return Survey(self.count, self.lo, self.hi, float(r_max), sample)
+
+
 class Source:
     """Base of particle-source plugins: construct with validated ``Params``, then ``generate``."""
 
@@ -193,6 +272,8 @@ class Source:
     keeps_rows: ClassVar[bool] = False
     #: parameters naming input files relative to the deck (``pdem advise --apply`` makes them absolute)
     path_keys: ClassVar[tuple[str, ...]] = ()
+    #: ``survey`` and ``generate_part`` exist: each rank makes only its own spheres (module docstring)
+    partitioned: ClassVar[bool] = False
 
     def __init__(self, params: SourceParams) -> None:
         self.params = params
@@ -234,6 +315,36 @@ class Source:
             lo, hi = build().bounds
             return np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
         return None
+
+
+def produce_part(
+    source: Source, *, base_dir: Path, seed: int, material: Material, lo, hi, where: str = ""
+) -> SourcePart:
+    """Call a partitioned source's ``generate_part`` and check what it returns against the contract
+    (``where`` is named in the error)."""
+    label = f"particle source '{source.params.source}'" + (f" ({where})" if where else "")
+    try:
+        part: Any = source.generate_part(
+            base_dir=Path(base_dir), seed=int(seed), material=material,
+            lo=np.asarray(lo, dtype=float), hi=np.asarray(hi, dtype=float),
+        )  # fmt: skip
+    except PluginError as exc:
+        raise PluginError(f"{label}: {exc}") from exc
+    ok = isinstance(part, SourcePart) and isinstance(part.output, SourceOutput)
+    if ok:
+        index = np.asarray(part.index)
+        ok = (
+            index.shape == (len(part.output),)
+            and index.dtype.kind in "iu"
+            and (index.size == 0 or (index[0] >= 0 and index[-1] < part.total and np.all(np.diff(index) > 0)))
+        )
+    if not ok:
+        raise PluginError(
+            f"{label}: generate_part() did not return a SourcePart whose index lists each sphere's place "
+            "in generate()'s order, increasing and below total; it does not honour the plugin contract "
+            "(report this to its author)"
+        )
+    return part
 
 
 def produce(

@@ -36,7 +36,7 @@ from ..deck.schema import (
 )
 from ..materials import Material
 from ..textutil import quote
-from .api import Source, SourceOutput, SourceParams
+from .api import Sampler, Source, SourceOutput, SourceParams, SourcePart, Survey
 
 __all__ = [
     "BUILTIN_SOURCES",
@@ -347,6 +347,35 @@ class LatticeSource(Source):
 
     def r_max(self) -> float | None:
         return float(self.params.radius)
+
+    @property
+    def partitioned(self) -> bool:  # (a 2-D hex2d bed is made whole: it is small)
+        return self.params.lattice != "hex2d"
+
+    def _layers(self):
+        from .lattice import lattice_layers
+
+        p = self.params
+        return lattice_layers(p.lattice, p.region.build(), p.radius, p.spacing)
+
+    def survey(self, *, base_dir: Path, seed: int, material: Material) -> Survey:
+        sampler = Sampler()
+        for x in self._layers():
+            sampler.add(x)
+        return sampler.survey(float(self.params.radius))
+
+    def generate_part(self, *, base_dir: Path, seed: int, material: Material, lo, hi) -> SourcePart:
+        xs, index, start = [], [], 0
+        for x in self._layers():
+            if x.shape[0] and x[0, 2] <= hi[2] and x[-1, 2] >= lo[2]:  # (a layer is one z)
+                inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))
+                xs.append(x[inside])
+                index.append(start + inside)
+            start += x.shape[0]
+        x = np.concatenate(xs) if xs else np.zeros((0, 3))
+        index = np.concatenate(index) if index else np.zeros(0, np.int64)
+        r = np.full(x.shape[0], float(self.params.radius))
+        return SourcePart(SourceOutput(x, r), index.astype(np.int64), start)
 
 
 class FileSource(Source):

@@ -19,7 +19,7 @@ from pdem.errors import GeometryError, InputError
 
 from .regions import Region, _vec3
 
-__all__ = ["simple_cubic", "fcc", "hcp", "hex2d"]
+__all__ = ["simple_cubic", "fcc", "hcp", "hex2d", "lattice_layers"]
 
 _Arrays = tuple[NDArray[np.float64], NDArray[np.float64]]
 
@@ -172,3 +172,40 @@ def hex2d(
     pos[:, a0] += (col + 0.5 * (row % 2)) * s
     pos[:, a1] += row * (s * math.sqrt(3.0) / 2.0)
     return pos, np.full(row.size, r, dtype=np.float64)
+
+
+def lattice_layers(kind: str, region: Region, radius: float, spacing: float | None = None):
+    """The spheres of :func:`simple_cubic`, :func:`fcc` or :func:`hcp` (``kind`` "sc", "fcc", "hcp"),
+    one layer of constant lattice index k (z) at a time, in their id order: concatenated, the
+    layers' positions are bitwise the function's (tests check it). Yields (n, 3) position arrays
+    (possibly empty); memory is one layer's, so a partitioned source can place 10⁸ spheres."""
+    if kind not in ("sc", "fcc", "hcp"):
+        raise InputError(f"lattice_layers: kind = {kind!r} is not one of 'sc', 'fcc', 'hcp'")
+    name = {"sc": "simple_cubic", "fcc": "fcc", "hcp": "hcp"}[kind]
+    r, s, origin, room = _setup(region, radius, spacing, name)
+    if kind == "sc":
+        n = np.array([_n_steps(L, s) for L in room], dtype=np.int64)
+        step = s
+    elif kind == "fcc":
+        step = s / math.sqrt(2.0)
+        n = np.array([_n_steps(L, step) for L in room], dtype=np.int64)
+    else:
+        dy, dz = s * math.sqrt(3.0) / 2.0, s * math.sqrt(2.0 / 3.0)
+        n = np.array([_n_steps(room[0], s) + 1, _n_steps(room[1], dy) + 1, _n_steps(room[2], dz)], np.int64)
+    j, i = np.meshgrid(np.arange(n[1] + 1), np.arange(n[0] + 1), indexing="ij")
+    i, j = i.ravel().astype(np.int64), j.ravel().astype(np.int64)  # (j, i) order: y rows, then x
+    for k in range(int(n[2]) + 1):
+        kk = np.full(i.shape, k, dtype=np.int64)
+        if kind == "hcp":
+            kb = kk % 2
+            pos = np.empty((i.shape[0], 3), dtype=np.float64)
+            pos[:, 0] = origin[0] + (i + 0.5 * ((j + kb) % 2)) * s
+            pos[:, 1] = origin[1] + (j + kb / 3.0) * dy
+            pos[:, 2] = origin[2] + kk * dz
+        else:
+            idx = np.stack([i, j, kk], axis=1)
+            if kind == "fcc":
+                idx = idx[(idx.sum(axis=1) % 2) == 0]
+            pos = origin + idx * step
+        keep = region.contains_spheres(pos, r, tol=1e-9 * s)
+        yield np.ascontiguousarray(pos[keep])
