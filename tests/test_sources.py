@@ -725,3 +725,39 @@ def test_the_lattice_source_is_partitioned_by_contract(lattice, region):
     assert source.partitioned
     glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
     check_partitioned(source, base_dir=Path("."), seed=3, material=glass)
+
+
+@pytest.mark.parametrize("order", ["spatial", "file"])
+@pytest.mark.parametrize("fmt", ["txt", "h5"])
+def test_the_file_source_is_partitioned_by_contract(tmp_path, order, fmt):
+    """A packing file in shuffled row order (polydisperse, with velocities): any box's part is
+    bitwise generate()'s spheres, rows and velocities at the ids it names, in both id orders, read
+    from text and from HDF5 in chunks."""
+    import h5py
+
+    from pdem.materials import Material
+    from pdem.sources import random_fill
+    from pdem.sources.builtin import FileParams, FileSource
+    from pdem.sources.files import write_spheres_text
+    from pdem.sources.regions import BoxRegion
+    from pdem.sources.sizes import Uniform
+    from pdem.testing.source_contract import check_partitioned
+
+    x, r = random_fill(BoxRegion((0, 0, 0), (0.02, 0.015, 0.03)), Uniform(0.4e-3, 0.6e-3), n=3000, seed=5)
+    rng = np.random.default_rng(2)
+    perm = rng.permutation(len(r))
+    x, r = x[perm], r[perm]
+    v = rng.normal(size=x.shape)
+    path = tmp_path / f"packing.{fmt}"
+    if fmt == "h5":
+        with h5py.File(path, "w") as f:
+            f["position"], f["radius"], f["velocity"] = x, r, v
+    else:
+        write_spheres_text(path, x, r, velocities=v)
+    params = FileParams.model_validate(
+        {"source": "file", "material": "glass", "path": str(path), "order": order}
+    )
+    source = FileSource(params)
+    source.chunk = 317  # (many chunks, the last one short)
+    glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
+    check_partitioned(source, base_dir=tmp_path, seed=1, material=glass, pieces=4)

@@ -400,6 +400,100 @@ class FileSource(Source):
 
         return np.asarray(read_spheres(Path(base_dir) / self.params.path)["radii"], dtype=float)
 
+    #: each rank reads the file in chunks and keeps its own spheres (three passes for order = "spatial")
+    partitioned = True
+    #: spheres read at a time when partitioned
+    chunk = 65536
+
+    def _chunks(self, base_dir: Path):
+        from .files import iter_spheres
+
+        return iter_spheres(Path(base_dir) / self.params.path, self.chunk)
+
+    def survey(self, *, base_dir: Path, seed: int, material: Material) -> Survey:
+        sampler, r_max = Sampler(), 0.0
+        for c in self._chunks(base_dir):
+            sampler.add(c["positions"])
+            r_max = max(r_max, float(c["radii"].max()))
+        return sampler.survey(r_max)
+
+    def generate_part(self, *, base_dir: Path, seed: int, material: Material, lo, hi) -> SourcePart:
+        if self.params.order == "spatial":
+            return self._spatial_part(base_dir, np.asarray(lo, float), np.asarray(hi, float))
+        keep = {"positions": [], "radii": [], "velocities": [], "rows": []}
+        total, has_v = 0, False
+        for c in self._chunks(base_dir):
+            inside = np.flatnonzero(np.all((c["positions"] >= lo) & (c["positions"] <= hi), axis=1))
+            keep["positions"].append(c["positions"][inside])
+            keep["radii"].append(c["radii"][inside])
+            has_v = c["velocities"] is not None
+            if has_v:
+                keep["velocities"].append(c["velocities"][inside])
+            keep["rows"].append(c["start"] + inside)
+            total += c["radii"].shape[0]
+        rows = np.concatenate(keep["rows"]).astype(np.int64)
+        v = np.concatenate(keep["velocities"]).reshape(-1, 3) if has_v else None
+        out = SourceOutput(np.concatenate(keep["positions"]).reshape(-1, 3), np.concatenate(keep["radii"]), v,
+                           rows=rows)  # fmt: skip
+        return SourcePart(out, rows, total)
+
+    def _spatial_part(self, base_dir: Path, lo: np.ndarray, hi: np.ndarray) -> SourcePart:
+        """The spheres of every cell of :func:`pdem.sources.spatial_order` (edge 2 r_max, from the
+        centres' minimum) that meets the box [lo, hi], with their ids in that order: one pass for
+        the grid, one counting the spheres of every occupied cell (a cell's first id is the count of
+        those before it), one keeping the cells' spheres, ordered within each cell as the whole file
+        would be. The cells are kept whole, so the order inside them is known."""
+        total, xmin, xmax, r_max = 0, np.full(3, np.inf), np.full(3, -np.inf), 0.0
+        for c in self._chunks(base_dir):
+            xmin = np.minimum(xmin, c["positions"].min(axis=0))
+            xmax = np.maximum(xmax, c["positions"].max(axis=0))
+            r_max = max(r_max, float(c["radii"].max()))
+            total += c["radii"].shape[0]
+        h = 2.0 * r_max
+        grid = np.floor((xmax - xmin) / h).astype(np.int64) + 1
+
+        def cells(x):
+            return np.floor((x - xmin) / h).astype(np.int64)
+
+        def key(c):
+            return (c[:, 2] * grid[1] + c[:, 1]) * grid[0] + c[:, 0]
+
+        keys, counts = [], []
+        for c in self._chunks(base_dir):
+            k, n = np.unique(key(cells(c["positions"])), return_counts=True)
+            keys.append(k)
+            counts.append(n)
+        k_all = np.concatenate(keys)
+        cell_keys, inverse = np.unique(k_all, return_inverse=True)
+        cell_counts = np.bincount(inverse, weights=np.concatenate(counts)).astype(np.int64)
+        del keys, counts, k_all, inverse
+        cell_start = np.concatenate([[0], np.cumsum(cell_counts)[:-1]])
+        c_lo = np.clip(np.floor((lo - xmin) / h), -1, grid).astype(np.int64)
+        c_hi = np.clip(np.floor((hi - xmin) / h), -1, grid).astype(np.int64)
+        parts = {"x": [], "r": [], "v": [], "row": [], "key": []}
+        has_v = False
+        for c in self._chunks(base_dir):
+            cc = cells(c["positions"])
+            inside = np.flatnonzero(np.all((cc >= c_lo) & (cc <= c_hi), axis=1))
+            parts["x"].append(c["positions"][inside])
+            parts["r"].append(c["radii"][inside])
+            has_v = c["velocities"] is not None
+            if has_v:
+                parts["v"].append(c["velocities"][inside])
+            parts["row"].append(c["start"] + inside)
+            parts["key"].append(key(cc[inside]))
+        x = np.concatenate(parts["x"]).reshape(-1, 3)
+        r = np.concatenate(parts["r"])
+        v = np.concatenate(parts["v"]).reshape(-1, 3) if has_v else None
+        row = np.concatenate(parts["row"]).astype(np.int64)
+        k = np.concatenate(parts["key"])
+        order = np.lexsort((row, x[:, 0], x[:, 1], x[:, 2], k))  # spatial_order's, ties by row
+        x, r, row, k = x[order], r[order], row[order], k[order]
+        v = None if v is None else v[order]
+        first = np.searchsorted(k, k, side="left")  # each sphere's cell's first place among these
+        ids = cell_start[np.searchsorted(cell_keys, k)] + (np.arange(k.shape[0]) - first)
+        return SourcePart(SourceOutput(x, r, v, rows=row), ids.astype(np.int64), total)
+
     def generate(self, *, base_dir: Path, seed: int, material: Material) -> SourceOutput:
         from . import read_spheres
 

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from pdem.errors import InputError
 from pdem.textutil import clip, file_problem, quote
 
-__all__ = ["read_spheres", "write_spheres_text", "packing_file_problem", "MAX_LINE_LENGTH"]
+__all__ = ["read_spheres", "iter_spheres", "write_spheres_text", "packing_file_problem", "MAX_LINE_LENGTH"]
 
 _SPLIT = re.compile(r"[,\s]+")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
@@ -149,23 +149,26 @@ def _lines(p: Path):
             yield lineno, text
 
 
-def _read_text(p: Path) -> tuple[dict[str, NDArray[np.float64] | None], list[int]]:
+def _text_chunks(p: Path, size: int):
+    """The numeric rows of a text packing file, ``size`` at a time: ``(data (k, ncol), line numbers,
+    columns by name or None, ncol)``; the header and every row's shape are checked on the way."""
     cols: dict[str, int] | None = None
     ncol: int | None = None
     rows: list[list[float]] = []
     linenos: list[int] = []
+    seen = 0
     for lineno, raw in _lines(p):
         line = raw.split("#", 1)[0].strip().strip(",")
         if not line:
             continue
         tokens = [t for t in _SPLIT.split(line) if t]
-        if cols is None and not rows and not all(_is_number(t) for t in tokens):
+        if cols is None and not seen and not all(_is_number(t) for t in tokens):
             cols = _header_columns(p, lineno, tokens, line)
             ncol = len(tokens)
             continue
         if ncol is None:
             if len(tokens) not in (4, 7):
-                if not rows and not all(_is_number(t) for t in tokens):
+                if not seen and not all(_is_number(t) for t in tokens):
                     raise _not_packing(p, lineno, line)
                 raise InputError(
                     f"{_name(p)}: line {lineno}: expected 4 columns 'x y z diameter' or 7 columns "
@@ -180,15 +183,26 @@ def _read_text(p: Path) -> tuple[dict[str, NDArray[np.float64] | None], list[int
         try:
             rows.append([float(t) for t in tokens])
             linenos.append(lineno)
+            seen += 1
         except ValueError:
             bad = next(t for t in tokens if not _is_number(t))
             raise InputError(
                 f"{_name(p)}: line {lineno}: cannot read {_tok(bad)} as a number; expected numeric "
                 "columns x y z diameter [vx vy vz]"
             ) from None
-    if not rows:
+        if len(rows) == size:
+            yield np.asarray(rows, dtype=np.float64), linenos, cols, ncol
+            rows, linenos = [], []
+    if not seen:
         raise InputError(f"{_name(p)}: no sphere rows found; expected lines 'x y z diameter [vx vy vz]'")
-    data = np.asarray(rows, dtype=np.float64)
+    if rows:
+        yield np.asarray(rows, dtype=np.float64), linenos, cols, ncol
+
+
+def _text_columns(
+    p: Path, data: NDArray[np.float64], linenos: list[int], cols: dict[str, int] | None, ncol: int
+) -> dict[str, NDArray[np.float64] | None]:
+    """Positions, radii and velocities of text rows, checked (finite, radius > 0)."""
     bad_rows = ~np.all(np.isfinite(data), axis=1)
     if np.any(bad_rows):
         i = int(np.argmax(bad_rows))
@@ -214,7 +228,76 @@ def _read_text(p: Path) -> tuple[dict[str, NDArray[np.float64] | None], list[int
     velocities = None
     if "vx" in cols:
         velocities = np.ascontiguousarray(data[:, [cols["vx"], cols["vy"], cols["vz"]]])
-    return {"positions": positions, "radii": np.ascontiguousarray(radii), "velocities": velocities}, linenos
+    return {"positions": positions, "radii": np.ascontiguousarray(radii), "velocities": velocities}
+
+
+def _read_text(p: Path) -> tuple[dict[str, NDArray[np.float64] | None], list[int]]:
+    chunks = list(_text_chunks(p, 1 << 62))
+    data, linenos, cols, ncol = chunks[0]
+    return _text_columns(p, data, linenos, cols, ncol), linenos
+
+
+def iter_spheres(path: str | os.PathLike[str], size: int = 65536):
+    """Read a packing file (as :func:`read_spheres`) ``size`` spheres at a time, in file order:
+    yields ``{"positions", "radii", "velocities", "start"}`` (``start``: the first sphere's row, from
+    0), each chunk checked as :func:`read_spheres` checks the whole file (the first error found may
+    be a later one in the file than the whole file's). Memory is one chunk's."""
+    p = Path(path)
+    problem = packing_file_problem(p)
+    if problem is not None:
+        raise InputError(f"sphere file {quote(str(p))} {problem}; give a packing file (text or HDF5)")
+    start = 0
+    if p.suffix.lower() in _HDF5_SUFFIXES:
+        for out in _hdf5_chunks(p, size):
+            _validate(p, out, None, start)
+            yield {**out, "start": start}
+            start += out["radii"].shape[0]
+        return
+    for data, linenos, cols, ncol in _text_chunks(p, size):
+        out = _text_columns(p, data, linenos, cols, ncol)
+        _validate(p, out, linenos)
+        yield {**out, "start": start}
+        start += out["radii"].shape[0]
+
+
+def _hdf5_chunks(p: Path, size: int):
+    """An HDF5 packing's spheres ``size`` at a time (the datasets checked as :func:`_read_hdf5` does)."""
+    import h5py
+
+    try:
+        fh = h5py.File(p, "r")
+    except OSError as exc:
+        why = clip(str(exc))
+        raise InputError(f"{_name(p)}: cannot open as HDF5 ({why}); is it really an HDF5 file?") from None
+    with fh as f:
+        names = {}
+        for key, options in (("pos", ("x", "position", "positions")), ("diam", ("diameter", "diameters")),
+                             ("rad", ("radius", "radii")), ("vel", ("velocity", "velocities"))):  # fmt: skip
+            found = [n for n in options if n in f]
+            if len(found) > 1:
+                keep = list(options)
+                raise InputError(f"{_name(p)}: datasets {found} all present; keep only one of {keep}")
+            names[key] = found[0] if found else None
+        if names["pos"] is None or (names["diam"] is None and names["rad"] is None) or (
+            names["diam"] is not None and names["rad"] is not None
+        ):
+            _read_hdf5(p)  # the whole-file reader names what is wrong
+        pos = f[names["pos"]]
+        n = pos.shape[0] if len(pos.shape) == 2 and pos.shape[1] == 3 else -1
+        rad = f[names["diam"] or names["rad"]]
+        vel = f[names["vel"]] if names["vel"] else None
+        if n < 0 or rad.shape != (n,) or (vel is not None and vel.shape != (n, 3)):
+            _read_hdf5(p)
+        for a in range(0, n, size):
+            b = min(n, a + size)
+            try:
+                x = np.asarray(pos[a:b], dtype=np.float64)
+                r = np.asarray(rad[a:b], dtype=np.float64) * (0.5 if names["diam"] else 1.0)
+                v = None if vel is None else np.asarray(vel[a:b], dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"{_name(p)}: a dataset is not numeric ({clip(str(exc))})") from None
+            yield {"positions": np.ascontiguousarray(x), "radii": np.ascontiguousarray(r),
+                   "velocities": None if v is None else np.ascontiguousarray(v)}  # fmt: skip
 
 
 def _dataset(f, p: Path, names: tuple[str, ...]) -> NDArray[np.float64] | None:
@@ -267,13 +350,16 @@ def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
     }
 
 
-def _validate(p: Path, out: dict[str, NDArray[np.float64] | None], linenos: list[int] | None = None) -> None:
+def _validate(
+    p: Path, out: dict[str, NDArray[np.float64] | None], linenos: list[int] | None = None, start: int = 0
+) -> None:
     """Finite values, positive radii within RADIUS_RANGE, coordinates and velocities within
-    MAX_MAGNITUDE; an error names the sphere's line (text) or index (HDF5)."""
+    MAX_MAGNITUDE; an error names the sphere's line (text) or index (HDF5; ``start``: the index of
+    the first sphere given)."""
     from ..deck.schema import MAX_MAGNITUDE, RADIUS_RANGE
 
     def where(i: int) -> str:
-        return f"line {linenos[i]}" if linenos is not None else f"sphere {i} (0-based)"
+        return f"line {linenos[i]}" if linenos is not None else f"sphere {start + i} (0-based)"
 
     for key in ("positions", "radii", "velocities"):
         arr = out[key]
