@@ -656,6 +656,10 @@ class Stepper(Integrator):
         for j, (k, wall) in enumerate(self._bodies):  # semi-implicit Euler, as the grains
             wall.motion.finish(wall, self.V[n_tot + j].copy(), h)
             cs.update_wall(k)  # the next step's contacts start from where the body is now
+        if sim.decomposition is not None:  # ghosts (other ranks' grains, periodic images) where their
+            # owners now are: what is read between steps (branch vectors, snapshots) is then the same
+            # on any rank count; the next step's list update forwards or rebuilds from the same bits
+            sim.forward_ghosts()
 
     def _record_step(self, sp: _StepProblem) -> None:
         """The step's bookkeeping: the load balancer's measure of this rank's work, the solver's
