@@ -19,7 +19,8 @@ Methods with their own time step
     :func:`surface_velocity` (a wall's velocity at a point: translation, rotation, radius rate);
     partition-independent sums inside kernels: :func:`exact_accumulator`, :func:`exact_add` (or
     :func:`exact_add_many` with :func:`exact_bins` for up to 1024 terms at once, faster),
-    :func:`exact_partials` (combine ranks with :func:`pdem.parallel.exact.exact_reduce`).
+    :func:`exact_partials` (combine ranks with :func:`pdem.parallel.exact.exact_reduce`);
+    :func:`column_partials`: a column of terms as a few doubles whose exact sum is theirs.
 Boundaries (``pdem.boundaries``)
     :class:`Boundary`, :class:`BoundaryParams`, :class:`WallBoundaryParams`, :data:`Vec3`,
     :data:`MotionSpec`, :func:`make_motion`; walls: :class:`Wall`, :mod:`shapes`, the motions
@@ -137,7 +138,14 @@ from .io.frame import Frame, WallState
 from .io.wall_mesh import wall_triangles
 from .materials import Material, MaterialTable, damping_ratio, effective_moduli
 from .parallel.comm import all_max, all_max_array, all_min, all_sum_int_array, any_rank
-from .parallel.exact import exact_accumulator, exact_add, exact_add_many, exact_bins, exact_partials
+from .parallel.exact import (
+    column_partials,
+    exact_accumulator,
+    exact_add,
+    exact_add_many,
+    exact_bins,
+    exact_partials,
+)
 from .simulation import Simulation
 from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 
@@ -147,7 +155,7 @@ __all__ = [
     "COL_DELTA", "COL_NX", "COL_NY", "COL_NZ", "COL_VX", "COL_VY", "COL_VZ", "COL_WX", "COL_WY", "COL_WZ",
     "COL_REFF", "COL_MEFF", "COL_IEFF", "COL_AI", "COL_AJ", "COL_HIST",
     "OUT_FX", "OUT_FY", "OUT_FZ", "OUT_MX", "OUT_MY", "OUT_MZ", "OUT_HIST",
-    "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials",
+    "exact_accumulator", "exact_add", "exact_add_many", "exact_bins", "exact_partials", "column_partials",
     "KIND_NAMES",
     "FLAG_OVERLAP", "FLAG_NONFINITE", "FLAG_COINCIDENT",
     "ContactLaw", "LawParams", "ListNeeds", "ContactStore", "Integrator", "VelocityVerlet",

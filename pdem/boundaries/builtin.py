@@ -23,6 +23,7 @@ from pdem.api import (
     SizeCheck,
     Vec3,
     WallBoundaryParams,
+    column_partials,
     njit,
     shapes,
 )
@@ -223,7 +224,10 @@ class OutflowBoundary(Boundary):
 
     def __init__(self, name: str, params: BoundaryParams) -> None:
         super().__init__(name, params)
-        self.removed_masses: list[float] = []  # this rank's removals (summed exactly over ranks)
+        #: terms whose exact sum is this rank's removed mass: its removals' masses, after a resume also
+        #: the partials the checkpoint kept (summed exactly over ranks, the same value either way)
+        self.removed_masses: list[float] = []
+        self.removed_here = 0  # this rank's removals (and, after a resume on rank 0, the earlier ones)
         self._comm = None
         n = np.asarray(params.normal, dtype=float)
         self._n = n / np.linalg.norm(n)
@@ -243,24 +247,35 @@ class OutflowBoundary(Boundary):
         gone = ((x - self._p) @ self._n < 0.0) & (sim.particles.inv_m[:n] > 0)
         if gone.any():
             self.removed_masses.extend(float(m) for m in sim.particles.mass[:n][gone])
+            self.removed_here += int(gone.sum())
             sim.remove_particles(gone)
 
     def measurements(self, sim: Any) -> dict[str, float]:
         return {
-            "removed_count": float(sim.count(len(self.removed_masses))),
+            "removed_count": float(sim.count(self.removed_here)),
             "removed_mass": sim.exact_sum(self.removed_masses),
         }
 
     def state(self) -> dict[str, Any]:
-        """All ranks' removals (collective), so a checkpoint resumes on any number of ranks."""
-        masses = list(self.removed_masses)
+        """All ranks' removals (collective), so a checkpoint resumes on any number of ranks: their
+        count, and a few partials per rank whose exact sum is the removed mass's (not one term per
+        removed grain: a hopper that drains 10⁸ grains keeps a short list)."""
+        terms = np.asarray(self.removed_masses, dtype=np.float64).reshape(-1, 1)
+        partials, _ = column_partials(terms, 0)  # (masses are finite: no special term)
+        partials, count = [float(v) for v in partials if v != 0.0], self.removed_here
         if self._comm is not None and self._comm.size > 1:
-            masses = [m for part in self._comm.allgather(masses) for m in part]
-        return {"removed_masses": masses}
+            parts = self._comm.allgather((partials, count))
+            partials = [v for q in parts for v in q[0]]
+            count = sum(q[1] for q in parts)
+        return {"removed_partials": partials, "removed_count": int(count)}
 
     def restore(self, state: dict[str, Any]) -> None:
         rank = 0 if self._comm is None else self._comm.rank
-        self.removed_masses = list(state.get("removed_masses", [])) if rank == 0 else []
+        if "removed_masses" in state:  # a checkpoint that kept every removed mass
+            terms, count = list(state["removed_masses"]), len(state["removed_masses"])
+        else:
+            terms, count = list(state.get("removed_partials", [])), int(state.get("removed_count", 0))
+        self.removed_masses, self.removed_here = (terms, count) if rank == 0 else ([], 0)
 
 
 @njit
@@ -390,7 +405,7 @@ class HopperBoundary(Boundary):
             [np.asarray(self._sink.removed_masses, dtype=float), sim.particles.mass[:n][below]]
         )
         out["discharged_mass"] = sim.exact_sum(masses)
-        out["discharged_count"] = float(sim.count(masses.shape[0]))
+        out["discharged_count"] = float(sim.count(self._sink.removed_here + int(below.sum())))
         return out
 
     def summary(self, series: dict[str, np.ndarray]) -> dict[str, float]:
