@@ -250,8 +250,8 @@ def report(paths) -> None:
             cells.append(f"{ratio_mean:6.3f};{ratio_max:6.3f}")
         print(f"{k:>5} {str(list(dims)):>9} " + " ".join(cells))
     print("largest deviation per quantity: " + ", ".join(f"{k} {v * 100:.1f} %" for k, v in worst.items()))
-    # wall time at 1 and 2 ranks (no core shared), with this machine's measured latencies
-    print("\nwall time per step, model against measured (this machine):")
+    # wall time at 1 and 2 ranks (no core shared), with the latencies measured in the same run
+    print("\nwall time per step, model against measured (latencies measured in the run):")
     for run in sorted(runs, key=lambda q: q["ranks"][0]["ranks"]):
         k = run["ranks"][0]["ranks"]
         if k > 2:
