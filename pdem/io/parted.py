@@ -64,6 +64,9 @@ PARTS_ATTR = "pdem_parts"
 #: part attribute: which part of which checkpoint it is (JSON)
 PART_ATTR = "pdem_part"
 _PARTS_DIR = re.compile(r"(step_\d+)\.parts-[0-9a-f]{8}")
+#: what writing a part or the manifest may raise (h5py: OSError, and ValueError/TypeError/RuntimeError
+#: for data it cannot store)
+WRITE_ERRORS = (OSError, ValueError, TypeError, RuntimeError)
 
 
 def is_part_key(key: str) -> bool:
@@ -122,7 +125,7 @@ def write_parted(path: Path, share: dict, meta: dict, comm) -> Path:
                 "particles": int(np.asarray(share["particles/id"]).shape[0]),
                 "sha256": hashlib.sha256(text.encode()).hexdigest(),
             }
-        except OSError as exc:
+        except WRITE_ERRORS as exc:  # (on one rank only: every rank learns it below, none hangs)
             entry, error = None, f"cannot write {parts / name}: {exc}"
         entries = comm.allgather((entry, error)) if comm.size > 1 else [(entry, error)]
         error = next((e for _, e in entries if e is not None), None)
@@ -140,7 +143,7 @@ def write_parted(path: Path, share: dict, meta: dict, comm) -> Path:
             write_hdf5(tmp, common, {**meta, PARTS_ATTR: json.dumps(manifest)}, PARTED_FORMAT)
             os.replace(tmp, path)  # from here on the checkpoint exists, whole
             point_latest(path)
-        except OSError as exc:
+        except WRITE_ERRORS as exc:
             error = f"cannot write {path}: {exc}"
         else:
             for other in path.parent.glob(f"{stem}.parts-*"):  # an older write of the same step

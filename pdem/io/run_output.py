@@ -556,6 +556,11 @@ class RunOutput:
         writes its share (``state`` from ``state_dict(local=True)``) and rank 0 the manifest
         (:mod:`pdem.io.parted`)."""
         path = self.out / "checkpoints" / f"step_{step:010d}.h5"
+        if self.root and self._journal is not None and path.is_file():  # a resume rewriting the step it
+            parts = checkpoint_parts(path)  # resumed from: the old checkpoint is held, so that a
+            discard(self.out, path)  # rollback puts it back whole (manifest and parts)
+            if parts is not None and parts.is_dir():
+                discard(self.out, parts)
         if self.comm.size > 1:
             write_parted(path, state, meta, self.comm)
             if self.root:
