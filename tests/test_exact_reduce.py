@@ -33,16 +33,15 @@ class _ThreadComm:
         barrier.wait()
 
 
-def _spmd(contributions):
-    """exact_reduce(sums, maxima) called on every 'rank' at once; each rank's results."""
-    k = len(contributions)
+def _on_ranks(k, call):
+    """``call(comm, rank)`` on k thread 'ranks' at once; each rank's result."""
     shared = {"slots": [None] * k, "barrier": threading.Barrier(k, timeout=30)}
     results = [None] * k
     errors = []
 
     def run(r):
         try:
-            results[r] = exact_reduce(_ThreadComm(r, shared), *contributions[r])
+            results[r] = call(_ThreadComm(r, shared), r)
         except Exception as exc:  # reported below
             errors.append(exc)
             shared["barrier"].abort()
@@ -54,6 +53,11 @@ def _spmd(contributions):
         t.join()
     assert not errors, errors
     return results
+
+
+def _spmd(contributions):
+    """exact_reduce(sums, maxima) called on every 'rank' at once; each rank's results."""
+    return _on_ranks(len(contributions), lambda comm, r: exact_reduce(comm, *contributions[r]))
 
 
 def _split_reduce(a, b, rows, k, rng):
@@ -256,23 +260,9 @@ def test_exact_sum_over_ranks_sends_partials_and_gives_the_fsum_of_all_terms(k):
     order = rng.permutation(2 * n)
     cuts = np.sort(rng.choice(np.arange(1, 2 * n), k - 1, replace=False))
     shares = np.split(order, cuts)
-    shared = {"slots": [None] * k, "barrier": threading.Barrier(k, timeout=30)}
-    results, errors = [None] * k, []
-
-    def run(r):
-        try:
-            comm = _ThreadComm(r, shared)
-            results[r] = (exact_sum(comm, terms[shares[r]]), exact_sums(comm, rows[shares[r]]))
-        except Exception as exc:  # reported below
-            errors.append(exc)
-            shared["barrier"].abort()
-
-    threads = [threading.Thread(target=run, args=(r,)) for r in range(k)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors, errors
+    results = _on_ranks(
+        k, lambda comm, r: (exact_sum(comm, terms[shares[r]]), exact_sums(comm, rows[shares[r]]))
+    )
     for one, cols in results:
         assert one == math.fsum(terms)
         assert [float(v) for v in cols] == [math.fsum(rows[:, 0]), math.fsum(rows[:, 1])]

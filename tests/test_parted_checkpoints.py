@@ -271,32 +271,15 @@ def test_a_two_rank_run_never_holds_every_particle_on_one_rank(tmp_path):
     assert min(sizes) >= 512, sizes
 
 
-FILE_DECK = """\
-[run]
-gravity = [0.0, 0.0, -9.81]
-dt = 2e-6
-[materials.glass]
-density = 2500.0
-youngs_modulus = 5e7
-poisson_ratio = 0.3
-restitution = 0.5
-friction = 0.5
-[[particles]]
-source = "file"
+LATTICE_TABLE = """source = "lattice"
+lattice = "sc"
 material = "glass"
-path = "packing.txt"
-[boundaries.floor]
-type = "plane"
-material = "glass"
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-[[stages]]
-name = "drop"
-[stages.end]
-steps = 30
-[output]
-every_steps = 10
+radius = 0.5e-3
+region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.004, 0.004, 0.004] }
 """
+assert LATTICE_TABLE in TINY_LATTICE
+FILE_TABLE = 'source = "file"\nmaterial = "glass"\npath = "packing.txt"\n'
+FILE_DECK = TINY_LATTICE.replace(LATTICE_TABLE, FILE_TABLE).replace("steps = 20\n", "steps = 30\n")
 
 
 @pytest.mark.parametrize("ranks", [2, pytest.param(3, marks=pytest.mark.integration)])

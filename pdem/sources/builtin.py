@@ -420,22 +420,33 @@ class FileSource(Source):
     def generate_part(self, *, base_dir: Path, seed: int, material: Material, lo, hi) -> SourcePart:
         if self.params.order == "spatial":
             return self._spatial_part(base_dir, np.asarray(lo, float), np.asarray(hi, float))
-        keep = {"positions": [], "radii": [], "velocities": [], "rows": []}
+        def in_box(c):
+            return np.flatnonzero(np.all((c["positions"] >= lo) & (c["positions"] <= hi), axis=1)), None
+
+        x, r, v, rows, _, total = self._rows_where(base_dir, in_box)
+        return SourcePart(SourceOutput(x, r, v, rows=rows), rows, total)
+
+    def _rows_where(self, base_dir: Path, choose):
+        """The file's rows that ``choose(chunk) -> (indices in the chunk, values or None)`` picks,
+        read a chunk at a time: positions, radii, velocities (or None), rows, the values, and the
+        number of rows in the file."""
+        keep: dict[str, list] = {"x": [], "r": [], "v": [], "row": [], "value": []}
         total, has_v = 0, False
         for c in self._chunks(base_dir):
-            inside = np.flatnonzero(np.all((c["positions"] >= lo) & (c["positions"] <= hi), axis=1))
-            keep["positions"].append(c["positions"][inside])
-            keep["radii"].append(c["radii"][inside])
+            inside, value = choose(c)
+            keep["x"].append(c["positions"][inside])
+            keep["r"].append(c["radii"][inside])
             has_v = c["velocities"] is not None
             if has_v:
-                keep["velocities"].append(c["velocities"][inside])
-            keep["rows"].append(c["start"] + inside)
+                keep["v"].append(c["velocities"][inside])
+            keep["row"].append(c["start"] + inside)
+            if value is not None:
+                keep["value"].append(value)
             total += c["radii"].shape[0]
-        rows = np.concatenate(keep["rows"]).astype(np.int64)
-        v = np.concatenate(keep["velocities"]).reshape(-1, 3) if has_v else None
-        out = SourceOutput(np.concatenate(keep["positions"]).reshape(-1, 3), np.concatenate(keep["radii"]), v,
-                           rows=rows)  # fmt: skip
-        return SourcePart(out, rows, total)
+        v = np.concatenate(keep["v"]).reshape(-1, 3) if has_v else None
+        value = np.concatenate(keep["value"]) if keep["value"] else None
+        x, r = np.concatenate(keep["x"]).reshape(-1, 3), np.concatenate(keep["r"])
+        return x, r, v, np.concatenate(keep["row"]).astype(np.int64), value, total
 
     def _spatial_part(self, base_dir: Path, lo: np.ndarray, hi: np.ndarray) -> SourcePart:
         """The spheres of every cell of :func:`pdem.sources.spatial_order` (edge 2 r_max, from the
@@ -470,23 +481,12 @@ class FileSource(Source):
         cell_start = np.concatenate([[0], np.cumsum(cell_counts)[:-1]])
         c_lo = np.clip(np.floor((lo - xmin) / h), -1, grid).astype(np.int64)
         c_hi = np.clip(np.floor((hi - xmin) / h), -1, grid).astype(np.int64)
-        parts = {"x": [], "r": [], "v": [], "row": [], "key": []}
-        has_v = False
-        for c in self._chunks(base_dir):
+        def whole_cells(c):
             cc = cells(c["positions"])
             inside = np.flatnonzero(np.all((cc >= c_lo) & (cc <= c_hi), axis=1))
-            parts["x"].append(c["positions"][inside])
-            parts["r"].append(c["radii"][inside])
-            has_v = c["velocities"] is not None
-            if has_v:
-                parts["v"].append(c["velocities"][inside])
-            parts["row"].append(c["start"] + inside)
-            parts["key"].append(key(cc[inside]))
-        x = np.concatenate(parts["x"]).reshape(-1, 3)
-        r = np.concatenate(parts["r"])
-        v = np.concatenate(parts["v"]).reshape(-1, 3) if has_v else None
-        row = np.concatenate(parts["row"]).astype(np.int64)
-        k = np.concatenate(parts["key"])
+            return inside, key(cc[inside])
+
+        x, r, v, row, k, _ = self._rows_where(base_dir, whole_cells)
         order = np.lexsort((row, x[:, 0], x[:, 1], x[:, 2], k))  # spatial_order's, ties by row
         x, r, row, k = x[order], r[order], row[order], k[order]
         v = None if v is None else v[order]

@@ -260,16 +260,20 @@ def iter_spheres(path: str | os.PathLike[str], size: int = 65536):
         start += out["radii"].shape[0]
 
 
-def _hdf5_chunks(p: Path, size: int):
-    """An HDF5 packing's spheres ``size`` at a time (the datasets checked as :func:`_read_hdf5` does)."""
+def _open_hdf5(p: Path):
+    """The HDF5 file ``p``, open for reading, or an InputError naming it."""
     import h5py
 
     try:
-        fh = h5py.File(p, "r")
+        return h5py.File(p, "r")
     except OSError as exc:
         why = clip(str(exc))
         raise InputError(f"{_name(p)}: cannot open as HDF5 ({why}); is it really an HDF5 file?") from None
-    with fh as f:
+
+
+def _hdf5_chunks(p: Path, size: int):
+    """An HDF5 packing's spheres ``size`` at a time (the datasets checked as :func:`_read_hdf5` does)."""
+    with _open_hdf5(p) as f:
         names = {}
         for key, options in (("pos", ("x", "position", "positions")), ("diam", ("diameter", "diameters")),
                              ("rad", ("radius", "radii")), ("vel", ("velocity", "velocities"))):  # fmt: skip
@@ -313,14 +317,7 @@ def _dataset(f, p: Path, names: tuple[str, ...]) -> NDArray[np.float64] | None:
 
 
 def _read_hdf5(p: Path) -> dict[str, NDArray[np.float64] | None]:
-    import h5py
-
-    try:
-        fh = h5py.File(p, "r")
-    except OSError as exc:
-        why = clip(str(exc))
-        raise InputError(f"{_name(p)}: cannot open as HDF5 ({why}); is it really an HDF5 file?") from None
-    with fh as f:
+    with _open_hdf5(p) as f:
         pos = _dataset(f, p, ("x", "position", "positions"))
         diam = _dataset(f, p, ("diameter", "diameters"))
         rad = _dataset(f, p, ("radius", "radii"))
