@@ -56,10 +56,6 @@ from .state.removal import Removals
 __all__ = ["Simulation"]
 
 
-_ADD_KEYS = ("material", "velocities", "angular_velocities", "motion", "group", "fixed_translation",
-             "fixed_rotation")
-
-
 class Simulation:
     """A DEM simulation. See the module docstring for the API and the time step.
 
@@ -337,19 +333,24 @@ class Simulation:
             angular_velocities, motion, group, fixed_translation, fixed_rotation, fields,
         )  # fmt: skip
         ids = values["id"]
-        n = ids.size
-        self._next_id += n
-        if self._decomp is not None:  # every rank is given all new particles and keeps its own
+        self._keep_batch(values, dof, ids.size)
+        return ids
+
+    def _keep_batch(self, values: dict[str, np.ndarray], dof: int, total: int) -> np.ndarray:
+        """Append the new particles ``values`` (a batch of ``total``, all of it or this rank's part
+        of it) that this rank owns; the ids advance by ``total``. Returns the ids kept."""
+        self._next_id += int(total)
+        if self._decomp is not None:  # every rank is given the batch (or its part) and keeps its own
             keep = self._decomp.owned_mask(values["x"])
             values = {k: a[keep] for k, a in values.items()}
             self.particles.n_ghost = 0
-            self.removals.n_expected += n
+            self.removals.n_expected += int(total)
         n0 = self.particles.n_owned
         self.particles.append_owned(values)
         if dof:
             self._zero_locked(np.arange(n0, self.particles.n_owned))
         self._prepared = False
-        return ids
+        return values["id"]
 
     def place_decomposition(self, sample) -> None:
         """Split space over the ranks before the particles exist, at the quantiles of ``sample``
@@ -374,36 +375,38 @@ class Simulation:
         elif not self._decomp.placed:
             self._decomp.owned_mask(sample)  # places the provisional planes at the sample (collective)
 
-    def add_particle_part(self, positions, radii, index, total: int, **kwargs: Any) -> np.ndarray:
+    def add_particle_part(
+        self,
+        positions,
+        radii,
+        index,
+        total: int,
+        material: str = None,
+        velocities=None,
+        angular_velocities=None,
+        motion: str | Any = "free",
+        group: int = 0,
+        fixed_translation: str = "",
+        fixed_rotation: str = "",
+        **fields: Any,
+    ) -> np.ndarray:
         """Add this rank's share of a batch of ``total`` new particles: ``positions`` and ``radii``
-        (and any :meth:`add_particles` keyword, per particle or scalar) of some of them, ``index``
-        their places in the batch (ids are ``next_id + index``, as :meth:`add_particles` of the whole
-        batch would give); each rank keeps the ones it owns (given at least those). Collective in
-        effect: every rank calls it for the same batch, after :meth:`place_decomposition`. Returns
-        the ids kept."""
-        if self._decomp is None:
-            return self.add_particles(positions, radii, **kwargs)  # serial: the whole batch is given
-        index = np.asarray(index, dtype=np.int64)
-        fields = {k: v for k, v in kwargs.items() if k not in _ADD_KEYS}
-        opts = {k: v for k, v in kwargs.items() if k in _ADD_KEYS}
+        (and the other arguments of :meth:`add_particles`, per particle or scalar) of some of them,
+        ``index`` their places in the batch (ids are ``next_id + index``, as :meth:`add_particles` of
+        the whole batch would give); each rank keeps the ones it owns (given at least those).
+        Collective in effect: every rank calls it for the same batch, after
+        :meth:`place_decomposition`. Returns the ids kept."""
         values, dof = new_particles(
-            self.particles, self.materials, self.box, self._next_id, positions, radii,
-            opts.get("material"), opts.get("velocities"), opts.get("angular_velocities"),
-            opts.get("motion", "free"), opts.get("group", 0), opts.get("fixed_translation", ""),
-            opts.get("fixed_rotation", ""), fields,
+            self.particles, self.materials, self.box, self._next_id, positions, radii, material, velocities,
+            angular_velocities, motion, group, fixed_translation, fixed_rotation, fields,
         )  # fmt: skip
-        values["id"] = self._next_id + index
-        self._next_id += int(total)
-        keep = self._decomp.owned_mask(values["x"])
-        values = {k: a[keep] for k, a in values.items()}
-        self.particles.n_ghost = 0
-        self.removals.n_expected += int(total)
-        n0 = self.particles.n_owned
-        self.particles.append_owned(values)
-        if dof:
-            self._zero_locked(np.arange(n0, self.particles.n_owned))
-        self._prepared = False
-        return values["id"]
+        if self._decomp is None and len(values["id"]) != int(total):
+            raise InputError(
+                f"add_particle_part: {len(values['id'])} of a batch of {total} particles given to a run "
+                "without a decomposition (serial): give the whole batch, or use add_particles"
+            )
+        values["id"] = self._next_id + np.asarray(index, dtype=np.int64)
+        return self._keep_batch(values, dof, total)
 
     def add_wall(
         self,
