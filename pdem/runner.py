@@ -692,6 +692,8 @@ class Runner:
         frame = self.output.write_frame(step, lambda: self.frame(stage), lambda: self.frame(stage, own=True))
         if self.output.contacts_due(step):
             self._write_contacts(frame)
+        if self.output.continuum_on:
+            self.output.write_continuum(self.sim, stage, snapshot=True)
 
     def _write_contacts(self, frame: Frame | None) -> None:
         """The contact network at this step (``output.contacts``; collective, rank 0 writes)."""
@@ -1176,6 +1178,8 @@ class Runner:
             elif next_snapshot_time is not None and sim.time >= next_snapshot_time - 1e-9 * sim.dt:
                 self._write_frame(stage.name)
                 next_snapshot_time += every_time
+            if self.output.continuum_on:
+                self.output.write_continuum(sim, stage.name, snapshot=False)
             if ckpt_every and sim.step_count % ckpt_every == 0:
                 self._checkpoint(index, stage_start)
             self._thermo(stage.name, out)

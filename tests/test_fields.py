@@ -412,7 +412,7 @@ _MPI_SCRIPT = textwrap.dedent(
     import hashlib, sys
     import numpy as np
     import pdem
-    from pdem.fields import GaussianKernel, Grid, LucyKernel, TimeAverage, coarse_grain
+    from pdem.fields import CoarseGraining, GaussianKernel, Grid, LucyKernel, TimeAverage, coarse_grain
     from pdem.geometry.shapes import Plane
     from pdem.parallel.comm import default_comm
 
@@ -447,6 +447,19 @@ _MPI_SCRIPT = textwrap.dedent(
             sim.run(steps=3)
         for arr in avg.mean().arrays().values():
             h.update(np.ascontiguousarray(arr).tobytes())
+        for kern, where in kernels:  # each rank's block (a slab of the grid) is the whole's, bit for bit
+            cg = CoarseGraining(kern, where)
+            whole = cg(sim).arrays()
+            plane = 9 * 7 if where is grid else 1
+            for overlap in (True, False):
+                part, first = cg.block(sim, overlap=overlap)
+                for name, arr in part.arrays().items():
+                    n = arr.shape[0] * (plane if where is grid else 1)
+                    ref = whole[name].reshape(-1, *whole[name].shape[len(cg.shape):])[first : first + n]
+                    assert arr.reshape(ref.shape).tobytes() == ref.tobytes(), (name, overlap)
+                counts = comm.allgather(part.density.size)
+                if not overlap:
+                    assert sum(counts) == whole["density"].size, counts
         f0 = coarse_grain(sim, LucyKernel(1.5e-3), grid, root=0)
         nc, nw = sim.count_contacts(), len(sim.wall_contacts()["id"])
         p = sim.get_particles()

@@ -72,6 +72,9 @@ __all__ = [
     "OutputCadence",
     "Stage",
     "OutputSection",
+    "ContinuumSpec",
+    "CONTINUUM_QUANTITIES",
+    "MAX_CONTINUUM_POINTS",
     "KNOWN_WRITERS",
     "OUTPUT_FIELDS",
     "THERMO_KEYS",
@@ -964,6 +967,77 @@ class Stage(_DeckModel):
     )
 
 
+#: most points a continuum grid may have: its sums take 43 doubles a point on every rank (344 bytes)
+MAX_CONTINUUM_POINTS = 4_000_000
+#: the quantities a continuum grid may write (pdem.io.continuum.QUANTITIES)
+CONTINUUM_QUANTITIES: tuple[str, ...] = (
+    "density", "solid_fraction", "number_density", "momentum", "velocity", "kinetic_stress",
+    "contact_stress", "stress", "velocity_gradient", "strain_rate", "contact_density", "coordination",
+    "fabric", "wall_force_density",
+)  # fmt: skip
+
+
+class ContinuumSpec(_DeckModel):
+    """``[output.continuum.<name>]``: coarse-grained fields on a regular grid, written beside the
+    grains (continuum_<name>.h5 and continuum_<name>.xdmf; docs/fields.md)."""
+
+    lo: Vec3 = Field(description="low corner of the grid's box (x, y, z) [m]")
+    hi: Vec3 = Field(description="high corner of the grid's box (x, y, z) [m]; every component above lo's")
+    counts: list[Int] = Field(
+        description="cells along x, y and z (three positive integers); the fields are at the cells' "
+        "centres"
+    )
+    kernel: Literal["gaussian", "lucy"] = Field(
+        "gaussian", description="coarse-graining kernel: 'gaussian' (width = its standard deviation) or "
+        "'lucy' (width = its cut-off radius)"
+    )
+    width: Float | None = Field(
+        None, gt=0, description="kernel width [m]; default one mean grain diameter (at the first frame)"
+    )
+    cutoff: Float = Field(3.0, ge=1, le=10, description="the Gaussian's cut-off, in widths")
+    quantities: list[Literal[CONTINUUM_QUANTITIES]] | None = Field(  # type: ignore[valid-type]
+        None, description="fields to write: any of " + ", ".join(CONTINUUM_QUANTITIES) + "; default all"
+    )
+    walls: Bool = Field(True, description="include the wall contacts (stress, fabric, wall force density)")
+    every_steps: Int | None = Field(
+        None, gt=0, description="write interval [steps]; default: with every particle snapshot"
+    )
+    average_every_steps: Int | None = Field(
+        None, gt=0, description="time average: sample every this many steps and write the mean of the "
+        "samples since the previous frame; default: no average (each frame one instant)"
+    )
+
+    @classmethod
+    def rules(cls, data: dict, context: dict) -> Problems:
+        out: Problems = []
+        lo, hi = data.get("lo"), data.get("hi")
+        if _is_vec3(lo) and _is_vec3(hi):
+            bad = [a for a, lo_c, hi_c in zip("xyz", lo, hi, strict=True) if hi_c <= lo_c]
+            if bad:
+                out.append((("hi",), f"hi = {list(hi)} must exceed lo = {list(lo)} along {', '.join(bad)}"))
+        counts = data.get("counts")
+        if isinstance(counts, list) and all(isinstance(c, int) and not isinstance(c, bool) for c in counts):
+            if len(counts) != 3 or min(counts, default=0) < 1:
+                out.append((("counts",), f"counts = {counts} must be three positive integers (nx, ny, nz)"))
+            elif math.prod(counts) > MAX_CONTINUUM_POINTS:
+                out.append(
+                    (
+                        ("counts",),
+                        f"counts = {counts} make {math.prod(counts):,} points, more than the "
+                        f"{MAX_CONTINUUM_POINTS:,} a grid may have (its sums take 344 bytes a point on "
+                        "every rank); use fewer cells or several smaller grids",
+                    )
+                )
+        q = data.get("quantities")
+        if isinstance(q, list):
+            dup = _repeated([v for v in q if isinstance(v, str)])
+            if dup:
+                out.append((("quantities",), f"quantities listed more than once: {_listing(dup)}"))
+            if not q:
+                out.append((("quantities",), "quantities is empty; list some or leave it out (all)"))
+        return out
+
+
 class OutputSection(_DeckModel):
     """``[output]``: where and how often to write."""
 
@@ -1014,6 +1088,12 @@ class OutputSection(_DeckModel):
         "'<boundary>.<key>' (e.g. 'floor.fz', 'hopper.discharged_mass'); default: "
         + ", ".join(THERMO_DEFAULT),
     )
+    continuum: dict[Str, ContinuumSpec] = Field(
+        {},
+        description="coarse-grained fields (density, velocity, stress, strain rate, fabric, …) on regular "
+        "grids, one table [output.continuum.<name>] per grid, written beside the particle snapshots "
+        "(continuum_<name>.h5 + .xdmf; docs/fields.md)",
+    )
     parallel: Literal["auto", "gather", "per_rank"] = Field(
         "auto",
         description="how MPI runs write snapshots: 'gather' (rank 0 writes every particle), 'per_rank' "
@@ -1054,6 +1134,17 @@ class OutputSection(_DeckModel):
                     out.append((("formats", k), f"format {_q(fmt)} is listed twice"))
                 if isinstance(fmt, str):
                     seen.add(fmt)
+        grids = data.get("continuum")
+        for name in grids if isinstance(grids, dict) else ():
+            if not _NAME_RE.match(name) or len(name) > MAX_NAME_LENGTH:
+                out.append(
+                    (
+                        ("continuum", name),
+                        f"continuum grid name {_q(name)} must be a letter or '_' then letters, digits, '_' "
+                        f"or '-', at most {MAX_NAME_LENGTH} characters: it names the files "
+                        "continuum_<name>.h5 and .xdmf",
+                    )
+                )
         fields = data.get("fields")
         if isinstance(fields, list):
             dup = _repeated([f for f in fields if isinstance(f, str)])

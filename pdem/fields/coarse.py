@@ -485,6 +485,18 @@ class CoarseGraining:
         comm = sim.comm
         if root is not None and not (isinstance(root, int | np.integer) and 0 <= int(root) < comm.size):
             raise InputError(f"root = {root!r} must be None or a rank number from 0 to {comm.size - 1}")
+        raw, parts = self._raw(sim)
+        if comm.size > 1:
+            raw = _reduce_over_ranks(comm, raw, parts, root, self.block_bounds(comm.size))
+        if raw is None:
+            return None
+        raw += 0.0  # −0.0 → +0.0, as an MPI sum with other ranks' zeros makes it: the same bits anywhere
+        return _derive(raw, self.points, self.shape, sim.time, sim.step_count)
+
+    def _raw(self, sim) -> tuple[np.ndarray, list]:
+        """This rank's sums (collective): the (m, N_RAW) values it rounded (points only it reaches)
+        and the partials of the points of shared cells, per pass."""
+        comm = sim.comm
         sim.prepare()
         sim.check_deferred()
         items = self._items(sim)
@@ -516,11 +528,57 @@ class CoarseGraining:
                 istart, lists, data, sh, raw, col0,
             )  # fmt: skip
             parts.append((col0, _k.N_COLUMNS[kind], res))
-        if comm.size > 1:
-            raw = _reduce_over_ranks(comm, raw, parts, root)
-        if raw is None:
-            return None
-        return _derive(raw, self.points, self.shape, sim.time, sim.step_count)
+        return raw, parts
+
+    def block_bounds(self, size: int) -> np.ndarray:
+        """The points' cut into ``size`` blocks, one per rank: point indices ``bounds[k]`` to
+        ``bounds[k + 1]`` are rank k's. On a :class:`Grid` the cuts fall between x-planes, so that
+        each block is a slab of whole planes (a grid of its own); otherwise into equal counts."""
+        m = self.points.shape[0]
+        if isinstance(self.where, Grid):
+            nx = self.shape[0]
+            plane = m // nx
+            return np.array([(nx * k // size) * plane for k in range(size + 1)], dtype=np.int64)
+        return np.array([m * k // size for k in range(size + 1)], dtype=np.int64)
+
+    def block(self, sim, *, overlap: bool = True) -> tuple[Fields, int]:
+        """This rank's block of the fields (collective): ``(fields, first)``, the fields at points
+        ``first`` to ``first + n`` of the flattened points (on a :class:`Grid`, the slab of x-planes
+        ``first // (ny nz)`` on, of shape (planes, ny, nz, …)). No rank holds another's block: the
+        ranks' sums meet at the blocks' owners (one ``Reduce_scatter``). ``overlap``: on a Grid, a
+        block also holds the next non-empty block's first plane, so that slabs drawn side by side
+        leave no gap. The values are bitwise those of ``self(sim)`` at the same points on any rank
+        count. Serially the block is every point."""
+        comm = sim.comm
+        size = comm.size
+        bounds = self.block_bounds(size)
+        if size == 1:
+            return self(sim), 0
+        raw = self._raw_block(sim, bounds)
+        b0 = int(bounds[comm.rank])
+        grid = isinstance(self.where, Grid)
+        plane = self.points.shape[0] // self.shape[0] if grid else 0
+        if grid and overlap:
+            counts = np.diff(bounds)
+            nonempty = [k for k in range(size) if counts[k] > 0]
+            send: list = [None] * size
+            me = comm.rank
+            if me in nonempty and nonempty.index(me) > 0:
+                send[nonempty[nonempty.index(me) - 1]] = raw[:plane].copy()
+            got = comm.alltoall(send)
+            extra = [g for g in got if g is not None]
+            if extra:
+                raw = np.concatenate([raw, extra[0]])
+        n = raw.shape[0]
+        shape = (n // plane, *self.shape[1:]) if grid else (n,)
+        raw += 0.0
+        return _derive(raw, self.points[b0 : b0 + n], shape, sim.time, sim.step_count), b0
+
+    def _raw_block(self, sim, bounds: np.ndarray) -> np.ndarray:
+        """The exact sums of this rank's block of points, ``bounds[rank]`` to ``bounds[rank + 1]``."""
+        comm = sim.comm
+        raw, parts = self._raw(sim)
+        return _reduce_over_ranks(comm, raw, parts, "blocks", bounds)
 
 
 def _shared_cells(comm, has: list[np.ndarray], ncells: int) -> list[np.ndarray]:
@@ -537,15 +595,15 @@ def _shared_cells(comm, has: list[np.ndarray], ncells: int) -> list[np.ndarray]:
     ]
 
 
-def _reduce_over_ranks(comm, raw: np.ndarray, parts, root: int | None) -> np.ndarray | None:
+def _reduce_over_ranks(comm, raw: np.ndarray, parts, root, bounds: np.ndarray) -> np.ndarray | None:
     """The fields of every point from the ranks' shares (module docstring): a point only one rank
     reaches (its cell has no other rank's items) was rounded by that rank; the partials of the
     points of shared cells go to the point's owner (one block of points per rank), which rounds
     their exact sum. Every value is then held by exactly one rank (the others hold 0.0), so an MPI
-    sum gives it unchanged."""
+    sum gives it unchanged. ``bounds``: the owners' blocks (:meth:`CoarseGraining.block_bounds`);
+    ``root``: None (every rank gets every value), a rank (that rank only), or ``"blocks"`` (each rank
+    its own block, by ``Reduce_scatter``)."""
     size = comm.size
-    m = raw.shape[0]
-    bounds = np.array([m * k // size for k in range(size + 1)], dtype=np.int64)
     pts, cols, cnts, vals, specs = [], [], [], [], []
     for col0, nq, (tp, cnt, val, spc) in parts:
         pts.append(np.repeat(tp, nq))
@@ -576,6 +634,11 @@ def _reduce_over_ranks(comm, raw: np.ndarray, parts, root: int | None) -> np.nda
     if root is None:
         comm.Allreduce(MPI.IN_PLACE, flat, op=MPI.SUM)
         return raw
+    if root == "blocks":
+        counts = np.diff(bounds) * N_RAW
+        mine = np.empty(int(counts[comm.rank]))
+        comm.Reduce_scatter(flat, mine, recvcounts=counts.tolist(), op=MPI.SUM)
+        return mine.reshape(-1, N_RAW)
     if comm.rank == root:
         comm.Reduce(MPI.IN_PLACE, flat, op=MPI.SUM, root=root)
         return raw

@@ -57,6 +57,7 @@ LOCK = ".pdem-lock"
 _OWN_NAMES = re.compile(
     r"deck\.resolved(\.until-step-\d+)?\.toml|summary\.json|metadata\.json|checkpoints|"
     r"particles(\.r\d+)?\.h5|walls\.h5|(particles|walls|contacts)(\.xdmf|\.pvd)?|"
+    r"continuum_[A-Za-z0-9_-]+((\.r\d+)?\.h5|\.xdmf)|"
     r"(series|solver)_[^/]+\.csv|\.pdem-journal|\.[^/]+\.[0-9a-f]{8}(\.tmp|\.vtu)"
 )
 

@@ -118,6 +118,7 @@ class RunOutput:
         self._contacts_on = False
         self._contacts_last: int | None = None
         self._contact_writer: Any = None
+        self._continuum: list[Any] = []
         problem = None
         if self.root and not dry:
             problem = output_dir_problem(self.out, "the output directory", "choose another output directory")
@@ -276,6 +277,16 @@ class RunOutput:
             if getattr(w, "last_step", None) is not None:
                 self._last_frame[id(w)] = int(w.last_step)
         self.writers = self._gathered_writers + self._per_rank_writers
+        from .continuum import ContinuumWriter
+
+        self._continuum = [
+            ContinuumWriter(
+                self.out, name, spec, comm=self.comm,
+                metadata={"deck": self.deck_text, "pdem_version": __version__},
+                append_after=(start.step, start.time) if self.append else None,
+            )
+            for name, spec in (getattr(out_cfg, "continuum", None) or {}).items()
+        ]  # fmt: skip
         self._contacts_on = bool(getattr(out_cfg, "contacts", False))
         if self._contacts_on:
             from .contacts import ContactNetworkWriter
@@ -539,6 +550,23 @@ class RunOutput:
                 w.write(piece)  # collective
                 self._last_frame[id(w)] = step
         return frame
+
+    @property
+    def continuum_on(self) -> bool:
+        """Does the run write continuum fields (``[output.continuum.<name>]``)?"""
+        return bool(self._continuum)
+
+    def write_continuum(self, sim: Any, stage: str, *, snapshot: bool) -> None:
+        """The continuum fields due now (collective): at a particle snapshot (``snapshot``) the grids
+        without their own ``every_steps``, after any step those whose interval it ends; and the
+        samples of time averages."""
+        step = int(sim.step_count)
+        for w in self._continuum:
+            every = w.spec.every_steps
+            if (snapshot and every is None) or (every is not None and step % every == 0):
+                w.write(sim, stage)
+            elif (avg := w.spec.average_every_steps) and step % avg == 0:
+                w.sample(sim)
 
     def contacts_due(self, step: int) -> bool:
         """Is the contact network (``output.contacts``) still to be written at ``step``?"""

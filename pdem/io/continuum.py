@@ -1,0 +1,389 @@
+"""Coarse-grained continuum fields written beside the grains (deck ``[output.continuum.<name>]``).
+
+Each named grid of the deck gets one time series of the fields of :mod:`pdem.fields` (density,
+solid fraction, velocity, stress, strain rate, fabric, …) on a regular grid, written at the
+particle snapshots' steps (or at its own ``every_steps``), so that ParaView shows the grains and
+the fields in one time line.
+
+Files written in the output directory
+-------------------------------------
+``continuum_<name>.h5`` (one rank) or ``continuum_<name>.rRRRR.h5`` (one per rank)
+    root attributes: the writer's ``metadata`` (strings), ``lo``, ``hi`` (3,) [m] and ``counts``
+    (3,) of the whole grid (the centres of ``counts`` equal cells of the box ``lo``–``hi``),
+    ``kernel`` ("gaussian" or "lucy"), ``width`` [m] (the Gaussian's standard deviation or Lucy's
+    cut-off radius), ``cutoff`` (Gaussian, in widths), ``rank`` and ``n_ranks``.
+    ``/frames/NNNNNN`` (frame counter, 6 digits): attributes ``time`` [s], ``step``, ``stage``,
+    ``samples`` (the snapshots averaged into it, 1 without ``average_every_steps``), ``since`` [s]
+    (the time of its first sample), ``first``
+    (the block's first x-plane) and ``planes`` (its number of x-planes); one dataset per quantity,
+    float64, **in ParaView's order, x fastest**: shape (nz, ny, planes) for a scalar, (…, 3) for a
+    vector, (…, 9) for a tensor (row-major: component 3a + b is T_ab). :func:`read_continuum`
+    gives them back in pdem's (nx, ny, nz, …) order.
+    On one rank a block is the whole grid. On several ranks rank k holds the slab of x-planes
+    ``nx k / n`` to ``nx (k + 1) / n`` (integer division) plus the next slab's first plane, so the
+    slabs drawn side by side leave no gap (a rank with no plane writes frames without datasets).
+``continuum_<name>.xdmf``
+    the index (rank 0): a ``Temporal`` collection, per frame a ``Spatial`` collection of one
+    ``3DCoRectMesh`` grid per block (``ORIGIN_DXDYDZ``, given in XDMF's z, y, x order), with every
+    quantity as a node ``Attribute`` (``Scalar``, ``Vector`` or ``Tensor``). ParaView opens it as a
+    multiblock of image data, one dataset per time step, at the times of ``particles.xdmf``.
+
+The values are bitwise the same on any rank count (:meth:`pdem.fields.CoarseGraining.block`).
+Continuing a run into its own directory (``append_after``) drops the frames after the checkpoint
+from every file of this name (of any earlier rank count) and rebuilds the index, as
+:mod:`pdem.io.hdf5` does for the grains. Each frame is written, flushed and closed before the index
+is rewritten atomically, so a run killed between frames leaves files that read back.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ..errors import OutputError
+from ..fields import CoarseGraining, GaussianKernel, Grid, LucyKernel
+from .base import atomic_write_text, piece_name
+from .journal import discard_frame
+
+__all__ = ["ContinuumWriter", "QUANTITIES", "read_continuum", "continuum_files"]
+
+#: the quantities a grid may write, and their number of components (1, 3 or 9)
+QUANTITIES: dict[str, int] = {
+    "density": 1,
+    "solid_fraction": 1,
+    "number_density": 1,
+    "momentum": 3,
+    "velocity": 3,
+    "kinetic_stress": 9,
+    "contact_stress": 9,
+    "stress": 9,
+    "velocity_gradient": 9,
+    "strain_rate": 9,
+    "contact_density": 1,
+    "coordination": 1,
+    "fabric": 9,
+    "wall_force_density": 3,
+}
+_XDMF_TYPE = {1: "Scalar", 3: "Vector", 9: "Tensor"}
+
+
+def continuum_files(directory: Path, name: str) -> list[Path]:
+    """Every HDF5 file of grid ``name`` in ``directory`` (the one-rank file and every rank's)."""
+    pat = re.compile(rf"continuum_{re.escape(name)}(\.r\d+)?\.h5")
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(p for p in directory.iterdir() if pat.fullmatch(p.name))
+
+
+def _to_file(arr: np.ndarray) -> np.ndarray:
+    """(planes, ny, nz, …) → ParaView's (nz, ny, planes, k) with k components, x fastest."""
+    k = int(np.prod(arr.shape[3:])) if arr.ndim > 3 else 1
+    a = arr.reshape(*arr.shape[:3], k).transpose(2, 1, 0, 3)
+    return np.ascontiguousarray(a if k > 1 else a[..., 0])
+
+
+def _from_file(arr: np.ndarray, k: int) -> np.ndarray:
+    a = arr if k > 1 else arr[..., None]
+    a = a.transpose(2, 1, 0, 3)
+    tail = () if k == 1 else (3,) if k == 3 else (3, 3)
+    return np.ascontiguousarray(a.reshape(*a.shape[:3], *tail))
+
+
+class ContinuumWriter:
+    """Writes the fields of one ``[output.continuum.<name>]`` grid (collective on ``comm``).
+
+    ``spec``: the deck's table (``lo``, ``hi``, ``counts``, ``kernel``, ``width``, ``cutoff``,
+    ``quantities``, ``walls``, ``every_steps``, ``average_every_steps``); ``metadata``: strings stored
+    in the files; ``append_after``: ``(step, time)`` to continue the output of a resumed run.
+    The kernel's default width, one mean grain diameter, is fixed at the first frame."""
+
+    def __init__(
+        self,
+        directory: Path | str,
+        name: str,
+        spec: Any,
+        *,
+        comm: Any,
+        metadata: dict[str, str] | None = None,
+        append_after: tuple[int, float] | None = None,
+    ) -> None:
+        self.directory = Path(directory)
+        self.name = name
+        self.spec = spec
+        self.comm = comm
+        self.rank = int(comm.rank)
+        self.size = int(comm.size)
+        self.metadata = dict(metadata or {})
+        self.grid = Grid(spec.lo, spec.hi, spec.counts)
+        self.quantities = list(spec.quantities) if spec.quantities else list(QUANTITIES)
+        self.cg: CoarseGraining | None = None
+        self.width: float | None = spec.width
+        self.frame_count = 0
+        self.last_step: int | None = None
+        self._sum: dict[str, np.ndarray] | None = None
+        self._samples = 0
+        self._t_first = math.nan
+        self._last_sample: int | None = None
+        self.index_path = self.directory / f"continuum_{name}.xdmf"
+        self.path = (
+            self.directory / f"continuum_{name}.h5"
+            if self.size == 1
+            else self.directory / f"continuum_{name}.{piece_name(self.rank)}.h5"
+        )
+        self._headers: list[dict[str, Any]] = []  # rank 0: each frame's blocks, for the index
+        self._collective(lambda: self._start(append_after))
+
+    # ------------------------------------------------------------------ errors on every rank
+    def _collective(self, action) -> Any:
+        """Run ``action`` here; if it fails on any rank, raise the same OutputError on every rank."""
+        err = None
+        out = None
+        try:
+            out = action()
+        except (OSError, ValueError, KeyError, RuntimeError) as exc:
+            err = f"{type(exc).__name__}: {exc}"
+        errs = self.comm.allgather(err)
+        bad = [(k, e) for k, e in enumerate(errs) if e is not None]
+        if bad:
+            k, e = bad[0]
+            raise OutputError(
+                f"continuum fields '{self.name}': writing {self.directory} failed on rank {k}: {e}; "
+                "check the output directory's space and permissions"
+            )
+        return out
+
+    def _start(self, append_after: tuple[int, float] | None) -> None:
+        if append_after is None:
+            if self.path.exists():
+                raise OutputError(f"{self.path} exists; pdem does not overwrite it")
+            return
+        step = int(append_after[0])
+        if self.rank == 0:  # keep the frames up to the checkpoint in every file of this name
+            for p in continuum_files(self.directory, self.name):
+                with h5py.File(p, "a") as f:
+                    frames = f.require_group("frames")
+                    for key in list(frames):
+                        if int(frames[key].attrs["step"]) > step:
+                            discard_frame(self.directory, frames, key)  # held while the resume is undecided
+        self.comm.barrier()
+        kept = self._read_headers() if self.rank == 0 else None
+        kept = self.comm.bcast(kept, root=0)
+        self._headers = kept if self.rank == 0 else []
+        self.frame_count = max((h["number"] for h in kept), default=-1) + 1
+        self.last_step = kept[-1]["step"] if kept else None
+        if self.rank == 0:
+            self._write_index()
+
+    def _read_headers(self) -> list[dict[str, Any]]:
+        """Rank 0: every frame on disk (by number), with its blocks, from all files of this name."""
+        frames: dict[int, dict[str, Any]] = {}
+        for p in continuum_files(self.directory, self.name):
+            with h5py.File(p, "r") as f:
+                for key, g in f.get("frames", {}).items():
+                    a = g.attrs
+                    h = frames.setdefault(
+                        int(key),
+                        {"number": int(key), "time": float(a["time"]), "step": int(a["step"]),
+                         "stage": str(a["stage"]), "blocks": []},
+                    )  # fmt: skip
+                    if int(a["planes"]) > 0:
+                        h["blocks"].append(
+                            (p.name, int(a["first"]), int(a["planes"]), sorted(g.keys()))
+                        )
+        return [frames[k] for k in sorted(frames)]
+
+    # ------------------------------------------------------------------ the fields
+    def _coarse_graining(self, sim) -> CoarseGraining:
+        if self.cg is None:
+            if self.width is None:  # one mean grain diameter, the same bits on any rank count
+                from ..parallel.exact import exact_sum, global_count
+
+                p = sim.own_particles()
+                n = global_count(self.comm, len(p["r"]))
+                total = exact_sum(self.comm, 2.0 * np.asarray(p["r"], dtype=float))
+                if n == 0:
+                    raise OutputError(
+                        f"output.continuum.{self.name}.width: no grains to take the default width (a mean "
+                        "diameter) from; give width [m]"
+                    )
+                self.width = total / n
+            kern = (
+                GaussianKernel(self.width, self.spec.cutoff)
+                if self.spec.kernel == "gaussian"
+                else LucyKernel(self.width)
+            )
+            self.cg = CoarseGraining(kern, self.grid, walls=self.spec.walls)
+        return self.cg
+
+    def _block(self, sim) -> tuple[dict[str, np.ndarray], int]:
+        fields, first = self._coarse_graining(sim).block(sim)
+        arrays = fields.arrays()
+        return {q: arrays[q] for q in self.quantities}, first
+
+    def sample(self, sim) -> None:
+        """Add the current state to the running time average (collective; ``average_every_steps``)."""
+        step = int(sim.step_count)
+        if self._last_sample == step:
+            return
+        block, self._first = self._block(sim)
+        if self._sum is None:
+            self._sum = {k: v.copy() for k, v in block.items()}
+            self._t_first = float(sim.time)
+        else:
+            for k, v in block.items():
+                self._sum[k] += v
+        self._samples += 1
+        self._last_sample = step
+
+    def write(self, sim, stage: str) -> None:
+        """One frame at the current step (collective): the fields now, or with
+        ``average_every_steps`` the mean of the samples since the previous frame (this step's
+        included)."""
+        step = int(sim.step_count)
+        if self.last_step == step:
+            return
+        time = float(sim.time)
+        if self.spec.average_every_steps:
+            self.sample(sim)
+            block = {k: v / self._samples for k, v in self._sum.items()}
+            first, samples, since = self._first, self._samples, self._t_first
+            self._sum, self._samples, self._last_sample = None, 0, step
+        else:
+            block, first = self._block(sim)
+            samples, since = 1, time
+        planes = next(iter(block.values())).shape[0] if block else 0
+        number = self.frame_count
+        self._collective(
+            lambda: self._write_block(number, block, first, planes, (samples, since, time, step, stage))
+        )
+        blocks = self.comm.gather((self.path.name, first, planes), root=0)
+        if self.rank == 0:
+            self._headers.append({
+                "number": number, "time": float(sim.time), "step": step, "stage": stage,
+                "blocks": [(n, f0, k, sorted(self.quantities)) for n, f0, k in blocks if k > 0],
+            })  # fmt: skip
+            self._collective_index()
+        else:
+            self._collective(lambda: None)
+        self.frame_count += 1
+        self.last_step = step
+
+    def _collective_index(self) -> None:
+        self._collective(self._write_index)
+
+    def _write_block(self, number, block, first, planes, when) -> None:
+        samples, since, time, step, stage = when
+        self.directory.mkdir(parents=True, exist_ok=True)
+        new = not self.path.exists()
+        with h5py.File(self.path, "a") as f:
+            if new:
+                for k, v in self.metadata.items():
+                    f.attrs[k] = v
+                f.attrs["lo"] = self.grid.lo
+                f.attrs["hi"] = self.grid.hi
+                f.attrs["counts"] = np.array(self.grid.counts, dtype=np.int64)
+                f.attrs["kernel"] = self.spec.kernel
+                f.attrs["width"] = float(self.width)
+                f.attrs["cutoff"] = float(self.spec.cutoff)
+                f.attrs["rank"] = self.rank
+                f.attrs["n_ranks"] = self.size
+            g = f.require_group("frames").create_group(f"{number:06d}")
+            g.attrs["time"] = time
+            g.attrs["since"] = since  # the first sample's time (averaged frames)
+            g.attrs["step"] = int(step)
+            g.attrs["stage"] = stage
+            g.attrs["samples"] = int(samples)
+            g.attrs["first"] = int(first // (self.grid.counts[1] * self.grid.counts[2]))
+            g.attrs["planes"] = int(planes)
+            if planes:
+                for q, arr in block.items():
+                    g.create_dataset(q, data=_to_file(arr))
+            f.flush()
+
+    # ------------------------------------------------------------------ the index
+    def _write_index(self) -> None:
+        nx, ny, nz = self.grid.counts
+        dx, dy, dz = (float(v) for v in self.grid.spacing)
+        x0, y0, z0 = (float(v) for v in self.grid.lo + 0.5 * self.grid.spacing)
+        root = ET.Element("Xdmf", Version="3.0")
+        dom = ET.SubElement(root, "Domain")
+        info = ET.SubElement(dom, "Information", Name="metadata")
+        info.text = "pdem continuum fields"
+        series = ET.SubElement(dom, "Grid", Name=f"continuum_{self.name}", GridType="Collection",
+                               CollectionType="Temporal")  # fmt: skip
+        for h in self._headers:
+            if not h["blocks"]:
+                continue
+            frame = ET.SubElement(series, "Grid", Name=f"frame_{h['number']:06d}", GridType="Collection",
+                                  CollectionType="Spatial")  # fmt: skip
+            ET.SubElement(frame, "Time", Value=repr(float(h["time"])))
+            ET.SubElement(frame, "Information", Name="step", Value=str(h["step"]))
+            ET.SubElement(frame, "Information", Name="stage", Value=str(h["stage"]))
+            for fname, first, planes, names in h["blocks"]:
+                part = re.fullmatch(r".*\.(r\d+)\.h5", fname)
+                label = part.group(1) if part else "grid"
+                grid = ET.SubElement(frame, "Grid", Name=label, GridType="Uniform")
+                dims = f"{nz} {ny} {planes}"
+                ET.SubElement(grid, "Topology", TopologyType="3DCoRectMesh", Dimensions=dims)
+                geo = ET.SubElement(grid, "Geometry", GeometryType="ORIGIN_DXDYDZ")
+                o = ET.SubElement(geo, "DataItem", Dimensions="3", Format="XML", NumberType="Float",
+                                  Precision="8")  # fmt: skip
+                o.text = f"{z0!r} {y0!r} {x0 + first * dx!r}"
+                d = ET.SubElement(geo, "DataItem", Dimensions="3", Format="XML", NumberType="Float",
+                                  Precision="8")  # fmt: skip
+                d.text = f"{dz!r} {dy!r} {dx!r}"
+                for q in names:
+                    k = QUANTITIES[q]
+                    att = ET.SubElement(grid, "Attribute", Name=q, AttributeType=_XDMF_TYPE[k], Center="Node")
+                    shape = dims if k == 1 else f"{dims} {k}"
+                    item = ET.SubElement(att, "DataItem", Dimensions=shape, Format="HDF", NumberType="Float",
+                                         Precision="8")  # fmt: skip
+                    item.text = f"{fname}:/frames/{h['number']:06d}/{q}"
+        ET.indent(root)
+        text = '<?xml version="1.0" ?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + ET.tostring(
+            root, encoding="unicode"
+        )
+        atomic_write_text(self.index_path, text + "\n")
+
+    def close(self) -> None:
+        """Nothing stays open between frames; kept for symmetry with the other writers."""
+
+
+def read_continuum(directory: Path | str, name: str) -> list[dict[str, Any]]:
+    """Every frame of grid ``name`` in ``directory``, its blocks joined: a list (in frame order) of
+    dicts with ``time``, ``step``, ``stage``, ``samples`` and each quantity in pdem's (nx, ny, nz, …)
+    order, plus ``points`` (nx, ny, nz, 3)."""
+    files = continuum_files(Path(directory), name)
+    if not files:
+        raise OutputError(f"no continuum_{name}*.h5 in {directory}")
+    out: dict[int, dict[str, Any]] = {}
+    grid = None
+    for p in files:
+        with h5py.File(p, "r") as f:
+            if grid is None:
+                grid = Grid(f.attrs["lo"], f.attrs["hi"], f.attrs["counts"])
+            nx, ny, nz = grid.counts
+            for key, g in f.get("frames", {}).items():
+                a = g.attrs
+                head = {"time": float(a["time"]), "step": int(a["step"]), "stage": str(a["stage"]),
+                        "samples": int(a["samples"])}  # fmt: skip
+                fr = out.setdefault(int(key), head)
+                first, planes = int(a["first"]), int(a["planes"])
+                for q in g:
+                    k = QUANTITIES[q]
+                    arr = _from_file(g[q][()], k)
+                    if q not in fr:
+                        fr[q] = np.full((nx, ny, nz, *arr.shape[3:]), np.nan)
+                    fr[q][first : first + planes] = arr
+    pts = grid.points().reshape(*grid.counts, 3)
+    frames = [out[k] for k in sorted(out)]
+    for fr in frames:
+        fr["points"] = pts
+    return frames

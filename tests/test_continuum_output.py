@@ -1,0 +1,252 @@
+"""Continuum fields written by a run (deck ``[output.continuum.<name>]``): the files, their values
+against :mod:`pdem.fields` computed on the same state, bitwise identity on 1 and 2 ranks and across
+a resume, the index ParaView opens, and the deck's errors."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import textwrap
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from pdem.deck import validate_deck
+from pdem.errors import DeckError
+from pdem.io.continuum import QUANTITIES, read_continuum
+from pdem.io.paths import named_as_pdem
+
+MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+PVPYTHON = shutil.which("pvpython")
+XVFB = shutil.which("xvfb-run")
+
+DECK = textwrap.dedent(
+    """
+    title = "continuum fields of a settling bed"
+    [run]
+    gravity = [0.0, 0.0, -9.81]
+    seed = 3
+    dt = 2e-5
+    [contact]
+    law = "hertz_mindlin"
+    [materials.glass]
+    density = 2500.0
+    youngs_modulus = 1e7
+    poisson_ratio = 0.3
+    restitution = 0.5
+    friction = 0.4
+    [materials.wall]
+    rigid = true
+    friction = 0.3
+    [[particles]]
+    source = "random_fill"
+    material = "glass"
+    region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.02, 0.02, 0.03] }
+    sizes = { type = "uniform", r_min = 0.00045, r_max = 0.00055 }
+    n = 600
+    [boundaries.box]
+    type = "box"
+    material = "wall"
+    lo = [0.0, 0.0, 0.0]
+    hi = [0.02, 0.02, 0.04]
+    [[stages]]
+    name = "settle"
+    [stages.end]
+    steps = 600
+    [output]
+    every_steps = 200
+    checkpoint_every_steps = 200
+    [output.continuum.bed]
+    lo = [0.0, 0.0, 0.0]
+    hi = [0.02, 0.02, 0.03]
+    counts = [7, 6, 9]
+    average_every_steps = 50
+    [output.continuum.coarse]
+    lo = [-0.002, 0.0, 0.0]
+    hi = [0.022, 0.02, 0.03]
+    counts = [3, 2, 4]
+    kernel = "lucy"
+    width = 0.003
+    quantities = ["density", "stress", "velocity"]
+    every_steps = 100
+    """
+)
+
+
+def _run(tmp_path: Path, name: str, args: list[str], ranks: int = 1) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "pdem", *args]
+    if ranks > 1:
+        cmd = [MPIEXEC, "-n", str(ranks), *cmd]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    return proc
+
+
+def _deck(tmp_path: Path) -> Path:
+    deck = tmp_path / "bed.toml"
+    deck.write_text(DECK)
+    return deck
+
+
+def _same(a: list[dict], b: list[dict]) -> None:
+    assert [f["step"] for f in a] == [f["step"] for f in b]
+    for fa, fb in zip(a, b, strict=True):
+        assert fa.keys() == fb.keys()
+        for k, v in fa.items():
+            if isinstance(v, np.ndarray):
+                assert v.tobytes() == fb[k].tobytes(), (k, fa["step"])
+            else:
+                assert v == fb[k], k
+
+
+@pytest.fixture(scope="module")
+def serial_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("continuum")
+    deck = _deck(tmp)
+    proc = _run(tmp, "one", [str(deck), "--output", str(tmp / "one")])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return tmp, tmp / "one"
+
+
+def test_files_and_frames(serial_run):
+    _, out = serial_run
+    assert {p.name for p in out.glob("continuum_*")} == {
+        "continuum_bed.h5", "continuum_bed.xdmf", "continuum_coarse.h5", "continuum_coarse.xdmf",
+    }  # fmt: skip
+    assert all(named_as_pdem(p.name) for p in out.glob("continuum_*"))  # --overwrite may remove them
+    bed = read_continuum(out, "bed")
+    # with the snapshots (every 200 steps), each the mean of the samples every 50 steps since the last
+    assert [f["step"] for f in bed] == [0, 200, 400, 600]
+    assert [f["samples"] for f in bed] == [1, 4, 4, 4]
+    assert set(bed[-1]) >= set(QUANTITIES)
+    assert bed[-1]["density"].shape == (7, 6, 9) and bed[-1]["stress"].shape == (7, 6, 9, 3, 3)
+    coarse = read_continuum(out, "coarse")
+    assert [f["step"] for f in coarse] == [0, 100, 200, 300, 400, 500, 600]
+    assert set(coarse[0]) == {"time", "step", "stage", "samples", "points", "density", "stress", "velocity"}
+    with h5py.File(out / "continuum_coarse.h5", "r") as f:
+        assert f.attrs["kernel"] == "lucy" and f.attrs["width"] == 0.003
+        assert f["frames/000006/stress"].shape == (4, 2, 3, 9)  # ParaView's order: x fastest
+    with h5py.File(out / "continuum_bed.h5", "r") as f:  # default width: the mean diameter
+        assert 0.0009 < f.attrs["width"] < 0.0011
+
+
+def test_written_fields_are_those_of_the_state(serial_run, tmp_path):
+    """The fields a frame holds are pdem.fields' on the checkpoint of the same step, bit for bit
+    (an instant grid)."""
+    from pdem.deck import load_deck
+    from pdem.fields import CoarseGraining, Grid, LucyKernel
+    from pdem.io.checkpoint import read_checkpoint
+    from pdem.runner import Runner
+
+    tmp, out = serial_run
+    sim = Runner(load_deck(tmp / "bed.toml"), progress=None, dry=True).build()
+    sim.load_state(read_checkpoint(out / "checkpoints" / "step_0000000600.h5")[0])
+    grid = Grid((-0.002, 0.0, 0.0), (0.022, 0.02, 0.03), (3, 2, 4))
+    f = CoarseGraining(LucyKernel(0.003), grid)(sim)
+    last = read_continuum(out, "coarse")[-1]
+    for q in ("density", "stress", "velocity"):
+        assert getattr(f, q).tobytes() == last[q].tobytes(), q
+
+
+@pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
+def test_two_ranks_and_a_resume_write_the_same_bits(serial_run):
+    """The same deck on 2 ranks (per-rank slabs joined by the index), and a serial run resumed on 2
+    ranks from its step-200 checkpoint into its own directory: every frame of both grids is the
+    serial run's, bit for bit, the averaged frames included."""
+    tmp, one = serial_run
+    two = tmp / "two"
+    proc = _run(tmp, "two", [str(tmp / "bed.toml"), "--output", str(two)], ranks=2)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (two / "continuum_bed.r0001.h5").is_file() and not (two / "continuum_bed.h5").exists()
+    resumed = tmp / "resumed"
+    shutil.copytree(one, resumed)
+    proc = _run(tmp, "resume", ["resume", str(resumed / "checkpoints" / "step_0000000200.h5")], ranks=2)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in ("bed", "coarse"):
+        ref = read_continuum(one, name)
+        _same(ref, read_continuum(two, name))
+        _same(ref, read_continuum(resumed, name))
+    index = ET.parse(two / "continuum_bed.xdmf").getroot()
+    frames = index.findall("./Domain/Grid/Grid")
+    assert len(frames) == 4 and all(len(fr.findall("Grid")) == 2 for fr in frames)
+    dims = [g.find("Topology").get("Dimensions") for g in frames[-1].findall("Grid")]
+    assert dims == ["9 6 4", "9 6 4"]  # of the 7 x-planes: 0–2 and the next slab's first, then 3–6
+    index = ET.parse(resumed / "continuum_bed.xdmf").getroot()
+    assert [len(fr.findall("Grid")) for fr in index.findall("./Domain/Grid/Grid")] == [1, 1, 2, 2]
+
+
+_PV_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    from paraview.simple import XDMFReader, servermanager
+    from vtk.util.numpy_support import vtk_to_numpy
+    r = XDMFReader(FileNames=[sys.argv[1]])
+    r.UpdatePipelineInformation()
+    times = list(r.TimestepValues)
+    r.UpdatePipeline(times[-1])
+    d = servermanager.Fetch(r)
+    b = d.GetBlock(0)
+    s = vtk_to_numpy(b.GetPointData().GetArray("stress"))
+    print(len(times), d.GetNumberOfBlocks(), *b.GetDimensions(), *b.GetOrigin(), *b.GetSpacing())
+    nx, ny, nz = b.GetDimensions()
+    print(*[repr(float(v)) for v in s[2 + nx * (3 + ny * 4)]])
+    """
+)
+
+
+@pytest.mark.skipif(PVPYTHON is None, reason="ParaView's pvpython is not installed")
+def test_paraview_opens_the_index(serial_run, tmp_path):
+    """ParaView's XDMF reader gives the grid's nodes where pdem puts them and the stress tensor at a
+    node as read_continuum has it."""
+    _, out = serial_run
+    script = tmp_path / "pv.py"
+    script.write_text(_PV_SCRIPT)
+    cmd = [PVPYTHON, str(script), str(out / "continuum_bed.xdmf")]
+    if XVFB:
+        cmd = [XVFB, "-a", *cmd]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    head = [float(v) for v in lines[-2].split()]
+    assert head[:5] == [4, 1, 7, 6, 9]
+    np.testing.assert_allclose(head[5:8], [0.02 / 14, 0.02 / 12, 0.03 / 18], rtol=1e-12)
+    np.testing.assert_allclose(head[8:11], [0.02 / 7, 0.02 / 6, 0.03 / 9], rtol=1e-12)
+    last = read_continuum(out, "bed")[-1]
+    assert [float(v) for v in lines[-1].split()] == last["stress"][2, 3, 4].ravel().tolist()
+
+
+@pytest.mark.parametrize(
+    "table, key, words",
+    [
+        ({"lo": [0, 0, 0], "hi": [1, 1, 0], "counts": [2, 2, 2]}, "hi", "must exceed lo"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2]}, "counts", "three positive integers"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 0, 2]}, "counts", "three positive integers"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2000, 2000, 2]}, "counts", "more than the"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "quantities": ["pressure"]},
+         "quantities", "pressure"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "width": -1.0}, "width", "> 0"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "kernel": "tophat"}, "kernel", "gaussian"),
+        ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "spacing": 0.1}, "spacing", "unknown"),
+    ],
+)  # fmt: skip
+def test_deck_errors_name_the_key(table, key, words):
+    import tomllib
+
+    data = tomllib.loads(DECK)
+    data["output"]["continuum"] = {"g": table}
+    with pytest.raises(DeckError) as err:
+        validate_deck(data)
+    text = str(err.value)
+    assert f"output.continuum.g.{key}" in text and words in text, text
+
+
+def test_deck_refuses_a_name_that_cannot_name_a_file():
+    import tomllib
+
+    data = tomllib.loads(DECK)
+    data["output"]["continuum"] = {"a/b": data["output"]["continuum"]["bed"]}
+    with pytest.raises(DeckError, match="continuum grid name"):
+        validate_deck(data)
