@@ -11,8 +11,9 @@ Contact laws (``pdem.contact_laws``)
     runs the pair loop in passes: :func:`touching_pairs` (the touching test of every listed pair),
     then, a block of touching pairs at a time, :func:`fill_pair_columns` (their geometry into the
     rows ``COL_*``), its own loop over the columns (writing the rows ``OUT_*``; branch-free helpers
-    such as :func:`tangential_spring_values`) and :func:`scatter_pair_columns`, as Hertz–Mindlin
-    does; :func:`pair_columns` is the first two in one call.
+    such as :func:`tangential_spring_values` and :func:`tangential_mindlin_values`) and
+    :func:`scatter_pair_columns`, as Hertz–Mindlin does; :func:`pair_columns` is the first two in
+    one call.
 Methods with their own time step
     :class:`Integrator` (returned by ``ContactLaw.make_integrator``), :class:`VelocityVerlet`, the
     wall geometry kernel :func:`wall_contact` (gap, normal, closest point of any wall kind) and
@@ -100,7 +101,7 @@ from .contact._kernels import (
     touching_pairs,
     wall_forces,
 )  # fmt: skip
-from .contact._tangential import tangential_spring, tangential_spring_values
+from .contact._tangential import tangential_mindlin_values, tangential_spring, tangential_spring_values
 from .contact.law import ContactLaw, LawParams, ListNeeds
 from .contact.stability import servo_gain, wall_stiffness
 from .contact.store import ContactStore
@@ -152,6 +153,7 @@ from .state.particles import FIXED, FREE, PRESCRIBED, REMOVED, Field, dof_mask
 __all__ = [
     "njit", "pair_forces", "wall_forces", "tangential_spring", "wall_contact", "surface_velocity",
     "pair_columns", "touching_pairs", "fill_pair_columns", "scatter_pair_columns", "tangential_spring_values",
+    "tangential_mindlin_values",
     "COL_DELTA", "COL_NX", "COL_NY", "COL_NZ", "COL_VX", "COL_VY", "COL_VZ", "COL_WX", "COL_WY", "COL_WZ",
     "COL_REFF", "COL_MEFF", "COL_IEFF", "COL_AI", "COL_AJ", "COL_HIST",
     "OUT_FX", "OUT_FY", "OUT_FZ", "OUT_MX", "OUT_MY", "OUT_MZ", "OUT_HIST",

@@ -199,7 +199,8 @@ def test_resolved_toml_round_trips(deck_dir):
     r = load_deck(deck_dir / "hopper.toml")
     text = r.resolved_toml()
     data = tomllib.loads(text)  # valid TOML
-    assert data["contact"] == {"law": "hertz_mindlin", "parameterisation": "material", "clamp_normal": True}
+    assert data["contact"] == {"law": "hertz_mindlin", "parameterisation": "material", "clamp_normal": True,
+                               "limit_damping": False, "tangential": "linear_history"}  # fmt: skip
     assert data["materials"]["steel"]["poisson_ratio"] == 0.3  # defaults filled in
     assert data["boundaries"]["cone"]["omega"] == [0.0, 0.0, 0.0]
     assert data["stages"][0]["end"]["check_every"] == 100

@@ -26,6 +26,11 @@ def table():
     {},
     {"clamp_normal": True},
     {"parameterisation": "coefficients", "kn": 2e7, "kt": 1.5e7, "cn": 3e4, "ct": 1e4},
+    {"tangential": "mindlin_rescale"},
+    {"tangential": "mindlin_force", "limit_damping": True},
+    {"tangential": "mindlin_rescale_force"},
+    {"tangential": "mindlin_rescale_force", "parameterisation": "coefficients", "kn": 2e7, "kt": 1.5e7,
+     "cn": 3e4, "ct": 1e4},
 ])
 @pytest.mark.parametrize("mat", [(0, 0), (0, 1)])
 def test_kernel_matches_twin(params, mat):

@@ -118,8 +118,38 @@ def test_column_kernel_is_the_generic_loop_bit_for_bit(rolling, parameterisation
     assert (mu == 0.0).any() != one_material
     assert (touching & (fn < 0)).any() != clamp  # damping pulls some pairs together unless clamped
     if rolling:  # the torques include rolling and spinning resistance
-        no_rolling = coef * [1, 1, 1, 1, 1, 1, 0, 1, 0]
+        no_rolling = coef * [1, 1, 1, 1, 1, 1, 0, 1, 0, 1, 1]
         assert not same_bits(ref[2], run(hertz_mindlin_pair_kernel_generic, no_rolling, args, 1e-6, 0.02)[2])
+
+
+@pytest.mark.parametrize("tangential", ["mindlin_rescale", "mindlin_force", "mindlin_rescale_force"])
+@pytest.mark.parametrize("one_material", [False, True])
+def test_mindlin_options_in_columns_are_the_generic_loop_bit_for_bit(tangential, one_material):
+    """The tangential options' column passes (elastic-force history, rescaling by the previous
+    contact radius kept in a fourth history column) against the generic loop; previous radii above,
+    below and at zero (new contacts)."""
+    rng = np.random.default_rng(29 + len(tangential) + one_material)
+    law = HertzMindlin(tangential=tangential, clamp_normal=one_material)
+    coef = law.coefficients(materials(True))
+    args = list(scene(rng, one_material=one_material))
+    hist = args[-1] * (1e4 if "force" in tangential else 1.0)  # forces of order μ F_n
+    if law.history_size == 4:
+        a_old = rng.uniform(0.0, 2.5e-4, hist.shape[0])
+        a_old[rng.random(hist.shape[0]) < 0.2] = 0.0
+        hist = np.column_stack([hist, a_old])
+    args[-1] = np.ascontiguousarray(hist)
+    ref = run(hertz_mindlin_pair_kernel_generic, coef, args, 1e-6, 0.02)
+    got = run(hertz_mindlin_pair_kernel, coef, args, 1e-6, 0.02)
+    assert ref[0] == got[0]
+    for a, b in zip(ref[1:], got[1:], strict=True):
+        assert same_bits(a, b)
+    # the option changed the forces, and the rescale options rewrote the radius column
+    plain = run(hertz_mindlin_pair_kernel_generic, HertzMindlin(clamp_normal=one_material).coefficients(
+        materials(True)), [*args[:-1], np.ascontiguousarray(args[-1][:, :3])], 1e-6, 0.02)  # fmt: skip
+    assert not same_bits(plain[1], ref[1])
+    if law.history_size == 4:
+        touching = np.any(ref[3] != 0.0, axis=1)  # (clamped pairs may touch with zero force)
+        assert np.all(ref[4][touching, 3] > 0.0) and (ref[4][:, 3] == 0.0).any()
 
 
 def test_coincident_pair_is_flagged_and_left_alone_like_the_generic_loop():

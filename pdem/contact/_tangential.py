@@ -11,7 +11,7 @@ import math
 
 from .._jit import njit
 
-__all__ = ["tangential_spring", "tangential_spring_values"]
+__all__ = ["tangential_spring", "tangential_spring_values", "tangential_mindlin_values"]
 
 
 @njit(inline="always")
@@ -72,3 +72,69 @@ def tangential_spring_values(sx, sy, sz, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fc
     uy = -gy / k_t if cap else uy
     uz = -gz / k_t if cap else uz
     return ox, oy, oz, ux, uy, uz
+
+
+@njit(inline="always")
+def tangential_mindlin_values(
+    sx, sy, sz, a_old, a, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fcap, dt, force, rescale
+):
+    """The Mindlin–Deresiewicz-type variants of :func:`tangential_spring_values`, on scalars.
+
+    ``force`` False: the history (sx, sy, sz) is the spring ξ, as in :func:`tangential_spring_values`
+    (F_t = −k_t ξ − c_t v_t). ``force`` True: it is the elastic tangential force F_e, updated
+    incrementally, F_e += −k_t v_t dt (Di Renzo & Di Maio 2005, Thornton et al. 2013 eq. 18;
+    LAMMPS ``mindlin/force``), and F_t = F_e − c_t v_t. ``rescale`` True: when the contact radius a
+    shrinks below the previous step's ``a_old``, the history is first scaled by a/a_old (LAMMPS
+    ``mindlin_rescale`` and ``mindlin_rescale/force``: with k_t ∝ a, F_e then follows
+    k_t,new/k_t,old on unloading). Then, as in :func:`tangential_spring_values`: rotation onto the
+    tangent plane keeping the length, the Coulomb cap ``fcap`` and, at the cap, the elastic part
+    equal to the capped force (ξ = −F_t/k_t, or F_e = F_t). A new contact has zero history and
+    ``a_old`` = 0 (no rescaling at its first step).
+
+    Every path is computed and the right one selected, without branches (columns vectorize).
+    Returns (F_t on j, the new history, a: the ``a_old`` of the next step)."""
+    shrink = rescale & (a < a_old)
+    f = a / a_old
+    sx = sx * f if shrink else sx
+    sy = sy * f if shrink else sy
+    sz = sz * f if shrink else sz
+    old2 = sx * sx + sy * sy + sz * sz
+    sn = sx * nx + sy * ny + sz * nz
+    px = sx - sn * nx
+    py = sy - sn * ny
+    pz = sz - sn * nz
+    new2 = px * px + py * py + pz * pz
+    scale = math.sqrt(old2 / new2)
+    turn = old2 > 0.0
+    stretch = turn & (new2 > 0.0)
+    ux = (px * scale if stretch else px) if turn else sx
+    uy = (py * scale if stretch else py) if turn else sy
+    uz = (pz * scale if stretch else pz) if turn else sz
+    # the increment: of the spring (v_t dt) or of the elastic force (−k_t v_t dt)
+    gain = -k_t * dt if force else dt
+    ux += vtx * gain
+    uy += vty * gain
+    uz += vtz * gain
+    ex = ux if force else -k_t * ux
+    ey = uy if force else -k_t * uy
+    ez = uz if force else -k_t * uz
+    ftx = ex - c_t * vtx
+    fty = ey - c_t * vty
+    ftz = ez - c_t * vtz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    cap = ft2 > fcap * fcap
+    s = fcap / math.sqrt(ft2)
+    gx = ftx * s
+    gy = fty * s
+    gz = ftz * s
+    ox = gx if cap else ftx
+    oy = gy if cap else fty
+    oz = gz if cap else ftz
+    # at the cap the elastic part carries the Coulomb force alone
+    hx = gx if force else -gx / k_t
+    hy = gy if force else -gy / k_t
+    hz = gz if force else -gz / k_t
+    ux = hx if cap else ux
+    uy = hy if cap else uy
+    uz = hz if cap else uz
+    return ox, oy, oz, ux, uy, uz, a
