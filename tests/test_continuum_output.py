@@ -125,10 +125,15 @@ def test_files_and_frames(serial_run):
     assert bed[-1]["density"].shape == (7, 6, 9) and bed[-1]["stress"].shape == (7, 6, 9, 3, 3)
     coarse = read_continuum(out, "coarse")
     assert [f["step"] for f in coarse] == [0, 100, 200, 300, 400, 500, 600]
-    assert set(coarse[0]) == {"time", "step", "stage", "samples", "points", "density", "stress", "velocity"}
+    head = {"time", "since", "step", "stage", "samples", "points"}
+    assert set(coarse[0]) == head | {"density", "stress", "velocity"}
+    # each averaged frame's first sample: 50 steps after the previous frame
+    assert [f["since"] for f in bed] == pytest.approx([0.0, 0.001, 0.005, 0.009])
     with h5py.File(out / "continuum_coarse.h5", "r") as f:
         assert f.attrs["kernel"] == "lucy" and f.attrs["width"] == 0.003
-        assert f["frames/000006/stress"].shape == (4, 2, 3, 9)  # ParaView's order: x fastest
+        batches = list(f["batches"].values())  # frames stacked per write: one before each checkpoint
+        assert [len(g.attrs["numbers"]) for g in batches] == [3, 2, 2]  # steps 0–200, 300–400, 500–600
+        assert all(g["stress"].shape[1:] == (4, 2, 3, 9) for g in batches)  # ParaView's order: x fastest
     with h5py.File(out / "continuum_bed.h5", "r") as f:  # default width: the mean diameter
         assert 0.0009 < f.attrs["width"] < 0.0011
 
@@ -250,3 +255,45 @@ def test_deck_refuses_a_name_that_cannot_name_a_file():
     data["output"]["continuum"] = {"a/b": data["output"]["continuum"]["bed"]}
     with pytest.raises(DeckError, match="continuum grid name"):
         validate_deck(data)
+
+
+def test_a_resume_inside_a_batch_keeps_its_earlier_frames(tmp_path):
+    """Frames written together (one batch) across the step a resume continues from: the resumed
+    writer keeps the batch's frames up to that step, drops the later ones, and appends after them;
+    the index lists every kept and new frame once, in order."""
+    import pdem
+    from pdem.deck.schema import ContinuumSpec
+    from pdem.io.continuum import ContinuumWriter
+    from pdem.parallel.comm import SerialComm
+
+    sim = pdem.Simulation()
+    sim.add_material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.4)  # fmt: skip
+    rng = np.random.default_rng(1)
+    x = (np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * 2.5e-3
+    sim.add_particles(x, 0.4e-3, velocities=rng.normal(0, 0.1, x.shape))
+    sim.dt = 1e-5
+    spec = ContinuumSpec(lo=[0, 0, 0], hi=[0.01, 0.01, 0.01], counts=[3, 2, 2], width=0.002,
+                         quantities=["density", "velocity"])  # fmt: skip
+    w = ContinuumWriter(tmp_path, "g", spec, comm=SerialComm())
+    w.flush_seconds = float("inf")  # everything in one batch, written at close
+    for _ in range(5):
+        sim.run(steps=100)
+        w.write(sim, "run")
+    w.close()
+    first = read_continuum(tmp_path, "g")
+    assert [f["step"] for f in first] == [100, 200, 300, 400, 500]
+    w = ContinuumWriter(tmp_path, "g", spec, comm=SerialComm(), append_after=(300, first[2]["time"]))
+    assert w.last_step == 300 and w.frame_count == 3
+    sim.run(steps=100)
+    w.write(sim, "again")
+    w.close()
+    frames = read_continuum(tmp_path, "g")
+    assert [f["step"] for f in frames] == [100, 200, 300, 600]  # (this simulation was not rewound)
+    assert [f["stage"] for f in frames] == ["run", "run", "run", "again"]
+    for a, b in zip(first[:3], frames[:3], strict=True):
+        assert a["velocity"].tobytes() == b["velocity"].tobytes()
+    index = ET.parse(tmp_path / "continuum_g.xdmf").getroot()
+    grids = index.findall("./Domain/Grid/Grid")
+    steps = [int(g.find("Information[@Name='step']").get("Value")) for g in grids]
+    assert steps == [100, 200, 300, 600]

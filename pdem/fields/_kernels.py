@@ -319,7 +319,7 @@ def _grow(a, need):
 
 
 @njit
-def accumulate(kind, kern, a, w, c, points, order, pstart, istart, items, data, shared, out, col0):
+def accumulate(kind, kern, a, w, c, points, order, pstart, istart, items, data, shared, out, col0, ncols):
     """Every point's exact sums of the terms of the items of one kind (``kind``, the module
     docstring's layout) within the kernel's reach.
 
@@ -328,13 +328,14 @@ def accumulate(kind, kern, a, w, c, points, order, pstart, istart, items, data, 
     out[point, col0 + q] = the correctly rounded sum (points no item reaches are left as they are).
     The points of shared cells are returned as this rank's partial sums of the points it reached:
     (points, counts per (point, column), partials, non-finite sums per (point, column)), each
-    point's columns in order."""
-    nq = N_COLUMNS_ARR[kind]
+    point's columns in order. ``ncols``: sum only the kind's first ``ncols`` columns (the grains'
+    come in the order their fields need them: ρ, φ, n; p; Σ m v v; the gradients)."""
+    nq = min(ncols, N_COLUMNS_ARR[kind])
     acc0, _buf, _bits = exact_accumulator()
     nb = acc0.shape[0]
     acc = np.zeros((nq, nb), dtype=np.int64)
     bins = exact_bins()
-    tb = np.empty((nq, EXACT_MANY_MAX))
+    tb = np.empty((N_COLUMNS_ARR[kind], EXACT_MANY_MAX))  # every term is computed; nq are summed
     special = np.zeros(nq)
     c2 = c * c
     ncells = istart.shape[0] - 1

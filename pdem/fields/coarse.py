@@ -95,6 +95,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..parallel.comm import any_rank
+from ..state.particles import REMOVED
 from . import _kernels as _k
 
 __all__ = ["GaussianKernel", "LucyKernel", "Grid", "Fields", "CoarseGraining", "TimeAverage", "coarse_grain"]
@@ -102,6 +103,22 @@ __all__ = ["GaussianKernel", "LucyKernel", "Grid", "Fields", "CoarseGraining", "
 #: raw column layout: (name, first column, number of columns)
 _GRAIN0, _LINE0, _END0, _POINT0 = 0, 24, 33, 40
 N_RAW = 43
+#: every field a :class:`CoarseGraining` computes, in :class:`Fields` order
+QUANTITIES = (
+    "density", "solid_fraction", "number_density", "momentum", "velocity", "kinetic_stress",
+    "contact_stress", "stress", "velocity_gradient", "strain_rate", "contact_density", "coordination",
+    "fabric", "wall_force_density",
+)  # fmt: skip
+#: the grains' columns (a prefix) each field needs beyond ρ, φ and n (3)
+_GRAIN_COLUMNS = {
+    "momentum": 6, "velocity": 6, "kinetic_stress": 12, "stress": 12, "velocity_gradient": 24,
+    "strain_rate": 24,
+}  # fmt: skip
+#: the pass beyond the grains' that each field needs (GRAIN: none)
+_NEEDS = {q: _k.GRAIN for q in QUANTITIES} | {
+    "contact_stress": _k.LINE, "stress": _k.LINE, "contact_density": _k.END, "coordination": _k.END,
+    "fabric": _k.END, "wall_force_density": _k.POINT,
+}  # fmt: skip
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # order of the 6 symmetric components
 _MAX_ITEMS = 50_000_000  # items after periodic images; beyond, refuse (memory)
 
@@ -270,7 +287,8 @@ def _points_of(where) -> tuple[np.ndarray, tuple[int, ...]]:
 class Fields:
     """Coarse-grained fields at the points (shape ``shape`` = the grid's (nx, ny, nz) or (m,) for
     points; vectors add an axis of 3, tensors two). SI units; stresses compression positive; tensor
-    index order: σ_ab = Σ f_a l_b … (module docstring)."""
+    index order: σ_ab = Σ f_a l_b … (module docstring). A field the :class:`CoarseGraining` was not
+    asked for (``quantities``) is None."""
 
     points: np.ndarray  #: (…, 3) [m]
     density: np.ndarray  #: ρ [kg/m³]
@@ -299,42 +317,61 @@ class Fields:
         }
 
 
-def _derive(raw: np.ndarray, points: np.ndarray, shape: tuple[int, ...], time: float, step: int) -> Fields:
-    """The fields from the exact sums (elementwise arithmetic only: the same bits wherever done)."""
+def _derive(
+    raw: np.ndarray, points: np.ndarray, shape: tuple[int, ...], time: float, step: int,
+    quantities: Sequence[str] = QUANTITIES,
+) -> Fields:
+    """The fields from the exact sums (elementwise arithmetic only: the same bits wherever done);
+    those not in ``quantities`` are None."""
     m = raw.shape[0]
+    want = set(quantities)
     rho, solid, num = raw[:, 0], raw[:, 1], raw[:, 2]
     mom = raw[:, 3:6]
-    kin = _sym_full(raw[:, 6:12])
-    grho = raw[:, 12:15]
-    gmom = raw[:, 15:24].reshape(m, 3, 3)
-    sig_c = raw[:, _LINE0 : _LINE0 + 9].reshape(m, 3, 3)
-    ncont = raw[:, _END0]
-    fab = _sym_full(raw[:, _END0 + 1 : _END0 + 7])
-    wall_f = raw[:, _POINT0 : _POINT0 + 3]
     pos = rho > 0.0
     safe = np.where(pos, rho, 1.0)
-    vel = np.where(pos[:, None], mom / safe[:, None], 0.0)
-    pp = mom[:, :, None] * mom[:, None, :]
-    sig_k = np.where(pos[:, None, None], kin - pp / safe[:, None, None], 0.0)
-    grad = np.where(
-        pos[:, None, None], (gmom - vel[:, :, None] * grho[:, None, :]) / safe[:, None, None], 0.0
-    )
-    strain = 0.5 * (grad + grad.transpose(0, 2, 1))
     has_n = num > 0.0
     nsafe = np.where(has_n, num, 1.0)
-    coord = np.where(has_n, ncont / nsafe, 0.0)
-    fabric = np.where(has_n[:, None, None], fab / nsafe[:, None, None], 0.0)
+    got: dict[str, np.ndarray] = {"density": rho, "solid_fraction": solid, "number_density": num}
+    got["momentum"] = mom
+    if want & {"velocity", "kinetic_stress", "stress", "velocity_gradient", "strain_rate"}:
+        got["velocity"] = vel = np.where(pos[:, None], mom / safe[:, None], 0.0)
+    if want & {"kinetic_stress", "stress"}:
+        pp = mom[:, :, None] * mom[:, None, :]
+        kin = _sym_full(raw[:, 6:12])
+        got["kinetic_stress"] = np.where(pos[:, None, None], kin - pp / safe[:, None, None], 0.0)
+    if want & {"contact_stress", "stress"}:
+        got["contact_stress"] = raw[:, _LINE0 : _LINE0 + 9].reshape(m, 3, 3)
+    if "stress" in want:
+        got["stress"] = got["kinetic_stress"] + got["contact_stress"]
+    if want & {"velocity_gradient", "strain_rate"}:
+        grho = raw[:, 12:15]
+        gmom = raw[:, 15:24].reshape(m, 3, 3)
+        got["velocity_gradient"] = grad = np.where(
+            pos[:, None, None], (gmom - vel[:, :, None] * grho[:, None, :]) / safe[:, None, None], 0.0
+        )
+        got["strain_rate"] = 0.5 * (grad + grad.transpose(0, 2, 1))
+    got["contact_density"] = ncont = raw[:, _END0]
+    if "coordination" in want:
+        got["coordination"] = np.where(has_n, ncont / nsafe, 0.0)
+    if "fabric" in want:
+        fab = _sym_full(raw[:, _END0 + 1 : _END0 + 7])
+        got["fabric"] = np.where(has_n[:, None, None], fab / nsafe[:, None, None], 0.0)
+    got["wall_force_density"] = raw[:, _POINT0 : _POINT0 + 3]
+    tails = {"momentum": (3,), "velocity": (3,), "wall_force_density": (3,)}
 
-    def s(a: np.ndarray, *tail: int) -> np.ndarray:
+    def s(name: str) -> np.ndarray | None:
+        if name not in want:
+            return None
+        a = got[name]
+        tail = tails.get(name, (3, 3) if a.ndim == 3 else ())
         return np.ascontiguousarray(a.reshape(*shape, *tail))
 
     return Fields(
-        points=s(points, 3), density=s(rho), solid_fraction=s(solid), number_density=s(num),
-        momentum=s(mom, 3), velocity=s(vel, 3), kinetic_stress=s(sig_k, 3, 3),
-        contact_stress=s(sig_c, 3, 3), stress=s(sig_k + sig_c, 3, 3), velocity_gradient=s(grad, 3, 3),
-        strain_rate=s(strain, 3, 3), contact_density=s(ncont), coordination=s(coord),
-        fabric=s(fabric, 3, 3), wall_force_density=s(wall_f, 3), time=float(time), step=int(step),
-    )  # fmt: skip
+        points=np.ascontiguousarray(points.reshape(*shape, 3)),
+        **{q: s(q) for q in QUANTITIES},
+        time=float(time),
+        step=int(step),
+    )
 
 
 def _sym_full(six: np.ndarray) -> np.ndarray:
@@ -356,7 +393,7 @@ class CoarseGraining:
     contacts (stress, contact density, fabric, wall force density). The points are binned once;
     call the object with a simulation for each snapshot."""
 
-    def __init__(self, kernel, where, *, walls: bool = True) -> None:
+    def __init__(self, kernel, where, *, walls: bool = True, quantities=None) -> None:
         if not isinstance(kernel, GaussianKernel | LucyKernel):
             raise InputError(
                 f"kernel = {kernel!r}: give GaussianKernel(width, cutoff=3) or LucyKernel(radius) "
@@ -365,6 +402,25 @@ class CoarseGraining:
         self.kernel = kernel
         self.where = where
         self.walls = bool(walls)
+        if quantities is None:
+            self.quantities = QUANTITIES
+        else:
+            names = [quantities] if isinstance(quantities, str) else list(quantities)
+            bad = [q for q in names if q not in QUANTITIES]
+            if bad or not names:
+                raise InputError(
+                    f"quantities = {quantities!r}: give some of {', '.join(QUANTITIES)} (or None: all)"
+                )
+            self.quantities = tuple(q for q in QUANTITIES if q in names)
+        #: the grains' columns the quantities need (a prefix of the 24: ρ, φ, n; p; Σ m v v; ∇)
+        self.grain_columns = max(_GRAIN_COLUMNS.get(q, 3) for q in self.quantities)
+        #: the passes the quantities need: the grains always, the contact lines for the contact
+        #: stress, the contact ends for the contact density and fabric, the wall points for the wall
+        #: force density; the contacts are not even listed when no pass needs them
+        self.kinds = tuple(
+            kind for kind in (_k.GRAIN, _k.LINE, _k.END, _k.POINT)
+            if kind == _k.GRAIN or any(_NEEDS[q] == kind for q in self.quantities)
+        )  # fmt: skip
         self.points, self.shape = _points_of(where)
         self._bin_points()
 
@@ -389,7 +445,14 @@ class CoarseGraining:
     # ------------------------------------------------------------------ items of this rank
     def _items(self, sim) -> dict[int, np.ndarray]:
         """This rank's items by kind (rows as in :mod:`pdem.fields._kernels`), before images."""
-        p = sim.own_particles()
+        if self.kinds == (_k.GRAIN,):  # the grains in storage order (the sums do not depend on it)
+            st = sim.particles
+            n = st.n_owned
+            live = st.motion[:n] != REMOVED
+            p = {"x": st.x[:n][live], "id": st.id[:n][live], "r": st.r[:n][live], "mass": st.mass[:n][live],
+                 "v": st.v[:n][live]}  # fmt: skip
+        else:
+            p = sim.own_particles()  # by id: the contacts' grains are found by their ids
         x = np.ascontiguousarray(p["x"], dtype=float)
         if sim.box is not None:
             sim.box.wrap(x)  # exact (pdem's position grid): the same bits whatever the partition
@@ -406,6 +469,9 @@ class CoarseGraining:
                 raise RuntimeError("coarse graining: a counted contact's grain is not owned by this rank")
             return k
 
+        if self.kinds == (_k.GRAIN,):  # no contact is needed: none is listed
+            none = np.zeros((0, 15))
+            return {_k.GRAIN: grains, _k.LINE: none, _k.END: none[:, :6], _k.POINT: none[:, :6]}
         c = sim.own_contacts()
         xi = x[rows_of(c["id_i"])]
         b = np.asarray(c["branch"], dtype=float)
@@ -455,6 +521,9 @@ class CoarseGraining:
         if there would be more than :data:`_MAX_ITEMS`."""
         lo, hi = self._support(kind, data)
         box = sim.box
+        if box is None or not np.any(box.periodic):  # one mask: the items whose support meets the box
+            keep = np.all((hi >= self.lo) & (lo <= self.hi), axis=1)
+            return np.ascontiguousarray(data[keep]), lo[keep], hi[keep]
         for a in range(3):
             if box is not None and box.periodic[a]:
                 length = float(box.length[a])
@@ -491,7 +560,7 @@ class CoarseGraining:
         if raw is None:
             return None
         raw += 0.0  # −0.0 → +0.0, as an MPI sum with other ranks' zeros makes it: the same bits anywhere
-        return _derive(raw, self.points, self.shape, sim.time, sim.step_count)
+        return _derive(raw, self.points, self.shape, sim.time, sim.step_count, self.quantities)
 
     def _raw(self, sim) -> tuple[np.ndarray, list]:
         """This rank's sums (collective): the (m, N_RAW) values it rounded (points only it reaches)
@@ -505,14 +574,16 @@ class CoarseGraining:
         inv_s = 1.0 / self.cell
         ncells = self.pstart.size - 1
         passes = []
-        for kind, col0 in ((_k.GRAIN, _GRAIN0), (_k.LINE, _LINE0), (_k.END, _END0), (_k.POINT, _POINT0)):
+        col0s = {_k.GRAIN: _GRAIN0, _k.LINE: _LINE0, _k.END: _END0, _k.POINT: _POINT0}
+        for kind in self.kinds:
+            col0 = col0s[kind]
             imaged = self._images(sim, kind, items[kind])
             if imaged is None:
                 break
             data, lo, hi = imaged
             istart, lists = _k.bin_items(lo, hi, self.lo, inv_s, self.ncell)
             passes.append((kind, col0, data, istart, lists))
-        if any_rank(comm, len(passes) < 4):
+        if any_rank(comm, len(passes) < len(self.kinds)):
             box = sim.box.length[sim.box.periodic] if sim.box is not None else ()
             raise InputError(
                 f"coarse graining: more than {_MAX_ITEMS} items with their periodic images (kernel radius "
@@ -523,11 +594,12 @@ class CoarseGraining:
         raw = np.zeros((m, N_RAW))
         parts = []
         for (kind, col0, data, istart, lists), sh in zip(passes, shared, strict=True):
+            ncols = self.grain_columns if kind == _k.GRAIN else _k.N_COLUMNS[kind]
             res = _k.accumulate(
                 kind, kern.kind, kern.norm, kern.width, kern.radius, self.points, self.order, self.pstart,
-                istart, lists, data, sh, raw, col0,
+                istart, lists, data, sh, raw, col0, ncols,
             )  # fmt: skip
-            parts.append((col0, _k.N_COLUMNS[kind], res))
+            parts.append((col0, ncols, res))
         return raw, parts
 
     def block_bounds(self, size: int) -> np.ndarray:
@@ -572,7 +644,8 @@ class CoarseGraining:
         n = raw.shape[0]
         shape = (n // plane, *self.shape[1:]) if grid else (n,)
         raw += 0.0
-        return _derive(raw, self.points[b0 : b0 + n], shape, sim.time, sim.step_count), b0
+        fields = _derive(raw, self.points[b0 : b0 + n], shape, sim.time, sim.step_count, self.quantities)
+        return fields, b0
 
     def _raw_block(self, sim, bounds: np.ndarray) -> np.ndarray:
         """The exact sums of this rank's block of points, ``bounds[rank]`` to ``bounds[rank + 1]``."""
@@ -646,10 +719,12 @@ def _reduce_over_ranks(comm, raw: np.ndarray, parts, root, bounds: np.ndarray) -
     return None
 
 
-def coarse_grain(sim, kernel, where, *, walls: bool = True, root: int | None = None) -> Fields | None:
+def coarse_grain(
+    sim, kernel, where, *, walls: bool = True, root: int | None = None, quantities=None
+) -> Fields | None:
     """The coarse-grained fields of ``sim`` with ``kernel`` at ``where`` (a :class:`Grid` or an
     (m, 3) array of points) — :class:`CoarseGraining` for one snapshot (collective)."""
-    return CoarseGraining(kernel, where, walls=walls)(sim, root=root)
+    return CoarseGraining(kernel, where, walls=walls, quantities=quantities)(sim, root=root)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -664,8 +739,8 @@ class TimeAverage:
     sums run in snapshot order, on the bits every rank count gives, so the means are the same on
     any rank count too."""
 
-    def __init__(self, kernel, where, *, walls: bool = True) -> None:
-        self.cg = CoarseGraining(kernel, where, walls=walls)
+    def __init__(self, kernel, where, *, walls: bool = True, quantities=None) -> None:
+        self.cg = CoarseGraining(kernel, where, walls=walls, quantities=quantities)
         self.count = 0
         self._sum: dict[str, np.ndarray] | None = None
         self.t_first = math.nan
@@ -690,5 +765,6 @@ class TimeAverage:
         if self._sum is None:
             raise InputError("TimeAverage.mean(): no snapshot was added; call add(sim) first")
         arrays = {k: v / self.count for k, v in self._sum.items() if k != "points"}
+        arrays |= {q: None for q in QUANTITIES if q not in arrays}
         arrays["points"] = self.cg.points.reshape(*self.cg.shape, 3).copy()
         return Fields(**arrays, time=0.5 * (self.t_first + self.t_last), step=self.count)

@@ -12,33 +12,44 @@ Files written in the output directory
     (3,) of the whole grid (the centres of ``counts`` equal cells of the box ``lo``–``hi``),
     ``kernel`` ("gaussian" or "lucy"), ``width`` [m] (the Gaussian's standard deviation or Lucy's
     cut-off radius), ``cutoff`` (Gaussian, in widths), ``rank`` and ``n_ranks``.
-    ``/frames/NNNNNN`` (frame counter, 6 digits): attributes ``time`` [s], ``step``, ``stage``,
-    ``samples`` (the snapshots averaged into it, 1 without ``average_every_steps``), ``since`` [s]
-    (the time of its first sample), ``first``
-    (the block's first x-plane) and ``planes`` (its number of x-planes); one dataset per quantity,
-    float64, **in ParaView's order, x fastest**: shape (nz, ny, planes) for a scalar, (…, 3) for a
-    vector, (…, 9) for a tensor (row-major: component 3a + b is T_ab). :func:`read_continuum`
-    gives them back in pdem's (nx, ny, nz, …) order.
+    ``/batches/BBBBBB``: the frames written together (see below), stacked: one dataset per
+    quantity, float64, shape (k, nz, ny, planes) for a scalar, (…, 3) for a vector, (…, 9) for a
+    tensor (row-major: component 3a + b is T_ab), each frame **in ParaView's order, x fastest**;
+    attributes ``numbers`` (k,) (the frames' numbers, counted over the run), ``table`` (k, 6): per
+    frame the time [s], the time of its first sample [s] (``since``), the step, the number of
+    samples averaged into it (1 without ``average_every_steps``), the block's first x-plane and its
+    number of x-planes; and ``stages``, the frames' stage names (a JSON list).
+    :func:`read_continuum` gives every frame back in pdem's (nx, ny, nz, …) order.
     On one rank a block is the whole grid. On several ranks rank k holds the slab of x-planes
     ``nx k / n`` to ``nx (k + 1) / n`` (integer division) plus the next slab's first plane, so the
     slabs drawn side by side leave no gap (a rank with no plane writes frames without datasets).
 ``continuum_<name>.xdmf``
     the index (rank 0): a ``Temporal`` collection, per frame a ``Spatial`` collection of one
     ``3DCoRectMesh`` grid per block (``ORIGIN_DXDYDZ``, given in XDMF's z, y, x order), with every
-    quantity as a node ``Attribute`` (``Scalar``, ``Vector`` or ``Tensor``). ParaView opens it as a
-    multiblock of image data, one dataset per time step, at the times of ``particles.xdmf``.
+    quantity as a node ``Attribute`` (``Scalar``, ``Vector`` or ``Tensor``: a ``HyperSlab`` of the
+    frame's row in its batch). ParaView opens it as a multiblock of image data, one dataset per time
+    step, at the times of ``particles.xdmf``.
+
+Frames are held in memory and written together, one batch, with the index, when 2 s of wall time
+have passed since the last write (``FLUSH_SECONDS``: one HDF5 opening and a few objects for many
+frames, where an object costs ~0.15 ms to make; the index rewritten once), before every checkpoint,
+and when the run ends or fails. A run killed outright loses at most the frames after its last
+checkpoint, which a resume from that checkpoint writes again.
 
 The values are bitwise the same on any rank count (:meth:`pdem.fields.CoarseGraining.block`).
 Continuing a run into its own directory (``append_after``) drops the frames after the checkpoint
-from every file of this name (of any earlier rank count) and rebuilds the index, as
-:mod:`pdem.io.hdf5` does for the grains. Each frame is written, flushed and closed before the index
-is rewritten atomically, so a run killed between frames leaves files that read back.
+from every file of this name (of any earlier rank count; a batch across the checkpoint is rewritten
+with the frames before it) and rebuilds the index, as
+:mod:`pdem.io.hdf5` does for the grains. The files are closed between writes and the index is
+rewritten atomically, so a run killed at any moment leaves files that read back.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
+import time as _time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -71,6 +82,8 @@ QUANTITIES: dict[str, int] = {
     "wall_force_density": 3,
 }
 _XDMF_TYPE = {1: "Scalar", 3: "Vector", 9: "Tensor"}
+#: the held frames are written when this much wall time [s] has passed since the last write
+FLUSH_SECONDS = 2.0
 
 
 def continuum_files(directory: Path, name: str) -> list[Path]:
@@ -80,6 +93,42 @@ def continuum_files(directory: Path, name: str) -> list[Path]:
     if not directory.is_dir():
         return []
     return sorted(p for p in directory.iterdir() if pat.fullmatch(p.name))
+
+
+def _batch_table(g: h5py.Group) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """A batch group's (table, stages, frame numbers): table rows are [time, since, step, samples,
+    first plane, planes]."""
+    stages = g.attrs["stages"]
+    stages = json.loads(stages.decode() if isinstance(stages, bytes) else str(stages))
+    return np.asarray(g.attrs["table"], dtype=float).reshape(-1, 6), stages, np.asarray(g.attrs["numbers"])
+
+
+def _keep_until(directory: Path, f: h5py.File, step: int) -> None:
+    """Drop the frames after ``step`` from an open file: whole batches after it are held by a
+    resume's journal (:func:`pdem.io.journal.discard_frame`); a batch across it (none is, when the
+    checkpoint was written by pdem, which writes the frames held before a checkpoint) is rewritten
+    with the rows kept."""
+    batches = f.get("batches")
+    if batches is None:
+        return
+    free = max((int(k) for k in batches), default=-1) + 1
+    for key in sorted(batches):
+        g = batches[key]
+        table, stages, numbers = _batch_table(g)
+        keep = table[:, 2] <= step
+        if keep.all():
+            continue
+        if keep.any():
+            new = batches.create_group(f"{free:06d}")
+            free += 1
+            for name, value in g.attrs.items():
+                new.attrs[name] = value
+            new.attrs["numbers"] = numbers[keep]
+            new.attrs["table"] = table[keep]
+            new.attrs["stages"] = json.dumps([s for s, k in zip(stages, keep, strict=True) if k])
+            for q in g:
+                new.create_dataset(q, data=g[q][np.flatnonzero(keep)])
+        discard_frame(directory, batches, key)  # held while the resume is undecided
 
 
 def _to_file(arr: np.ndarray) -> np.ndarray:
@@ -138,6 +187,12 @@ class ContinuumWriter:
             else self.directory / f"continuum_{name}.{piece_name(self.rank)}.h5"
         )
         self._headers: list[dict[str, Any]] = []  # rank 0: each frame's blocks, for the index
+        self._pending: list = []  # frames computed, not yet written
+        self._unplaced: list[dict[str, Any]] = []  # rank 0: their headers
+        self._batch = 0  # the next batch's number
+        self._flushed = _time.monotonic()
+        #: frames are written to disk together at most this often [s of wall time], and at close
+        self.flush_seconds = FLUSH_SECONDS
         self._collective(lambda: self._start(append_after))
 
     # ------------------------------------------------------------------ errors on every rank
@@ -168,36 +223,37 @@ class ContinuumWriter:
         if self.rank == 0:  # keep the frames up to the checkpoint in every file of this name
             for p in continuum_files(self.directory, self.name):
                 with h5py.File(p, "a") as f:
-                    frames = f.require_group("frames")
-                    for key in list(frames):
-                        if int(frames[key].attrs["step"]) > step:
-                            discard_frame(self.directory, frames, key)  # held while the resume is undecided
+                    _keep_until(self.directory, f, step)
         self.comm.barrier()
         kept = self._read_headers() if self.rank == 0 else None
-        kept = self.comm.bcast(kept, root=0)
+        kept, self._batch = self.comm.bcast(kept, root=0)
         self._headers = kept if self.rank == 0 else []
         self.frame_count = max((h["number"] for h in kept), default=-1) + 1
         self.last_step = kept[-1]["step"] if kept else None
         if self.rank == 0:
             self._write_index()
 
-    def _read_headers(self) -> list[dict[str, Any]]:
-        """Rank 0: every frame on disk (by number), with its blocks, from all files of this name."""
+    def _read_headers(self) -> tuple[list[dict[str, Any]], int]:
+        """Rank 0: every frame on disk (by number), with its blocks, from all files of this name;
+        and the first batch number free in every file."""
         frames: dict[int, dict[str, Any]] = {}
+        free = 0
         for p in continuum_files(self.directory, self.name):
             with h5py.File(p, "r") as f:
-                for key, g in f.get("frames", {}).items():
-                    a = g.attrs
-                    h = frames.setdefault(
-                        int(key),
-                        {"number": int(key), "time": float(a["time"]), "step": int(a["step"]),
-                         "stage": str(a["stage"]), "blocks": []},
-                    )  # fmt: skip
-                    if int(a["planes"]) > 0:
-                        h["blocks"].append(
-                            (p.name, int(a["first"]), int(a["planes"]), sorted(g.keys()))
-                        )
-        return [frames[k] for k in sorted(frames)]
+                for key, g in f.get("batches", {}).items():
+                    free = max(free, int(key) + 1)
+                    table, stages, numbers = _batch_table(g)
+                    names = sorted(k for k in g.keys())
+                    for row, (number, info, stage) in enumerate(zip(numbers, table, stages, strict=True)):
+                        h = frames.setdefault(
+                            int(number),
+                            {"number": int(number), "time": float(info[0]), "step": int(info[2]),
+                             "stage": stage, "blocks": []},
+                        )  # fmt: skip
+                        if int(info[5]) > 0:
+                            h["blocks"].append((p.name, int(info[4]), int(info[5]), names, int(key), row,
+                                                len(numbers)))  # fmt: skip
+        return [frames[k] for k in sorted(frames)], free
 
     # ------------------------------------------------------------------ the fields
     def _coarse_graining(self, sim) -> CoarseGraining:
@@ -219,7 +275,7 @@ class ContinuumWriter:
                 if self.spec.kernel == "gaussian"
                 else LucyKernel(self.width)
             )
-            self.cg = CoarseGraining(kern, self.grid, walls=self.spec.walls)
+            self.cg = CoarseGraining(kern, self.grid, walls=self.spec.walls, quantities=self.quantities)
         return self.cg
 
     def _block(self, sim) -> tuple[dict[str, np.ndarray], int]:
@@ -260,30 +316,50 @@ class ContinuumWriter:
             samples, since = 1, time
         planes = next(iter(block.values())).shape[0] if block else 0
         number = self.frame_count
-        self._collective(
-            lambda: self._write_block(number, block, first, planes, (samples, since, time, step, stage))
-        )
-        blocks = self.comm.gather((self.path.name, first, planes), root=0)
-        if self.rank == 0:
+        self._pending.append((number, block, first, planes, (samples, since, time, step, stage)))
+        # rank 0's clock decides, for every rank alike, whether the frames held are written now
+        due = _time.monotonic() - self._flushed >= self.flush_seconds
+        blocks = self.comm.allgather((self.path.name, first, planes, due))
+        if self.rank == 0:  # the blocks' batch and row are known when the frames are written
             self._headers.append({
-                "number": number, "time": float(sim.time), "step": step, "stage": stage,
-                "blocks": [(n, f0, k, sorted(self.quantities)) for n, f0, k in blocks if k > 0],
+                "number": number, "time": time, "step": step, "stage": stage,
+                "blocks": [(n, f0, k, sorted(self.quantities)) for n, f0, k, _ in blocks if k > 0],
             })  # fmt: skip
-            self._collective_index()
-        else:
-            self._collective(lambda: None)
+            self._unplaced.append(self._headers[-1])
         self.frame_count += 1
         self.last_step = step
+        if blocks[0][3]:
+            self.flush()
 
-    def _collective_index(self) -> None:
-        self._collective(self._write_index)
+    def flush(self) -> None:
+        """Write the frames held to this rank's file, as one batch, and, on rank 0, the index
+        (collective; a failure on any rank raises the same OutputError on every rank)."""
+        pending, self._pending = self._pending, []
+        batch = self._batch
+        self._collective(lambda: self._write_batch(batch, pending))
+        self._batch += 1 if pending else 0
+        if self.rank == 0:
+            self._place(batch, len(pending))
+        self._collective(self._write_index if self.rank == 0 else (lambda: None))
+        self._flushed = _time.monotonic()
 
-    def _write_block(self, number, block, first, planes, when) -> None:
-        samples, since, time, step, stage = when
+    def _place(self, batch: int, count: int) -> None:
+        """Rank 0: the frames just written are rows 0… of ``batch`` in every rank's file."""
+        for row, h in enumerate(self._unplaced):
+            h["blocks"] = [(*b[:4], batch, row, count) for b in h["blocks"]]
+        self._unplaced = []
+
+    def _write_batch(self, batch: int, pending: list) -> None:
+        """``pending`` frames as group ``/batches/<batch>``: per quantity one dataset of the frames
+        stacked, (k, nz, ny, planes[, components]); attributes ``numbers`` (the frame numbers),
+        ``table`` (k × [time, since, step, samples, first plane, planes]) and ``stages``. One group
+        and a few datasets per batch rather than per frame: an HDF5 object costs ~0.15 ms to make."""
+        if not pending:
+            return
         self.directory.mkdir(parents=True, exist_ok=True)
-        new = not self.path.exists()
+        plane = self.grid.counts[1] * self.grid.counts[2]
         with h5py.File(self.path, "a") as f:
-            if new:
+            if "lo" not in f.attrs:
                 for k, v in self.metadata.items():
                     f.attrs[k] = v
                 f.attrs["lo"] = self.grid.lo
@@ -294,66 +370,81 @@ class ContinuumWriter:
                 f.attrs["cutoff"] = float(self.spec.cutoff)
                 f.attrs["rank"] = self.rank
                 f.attrs["n_ranks"] = self.size
-            g = f.require_group("frames").create_group(f"{number:06d}")
-            g.attrs["time"] = time
-            g.attrs["since"] = since  # the first sample's time (averaged frames)
-            g.attrs["step"] = int(step)
-            g.attrs["stage"] = stage
-            g.attrs["samples"] = int(samples)
-            g.attrs["first"] = int(first // (self.grid.counts[1] * self.grid.counts[2]))
-            g.attrs["planes"] = int(planes)
-            if planes:
-                for q, arr in block.items():
-                    g.create_dataset(q, data=_to_file(arr))
+            g = f.require_group("batches").create_group(f"{batch:06d}")
+            table = [[when[2], when[1], when[3], when[0], first // plane, planes]
+                     for _, _, first, planes, when in pending]  # fmt: skip
+            g.attrs["numbers"] = np.array([fr[0] for fr in pending], dtype=np.int64)
+            g.attrs["table"] = np.array(table, dtype=np.float64)
+            g.attrs["stages"] = json.dumps([fr[4][4] for fr in pending])
+            if pending[0][3]:
+                for q in pending[0][1]:
+                    g.create_dataset(q, data=np.stack([_to_file(fr[1][q]) for fr in pending]))
             f.flush()
 
     # ------------------------------------------------------------------ the index
     def _write_index(self) -> None:
+        """Rewrite the index (rank 0): every frame's grid is serialized once and kept, so a rewrite
+        costs the file's bytes, not the building of every frame again."""
+        head = (
+            '<?xml version="1.0" ?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n<Xdmf Version="3.0">\n  <Domain>\n'
+            '    <Information Name="metadata">pdem continuum fields</Information>\n'
+            f'    <Grid Name="continuum_{self.name}" GridType="Collection" CollectionType="Temporal">\n'
+        )
+        frames = []
+        for h in self._headers:
+            if h["blocks"]:
+                if "xml" not in h:
+                    h["xml"] = self._frame_xml(h)
+                frames.append(h["xml"])
+        atomic_write_text(self.index_path, head + "".join(frames) + "    </Grid>\n  </Domain>\n</Xdmf>\n")
+
+    def _frame_xml(self, h: dict[str, Any]) -> str:
+        """One frame of the index: a spatial collection of the blocks' 3DCoRectMesh grids."""
         nx, ny, nz = self.grid.counts
         dx, dy, dz = (float(v) for v in self.grid.spacing)
         x0, y0, z0 = (float(v) for v in self.grid.lo + 0.5 * self.grid.spacing)
-        root = ET.Element("Xdmf", Version="3.0")
-        dom = ET.SubElement(root, "Domain")
-        info = ET.SubElement(dom, "Information", Name="metadata")
-        info.text = "pdem continuum fields"
-        series = ET.SubElement(dom, "Grid", Name=f"continuum_{self.name}", GridType="Collection",
-                               CollectionType="Temporal")  # fmt: skip
-        for h in self._headers:
-            if not h["blocks"]:
-                continue
-            frame = ET.SubElement(series, "Grid", Name=f"frame_{h['number']:06d}", GridType="Collection",
-                                  CollectionType="Spatial")  # fmt: skip
-            ET.SubElement(frame, "Time", Value=repr(float(h["time"])))
-            ET.SubElement(frame, "Information", Name="step", Value=str(h["step"]))
-            ET.SubElement(frame, "Information", Name="stage", Value=str(h["stage"]))
-            for fname, first, planes, names in h["blocks"]:
-                part = re.fullmatch(r".*\.(r\d+)\.h5", fname)
-                label = part.group(1) if part else "grid"
-                grid = ET.SubElement(frame, "Grid", Name=label, GridType="Uniform")
-                dims = f"{nz} {ny} {planes}"
-                ET.SubElement(grid, "Topology", TopologyType="3DCoRectMesh", Dimensions=dims)
-                geo = ET.SubElement(grid, "Geometry", GeometryType="ORIGIN_DXDYDZ")
-                o = ET.SubElement(geo, "DataItem", Dimensions="3", Format="XML", NumberType="Float",
-                                  Precision="8")  # fmt: skip
-                o.text = f"{z0!r} {y0!r} {x0 + first * dx!r}"
-                d = ET.SubElement(geo, "DataItem", Dimensions="3", Format="XML", NumberType="Float",
-                                  Precision="8")  # fmt: skip
-                d.text = f"{dz!r} {dy!r} {dx!r}"
-                for q in names:
-                    k = QUANTITIES[q]
-                    att = ET.SubElement(grid, "Attribute", Name=q, AttributeType=_XDMF_TYPE[k], Center="Node")
-                    shape = dims if k == 1 else f"{dims} {k}"
-                    item = ET.SubElement(att, "DataItem", Dimensions=shape, Format="HDF", NumberType="Float",
-                                         Precision="8")  # fmt: skip
-                    item.text = f"{fname}:/frames/{h['number']:06d}/{q}"
-        ET.indent(root)
-        text = '<?xml version="1.0" ?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + ET.tostring(
-            root, encoding="unicode"
-        )
-        atomic_write_text(self.index_path, text + "\n")
+        frame = ET.Element("Grid", Name=f"frame_{h['number']:06d}", GridType="Collection",
+                           CollectionType="Spatial")  # fmt: skip
+        ET.SubElement(frame, "Time", Value=repr(float(h["time"])))
+        ET.SubElement(frame, "Information", Name="step", Value=str(h["step"]))
+        ET.SubElement(frame, "Information", Name="stage", Value=str(h["stage"]))
+        for fname, first, planes, names, batch, row, count in h["blocks"]:
+            part = re.fullmatch(r".*\.(r\d+)\.h5", fname)
+            grid = ET.SubElement(frame, "Grid", Name=part.group(1) if part else "grid", GridType="Uniform")
+            dims = f"{nz} {ny} {planes}"
+            ET.SubElement(grid, "Topology", TopologyType="3DCoRectMesh", Dimensions=dims)
+            geo = ET.SubElement(grid, "Geometry", GeometryType="ORIGIN_DXDYDZ")
+            three = {"Dimensions": "3", "Format": "XML", "NumberType": "Float", "Precision": "8"}
+            o = ET.SubElement(geo, "DataItem", three)
+            o.text = f"{z0!r} {y0!r} {x0 + first * dx!r}"
+            d = ET.SubElement(geo, "DataItem", three)
+            d.text = f"{dz!r} {dy!r} {dx!r}"
+            for q in names:
+                k = QUANTITIES[q]
+                att = ET.SubElement(grid, "Attribute", Name=q, AttributeType=_XDMF_TYPE[k], Center="Node")
+                shape = dims if k == 1 else f"{dims} {k}"
+                rank = 4 if k == 1 else 5
+                slab = ET.SubElement(att, "DataItem", ItemType="HyperSlab", Dimensions=shape,
+                                     Type="HyperSlab")  # fmt: skip
+                sel = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
+                start = " ".join(["0"] * (rank - 1))
+                sel.text = f"{row} {start}  {' '.join(['1'] * rank)}  1 {shape}"
+                item = ET.SubElement(slab, "DataItem", Dimensions=f"{count} {shape}", Format="HDF",
+                                     NumberType="Float", Precision="8")  # fmt: skip
+                item.text = f"{fname}:/batches/{batch:06d}/{q}"
+        ET.indent(frame, space="  ", level=3)
+        return "      " + ET.tostring(frame, encoding="unicode").rstrip() + "\n"
 
     def close(self) -> None:
-        """Nothing stays open between frames; kept for symmetry with the other writers."""
+        """Write what is held, without a collective call (a rank may close alone on a failure):
+        this rank's frames to its file, on rank 0 the index of every frame it heard of."""
+        pending, self._pending = self._pending, []
+        self._write_batch(self._batch, pending)
+        if self.rank == 0:
+            self._place(self._batch, len(pending))
+        self._batch += 1 if pending else 0
+        if self.rank == 0 and self._headers:
+            self._write_index()
 
 
 def read_continuum(directory: Path | str, name: str) -> list[dict[str, Any]]:
@@ -370,18 +461,19 @@ def read_continuum(directory: Path | str, name: str) -> list[dict[str, Any]]:
             if grid is None:
                 grid = Grid(f.attrs["lo"], f.attrs["hi"], f.attrs["counts"])
             nx, ny, nz = grid.counts
-            for key, g in f.get("frames", {}).items():
-                a = g.attrs
-                head = {"time": float(a["time"]), "step": int(a["step"]), "stage": str(a["stage"]),
-                        "samples": int(a["samples"])}  # fmt: skip
-                fr = out.setdefault(int(key), head)
-                first, planes = int(a["first"]), int(a["planes"])
-                for q in g:
-                    k = QUANTITIES[q]
-                    arr = _from_file(g[q][()], k)
-                    if q not in fr:
-                        fr[q] = np.full((nx, ny, nz, *arr.shape[3:]), np.nan)
-                    fr[q][first : first + planes] = arr
+            for _key, g in f.get("batches", {}).items():
+                table, stages, numbers = _batch_table(g)
+                for row, (number, info, stage) in enumerate(zip(numbers, table, stages, strict=True)):
+                    head = {"time": float(info[0]), "since": float(info[1]), "step": int(info[2]),
+                            "stage": stage, "samples": int(info[3])}  # fmt: skip
+                    fr = out.setdefault(int(number), head)
+                    first, planes = int(info[4]), int(info[5])
+                    for q in g:
+                        k = QUANTITIES[q]
+                        arr = _from_file(g[q][row], k)
+                        if q not in fr:
+                            fr[q] = np.full((nx, ny, nz, *arr.shape[3:]), np.nan)
+                        fr[q][first : first + planes] = arr
     pts = grid.points().reshape(*grid.counts, 3)
     frames = [out[k] for k in sorted(out)]
     for fr in frames:

@@ -583,6 +583,8 @@ class RunOutput:
         """``checkpoints/step_<step>.h5`` (collective). Serially one file; on several ranks each rank
         writes its share (``state`` from ``state_dict(local=True)``) and rank 0 the manifest
         (:mod:`pdem.io.parted`)."""
+        for w in self._continuum:  # the fields' frames held up to here go to disk before the checkpoint,
+            w.flush()  # so that a kill loses only frames after it, which a resume writes again
         path = self.out / "checkpoints" / f"step_{step:010d}.h5"
         if self.root and self._journal is not None and path.is_file():  # a resume rewriting the step it
             parts = checkpoint_parts(path)  # resumed from: the old checkpoint is held, so that a
@@ -603,6 +605,8 @@ class RunOutput:
     # ------------------------------------------------------------------------------ closing
     def close(self) -> None:
         for w in self.writers:
+            w.close()
+        for w in self._continuum:
             w.close()
         for w in self._series_writers.values():
             w.close()

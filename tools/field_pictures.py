@@ -1,0 +1,176 @@
+#!/usr/bin/env python3
+"""Pictures and profiles of a run's continuum fields (``[output.continuum.<name>]``).
+
+    python tools/field_pictures.py OUT GRID [--frame -1] [--quantity shear_rate ...] [--output PNG]
+    python tools/field_pictures.py OUT GRID --profile z --quantity velocity.x [--at 0.0]
+
+Draws the section y = const (the grid's middle y-plane, or ``--at``) of one frame, one panel per
+quantity, x across and z up; or, with ``--profile AXIS``, prints and plots one quantity along x or z
+averaged over the other two axes (over the cells where the solid fraction exceeds ``--min-solid``).
+
+Quantities: any scalar field (``density``, ``solid_fraction``, ``coordination``, …), a component
+``velocity.x`` / ``stress.zz`` / ``strain_rate.xz`` / ``fabric.zz``, or a derived one:
+``speed`` (|V|), ``pressure`` (tr σ / 3), ``deviator`` (√(3/2) |σ'|, σ' the deviatoric stress),
+``shear_rate`` (√(2 D':D'), D' the deviatoric strain rate: the equivalent shear rate), ``dilation_rate``
+(tr D: the volumetric strain rate, positive when the material expands).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from pdem.io.continuum import read_continuum  # noqa: E402
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+_LABELS = {
+    "shear_rate": "equivalent shear rate √(2 D':D') [1/s]",
+    "dilation_rate": "volumetric strain rate tr D [1/s]",
+    "speed": "speed |V| [m/s]",
+    "pressure": "pressure tr σ / 3 [Pa]",
+    "deviator": "deviator √(3/2) |σ'| [Pa]",
+    "solid_fraction": "solid fraction [-]",
+    "coordination": "coordination number [-]",
+    "density": "density [kg/m³]",
+}
+
+
+def quantity(frame: dict, name: str) -> np.ndarray:
+    """The scalar field ``name`` of a frame (see the module doc), shape (nx, ny, nz)."""
+    if name in frame and np.ndim(frame[name]) == 3:
+        return frame[name]
+    if "." in name:
+        base, comp = name.split(".", 1)
+        arr = _need(frame, base)
+        idx = [_AXES[c] for c in comp]
+        if arr.ndim == 4 and len(idx) == 1:
+            return arr[..., idx[0]]
+        if arr.ndim == 5 and len(idx) == 2:
+            return arr[..., idx[0], idx[1]]
+        raise SystemExit(
+            f"{name}: give one component of a vector (velocity.x) or two of a tensor (stress.zz)"
+        )
+    eye = np.eye(3)
+    if name == "speed":
+        return np.linalg.norm(_need(frame, "velocity"), axis=-1)
+    if name in ("pressure", "deviator"):
+        s = _need(frame, "stress")
+        p = np.trace(s, axis1=-2, axis2=-1) / 3.0
+        if name == "pressure":
+            return p
+        dev = s - p[..., None, None] * eye
+        return np.sqrt(1.5 * np.sum(dev * dev, axis=(-2, -1)))
+    if name in ("shear_rate", "dilation_rate"):
+        d = _need(frame, "strain_rate")
+        tr = np.trace(d, axis1=-2, axis2=-1)
+        if name == "dilation_rate":
+            return tr
+        dev = d - (tr / 3.0)[..., None, None] * eye
+        return np.sqrt(2.0 * np.sum(dev * dev, axis=(-2, -1)))
+    raise SystemExit(f"unknown quantity {name!r}; see tools/field_pictures.py --help")
+
+
+def _need(frame: dict, name: str) -> np.ndarray:
+    if name not in frame:
+        have = sorted(k for k, v in frame.items() if isinstance(v, np.ndarray) and k != "points")
+        raise SystemExit(f"the grid was not written with {name!r} (it has {', '.join(have)}); add it to "
+                         "[output.continuum.<name>] quantities")  # fmt: skip
+    return frame[name]
+
+
+def section(frame: dict, name: str, at: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, z, values (nz, nx)) of the plane y = ``at`` (nearest grid plane; default the middle one)."""
+    pts = frame["points"]
+    ys = pts[0, :, 0, 1]
+    j = len(ys) // 2 if at is None else int(np.argmin(np.abs(ys - at)))
+    return pts[:, 0, 0, 0], pts[0, 0, :, 2], quantity(frame, name)[:, j, :].T
+
+
+def profile(frame: dict, name: str, axis: str, min_solid: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(coordinate, mean of ``name`` over the other two axes) along ``axis``, the mean taken over the
+    cells whose solid fraction exceeds ``min_solid`` (NaN where none does)."""
+    a = _AXES[axis]
+    values = quantity(frame, name)
+    keep = _need(frame, "solid_fraction") > min_solid if min_solid > 0 else np.ones(values.shape, bool)
+    other = tuple(k for k in range(3) if k != a)
+    total = np.sum(np.where(keep, values, 0.0), axis=other)
+    count = np.sum(keep, axis=other)
+    coord = frame["points"][..., a].mean(axis=other)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return coord, np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path, help="the run's output directory")
+    ap.add_argument("grid", help="the grid's name ([output.continuum.<name>])")
+    ap.add_argument("--frame", type=int, default=-1, help="frame index (default the last)")
+    ap.add_argument("--step", type=int, help="the frame at this step instead of --frame")
+    ap.add_argument("--quantity", "-q", action="append", help="quantities to draw (default shear_rate)")
+    ap.add_argument("--at", type=float, help="y of the section [m] (default the middle y-plane)")
+    ap.add_argument("--profile", choices=["x", "z"], help="print and plot a profile along this axis")
+    ap.add_argument("--min-solid", type=float, default=0.0, help="profiles: only cells denser than this")
+    ap.add_argument("--log", action="store_true", help="colour scale logarithmic")
+    ap.add_argument("--title", help="figure title")
+    ap.add_argument("--output", "-o", dest="png", type=Path, help="the PNG (default OUT/fields_<grid>.png)")
+    args = ap.parse_args(argv)
+    frames = read_continuum(args.run, args.grid)
+    if args.step is not None:
+        match = [f for f in frames if f["step"] == args.step]
+        if not match:
+            raise SystemExit(f"no frame at step {args.step}; steps: {[f['step'] for f in frames]}")
+        frame = match[0]
+    else:
+        frame = frames[args.frame]
+    names = args.quantity or ["shear_rate"]
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    head = f"t = {frame['time']:.4g} s, step {frame['step']} ({frame['stage']}), {frame['samples']} sample(s)"
+    if args.profile:
+        fig, ax = plt.subplots(figsize=(4.5, 4.0))
+        for name in names:
+            c, v = profile(frame, name, args.profile, args.min_solid)
+            print(f"# {name} along {args.profile}: {head}")
+            for ci, vi in zip(c, v, strict=True):
+                print(f"{ci:.6g} {vi:.6g}")
+            if args.profile == "z":
+                ax.plot(v, c, ".-", label=name)
+            else:
+                ax.plot(c, v, ".-", label=name)
+        ax.set_xlabel("value" if args.profile == "z" else f"{args.profile} [m]")
+        ax.set_ylabel(f"{args.profile} [m]" if args.profile == "z" else "value")
+        ax.legend(fontsize=8)
+    else:
+        fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names) + 0.6, 5.0), squeeze=False)
+        for ax, name in zip(axes[0], names, strict=True):
+            x, z, v = section(frame, name, args.at)
+            pos = v[np.isfinite(v) & (v > 0)]
+            norm = None
+            if args.log and pos.size:
+                norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-3), vmax=pos.max())
+            im = ax.pcolormesh(x, z, v, shading="nearest", cmap="viridis", norm=norm)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x [m]")
+            ax.set_ylabel("z [m]")
+            fig.colorbar(im, ax=ax, shrink=0.8, label=_LABELS.get(name, name))
+    fig.suptitle(args.title or head, fontsize=9)
+    fig.tight_layout()
+    out = args.png or args.run / f"fields_{args.grid}.png"
+    fig.savefig(out, dpi=130)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
