@@ -297,3 +297,25 @@ def test_a_resume_inside_a_batch_keeps_its_earlier_frames(tmp_path):
     grids = index.findall("./Domain/Grid/Grid")
     steps = [int(g.find("Information[@Name='step']").get("Value")) for g in grids]
     assert steps == [100, 200, 300, 600]
+
+
+def test_field_pictures_tool_draws_and_profiles(serial_run, tmp_path, capsys):
+    """tools/field_pictures.py on a run: a section of derived quantities, a profile along z with its
+    band heights (between the bottom and top means), and a clear error for a quantity not written."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import field_pictures
+
+    _, out = serial_run
+    png = tmp_path / "s.png"
+    args = ["-q", "shear_rate", "-q", "pressure", "-q", "velocity.z", "--stage", "settle", "--last", "2"]
+    assert field_pictures.main([str(out), "bed", *args, "--clip", "99", "-o", str(png)]) == 0
+    assert png.stat().st_size > 1000
+    assert field_pictures.main([str(out), "bed", "--profile", "z", "-q", "solid_fraction", "--band", "0.004",
+                                "-o", str(tmp_path / "p.png")]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "the mean of 2 frames, steps 400–600" in text and "# band: 10 % at" in text
+    frame = read_continuum(out, "bed")[-1]
+    z, phi = field_pictures.profile(frame, "solid_fraction", "z")
+    np.testing.assert_allclose(phi, frame["solid_fraction"].mean(axis=(0, 1)))
+    with pytest.raises(SystemExit, match="fabric"):
+        field_pictures.main([str(out), "coarse", "-q", "fabric.zz", "-o", str(tmp_path / "x.png")])

@@ -92,12 +92,47 @@ def section(frame: dict, name: str, at: float | None = None) -> tuple[np.ndarray
     return pts[:, 0, 0, 0], pts[0, 0, :, 2], quantity(frame, name)[:, j, :].T
 
 
-def profile(frame: dict, name: str, axis: str, min_solid: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def mean_frame(frames: list[dict]) -> dict:
+    """The mean of several frames' arrays, each weighted by its number of samples (the points and
+    the first frame's header kept)."""
+    out = dict(frames[0])
+    weights = np.array([f["samples"] for f in frames], dtype=float)
+    for k, v in frames[0].items():
+        if isinstance(v, np.ndarray) and k != "points":
+            out[k] = np.average([f[k] for f in frames], axis=0, weights=weights)
+    out["samples"] = sum(f["samples"] for f in frames)
+    return out
+
+
+def band(coord: np.ndarray, values: np.ndarray, ends: float) -> tuple[float, float, float]:
+    """A shear band's 10 %, 50 % and 90 % heights: where the profile ``values`` (rising with ``coord``)
+    crosses those fractions of the way from its mean within ``ends`` of the first finite coordinate to
+    its mean within ``ends`` of the last (linear interpolation between nodes)."""
+    ok = np.isfinite(values)
+    c, v = coord[ok], values[ok]
+    lo = v[c <= c[0] + ends].mean()
+    hi = v[c >= c[-1] - ends].mean()
+    n = (v - lo) / (hi - lo)
+
+    def cross(level: float) -> float:
+        k = int(np.flatnonzero(n >= level)[0])
+        return float(c[k - 1] + (level - n[k - 1]) / (n[k] - n[k - 1]) * (c[k] - c[k - 1]))
+
+    return cross(0.1), cross(0.5), cross(0.9)
+
+
+def profile(
+    frame: dict, name: str, axis: str, min_solid: float = 0.0, within: tuple[float, float] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(coordinate, mean of ``name`` over the other two axes) along ``axis``, the mean taken over the
-    cells whose solid fraction exceeds ``min_solid`` (NaN where none does)."""
+    cells whose solid fraction exceeds ``min_solid`` (NaN where none does) and, with ``within``
+    (lo, hi), whose x (for a z profile) or z (for an x profile) lies in that range."""
     a = _AXES[axis]
     values = quantity(frame, name)
     keep = _need(frame, "solid_fraction") > min_solid if min_solid > 0 else np.ones(values.shape, bool)
+    if within is not None:
+        across = frame["points"][..., 2 if axis == "x" else 0]
+        keep = keep & (across >= within[0]) & (across <= within[1])
     other = tuple(k for k in range(3) if k != a)
     total = np.sum(np.where(keep, values, 0.0), axis=other)
     count = np.sum(keep, axis=other)
@@ -116,7 +151,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at", type=float, help="y of the section [m] (default the middle y-plane)")
     ap.add_argument("--profile", choices=["x", "z"], help="print and plot a profile along this axis")
     ap.add_argument("--min-solid", type=float, default=0.0, help="profiles: only cells denser than this")
+    ap.add_argument("--within", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="profiles: only cells whose other coordinate (x for a z profile) lies in LO–HI [m]")
+    ap.add_argument("--stage", help="average the frames of this stage (with --last)")
+    ap.add_argument("--last", type=int, help="average the last N frames (of --stage, if given)")
+    ap.add_argument("--times", type=float, nargs=2, metavar=("T0", "T1"),
+                    help="average the frames with T0 < time <= T1 [s] (of --stage, if given)")
+    ap.add_argument("--band", type=float, metavar="ENDS",
+                    help="profiles: print the 10/50/90 %% heights between the means within ENDS [m] "
+                    "of the ends")
     ap.add_argument("--log", action="store_true", help="colour scale logarithmic")
+    ap.add_argument("--clip", type=float, default=100.0,
+                    help="sections: colour scale up to this percentile of the values (default 100)")
     ap.add_argument("--title", help="figure title")
     ap.add_argument("--output", "-o", dest="png", type=Path, help="the PNG (default OUT/fields_<grid>.png)")
     args = ap.parse_args(argv)
@@ -126,6 +172,16 @@ def main(argv: list[str] | None = None) -> int:
         if not match:
             raise SystemExit(f"no frame at step {args.step}; steps: {[f['step'] for f in frames]}")
         frame = match[0]
+    elif args.last or args.stage or args.times:
+        chosen = [f for f in frames if args.stage is None or f["stage"] == args.stage]
+        if args.times:
+            chosen = [f for f in chosen if args.times[0] < f["time"] <= args.times[1]]
+        chosen = chosen[-args.last:] if args.last else chosen
+        if not chosen:
+            stages = sorted({f["stage"] for f in frames})
+            raise SystemExit(f"no frame of stage {args.stage!r}; stages: {stages}")
+        frame = mean_frame(chosen)
+        print(f"# the mean of {len(chosen)} frames, steps {chosen[0]['step']}–{chosen[-1]['step']}")
     else:
         frame = frames[args.frame]
     names = args.quantity or ["shear_rate"]
@@ -140,10 +196,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         fig, ax = plt.subplots(figsize=(4.5, 4.0))
         for name in names:
-            c, v = profile(frame, name, args.profile, args.min_solid)
+            c, v = profile(frame, name, args.profile, args.min_solid, args.within)
             print(f"# {name} along {args.profile}: {head}")
             for ci, vi in zip(c, v, strict=True):
                 print(f"{ci:.6g} {vi:.6g}")
+            if args.band:
+                b10, b50, b90 = band(c, v, args.band)
+                print(f"# band: 10 % at {b10:.5g}, 50 % at {b50:.5g}, 90 % at {b90:.5g} m; "
+                      f"10–90 % width {b90 - b10:.4g} m")  # fmt: skip
             if args.profile == "z":
                 ax.plot(v, c, ".-", label=name)
             else:
@@ -156,10 +216,13 @@ def main(argv: list[str] | None = None) -> int:
         for ax, name in zip(axes[0], names, strict=True):
             x, z, v = section(frame, name, args.at)
             pos = v[np.isfinite(v) & (v > 0)]
+            finite = v[np.isfinite(v)]
+            top = float(np.percentile(finite, args.clip)) if finite.size else None
             norm = None
             if args.log and pos.size:
-                norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-3), vmax=pos.max())
-            im = ax.pcolormesh(x, z, v, shading="nearest", cmap="viridis", norm=norm)
+                norm = LogNorm(vmin=max(pos.min(), top * 1e-3), vmax=top)
+            kw = {} if norm is not None else {"vmax": top}
+            im = ax.pcolormesh(x, z, v, shading="nearest", cmap="viridis", norm=norm, **kw)
             ax.set_aspect("equal")
             ax.set_xlabel("x [m]")
             ax.set_ylabel("z [m]")
