@@ -64,3 +64,45 @@ TRIAXIAL_SMALL_PACKED = [
     "--set",
     "particles.0={source = 'file', material = 'glass', path = 'triaxial_small_packing.txt'}",
 ]
+
+
+def settling_bed(top: float, steps: int, output: str, seed: int = 3, friction: float = 0.4) -> str:
+    """600 glass grains (radii 0.45–0.55 mm) filled at random below ``top`` [m] in a 20 × 20 × 40 mm
+    rigid box, falling under gravity for ``steps`` steps of 2e-5 s; ``output``: the deck's
+    ``[output]`` section (its lines after the header)."""
+    return f"""\
+title = "a settling bed"
+[run]
+gravity = [0.0, 0.0, -9.81]
+seed = {seed}
+dt = 2e-5
+[contact]
+law = "hertz_mindlin"
+[materials.glass]
+density = 2500.0
+youngs_modulus = 1e7
+poisson_ratio = 0.3
+restitution = 0.5
+friction = {friction}
+[materials.wall]
+rigid = true
+friction = 0.3
+[[particles]]
+source = "random_fill"
+material = "glass"
+region = {{ type = "box", lo = [0.0, 0.0, 0.0], hi = [0.02, 0.02, {top}] }}
+sizes = {{ type = "uniform", r_min = 0.00045, r_max = 0.00055 }}
+n = 600
+[boundaries.box]
+type = "box"
+material = "wall"
+lo = [0.0, 0.0, 0.0]
+hi = [0.02, 0.02, 0.04]
+[[stages]]
+name = "settle"
+[stages.end]
+steps = {steps}
+[output]
+{output.strip()}
+"""
+

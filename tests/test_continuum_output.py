@@ -14,6 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from decks import settling_bed
 
 from pdem.deck import validate_deck
 from pdem.errors import DeckError
@@ -24,40 +25,10 @@ MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shut
 PVPYTHON = shutil.which("pvpython")
 XVFB = shutil.which("xvfb-run")
 
-DECK = textwrap.dedent(
-    """
-    title = "continuum fields of a settling bed"
-    [run]
-    gravity = [0.0, 0.0, -9.81]
-    seed = 3
-    dt = 2e-5
-    [contact]
-    law = "hertz_mindlin"
-    [materials.glass]
-    density = 2500.0
-    youngs_modulus = 1e7
-    poisson_ratio = 0.3
-    restitution = 0.5
-    friction = 0.4
-    [materials.wall]
-    rigid = true
-    friction = 0.3
-    [[particles]]
-    source = "random_fill"
-    material = "glass"
-    region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.02, 0.02, 0.03] }
-    sizes = { type = "uniform", r_min = 0.00045, r_max = 0.00055 }
-    n = 600
-    [boundaries.box]
-    type = "box"
-    material = "wall"
-    lo = [0.0, 0.0, 0.0]
-    hi = [0.02, 0.02, 0.04]
-    [[stages]]
-    name = "settle"
-    [stages.end]
-    steps = 600
-    [output]
+DECK = settling_bed(
+    0.03,
+    600,
+    textwrap.dedent("""
     every_steps = 200
     checkpoint_every_steps = 200
     [output.continuum.bed]
@@ -73,7 +44,7 @@ DECK = textwrap.dedent(
     width = 0.003
     quantities = ["density", "stress", "velocity"]
     every_steps = 100
-    """
+    """),
 )
 
 
@@ -131,8 +102,10 @@ def test_files_and_frames(serial_run):
     assert [f["since"] for f in bed] == pytest.approx([0.0, 0.001, 0.005, 0.009])
     with h5py.File(out / "continuum_coarse.h5", "r") as f:
         assert f.attrs["kernel"] == "lucy" and f.attrs["width"] == 0.003
-        batches = list(f["batches"].values())  # frames stacked per write: one before each checkpoint
-        assert [len(g.attrs["numbers"]) for g in batches] == [3, 2, 2]  # steps 0–200, 300–400, 500–600
+        batches = list(f["batches"].values())  # frames stacked per write: written before each checkpoint
+        assert sum(len(g.attrs["numbers"]) for g in batches) == 7
+        for g in batches:  # (and every 2 s of wall time): no batch spans a checkpoint (every 200 steps)
+            assert len({max(int(step) - 1, 0) // 200 for step in g.attrs["table"][:, 2]}) == 1
         assert all(g["stress"].shape[1:] == (4, 2, 3, 9) for g in batches)  # ParaView's order: x fastest
     with h5py.File(out / "continuum_bed.h5", "r") as f:  # default width: the mean diameter
         assert 0.0009 < f.attrs["width"] < 0.0011

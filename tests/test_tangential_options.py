@@ -9,10 +9,10 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
+from decks import settling_bed
 
 from pdem.io.checkpoint import read_checkpoint
 
@@ -22,43 +22,8 @@ from determinism import compare  # noqa: E402
 
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
 
-DECK = textwrap.dedent(
-    """
-    title = "a settling bed with Mindlin-type tangential history"
-    [run]
-    gravity = [0.0, 0.0, -9.81]
-    seed = 5
-    dt = 2e-5
-    [contact]
-    law = "hertz_mindlin"
-    [materials.glass]
-    density = 2500.0
-    youngs_modulus = 1e7
-    poisson_ratio = 0.3
-    restitution = 0.5
-    friction = 0.5
-    [materials.wall]
-    rigid = true
-    friction = 0.4
-    [[particles]]
-    source = "random_fill"
-    material = "glass"
-    region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.02, 0.02, 0.012] }
-    sizes = { type = "uniform", r_min = 0.00045, r_max = 0.00055 }
-    n = 600
-    [boundaries.box]
-    type = "box"
-    material = "wall"
-    lo = [0.0, 0.0, 0.0]
-    hi = [0.02, 0.02, 0.04]
-    [[stages]]
-    name = "settle"
-    [stages.end]
-    steps = 5000
-    [output]
-    every_steps = 2500
-    checkpoint_every_steps = 2500
-    """
+DECK = settling_bed(
+    0.012, 5000, "every_steps = 2500\ncheckpoint_every_steps = 2500", seed=5, friction=0.5
 )
 
 

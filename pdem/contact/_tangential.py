@@ -41,33 +41,14 @@ def tangential_spring_values(sx, sy, sz, nx, ny, nz, vtx, vty, vtz, k_t, c_t, fc
     contacts held in columns vectorizes (DEM-P's Hertz–Mindlin pair loop); the values are those of
     the branching form, bit for bit (a zero-length spring or tangent gives inf or nan in a product
     that is never selected)."""
-    old2 = sx * sx + sy * sy + sz * sz
-    sn = sx * nx + sy * ny + sz * nz
-    px = sx - sn * nx
-    py = sy - sn * ny
-    pz = sz - sn * nz
-    new2 = px * px + py * py + pz * pz
-    scale = math.sqrt(old2 / new2)
-    turn = old2 > 0.0
-    stretch = turn & (new2 > 0.0)
-    ux = (px * scale if stretch else px) if turn else sx
-    uy = (py * scale if stretch else py) if turn else sy
-    uz = (pz * scale if stretch else pz) if turn else sz
+    ux, uy, uz = _onto_tangent_plane(sx, sy, sz, nx, ny, nz)
     ux += vtx * dt
     uy += vty * dt
     uz += vtz * dt
     ftx = -k_t * ux - c_t * vtx
     fty = -k_t * uy - c_t * vty
     ftz = -k_t * uz - c_t * vtz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
-    cap = ft2 > fcap * fcap
-    s = fcap / math.sqrt(ft2)
-    gx = ftx * s
-    gy = fty * s
-    gz = ftz * s
-    ox = gx if cap else ftx
-    oy = gy if cap else fty
-    oz = gz if cap else ftz
+    cap, gx, gy, gz, ox, oy, oz = _coulomb_cap(ftx, fty, ftz, fcap)
     ux = -gx / k_t if cap else ux
     uy = -gy / k_t if cap else uy
     uz = -gz / k_t if cap else uz
@@ -98,6 +79,33 @@ def tangential_mindlin_values(
     sx = sx * f if shrink else sx
     sy = sy * f if shrink else sy
     sz = sz * f if shrink else sz
+    ux, uy, uz = _onto_tangent_plane(sx, sy, sz, nx, ny, nz)
+    # the increment: of the spring (v_t dt) or of the elastic force (−k_t v_t dt)
+    gain = -k_t * dt if force else dt
+    ux += vtx * gain
+    uy += vty * gain
+    uz += vtz * gain
+    ex = ux if force else -k_t * ux
+    ey = uy if force else -k_t * uy
+    ez = uz if force else -k_t * uz
+    ftx = ex - c_t * vtx
+    fty = ey - c_t * vty
+    ftz = ez - c_t * vtz
+    cap, gx, gy, gz, ox, oy, oz = _coulomb_cap(ftx, fty, ftz, fcap)
+    # at the cap the elastic part carries the Coulomb force alone
+    hx = gx if force else -gx / k_t
+    hy = gy if force else -gy / k_t
+    hz = gz if force else -gz / k_t
+    ux = hx if cap else ux
+    uy = hy if cap else uy
+    uz = hz if cap else uz
+    return ox, oy, oz, ux, uy, uz, a
+
+
+@njit(inline="always")
+def _onto_tangent_plane(sx, sy, sz, nx, ny, nz):
+    """The history vector rotated onto the plane normal to n, keeping its length (branch-free: a
+    zero vector or a zero projection keeps the vector as it is)."""
     old2 = sx * sx + sy * sy + sz * sz
     sn = sx * nx + sy * ny + sz * nz
     px = sx - sn * nx
@@ -110,17 +118,12 @@ def tangential_mindlin_values(
     ux = (px * scale if stretch else px) if turn else sx
     uy = (py * scale if stretch else py) if turn else sy
     uz = (pz * scale if stretch else pz) if turn else sz
-    # the increment: of the spring (v_t dt) or of the elastic force (−k_t v_t dt)
-    gain = -k_t * dt if force else dt
-    ux += vtx * gain
-    uy += vty * gain
-    uz += vtz * gain
-    ex = ux if force else -k_t * ux
-    ey = uy if force else -k_t * uy
-    ez = uz if force else -k_t * uz
-    ftx = ex - c_t * vtx
-    fty = ey - c_t * vty
-    ftz = ez - c_t * vtz
+    return ux, uy, uz
+
+
+@njit(inline="always")
+def _coulomb_cap(ftx, fty, ftz, fcap):
+    """The trial force F against the cap ``fcap``: (capped?, F scaled to the cap, the force)."""
     ft2 = ftx * ftx + fty * fty + ftz * ftz
     cap = ft2 > fcap * fcap
     s = fcap / math.sqrt(ft2)
@@ -130,11 +133,4 @@ def tangential_mindlin_values(
     ox = gx if cap else ftx
     oy = gy if cap else fty
     oz = gz if cap else ftz
-    # at the cap the elastic part carries the Coulomb force alone
-    hx = gx if force else -gx / k_t
-    hy = gy if force else -gy / k_t
-    hz = gz if force else -gz / k_t
-    ux = hx if cap else ux
-    uy = hy if cap else uy
-    uz = hz if cap else uz
-    return ox, oy, oz, ux, uy, uz, a
+    return cap, gx, gy, gz, ox, oy, oz
