@@ -208,6 +208,7 @@ def test_paraview_opens_the_index(serial_run, tmp_path):
         ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "width": -1.0}, "width", "> 0"),
         ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "kernel": "tophat"}, "kernel", "gaussian"),
         ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "spacing": 0.1}, "spacing", "unknown"),
+        ({"lo": [0, 0, 0], "hi": [0.1, 0.1, 0.1], "counts": [2, 2, 2], "width": 0.5}, "width", "10 times"),
     ],
 )  # fmt: skip
 def test_deck_errors_name_the_key(table, key, words):

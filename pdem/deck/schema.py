@@ -1015,6 +1015,19 @@ class ContinuumSpec(_DeckModel):
             bad = [a for a, lo_c, hi_c in zip("xyz", lo, hi, strict=True) if hi_c <= lo_c]
             if bad:
                 out.append((("hi",), f"hi = {list(hi)} must exceed lo = {list(lo)} along {', '.join(bad)}"))
+        width = data.get("width")
+        if _is_vec3(lo) and _is_vec3(hi) and isinstance(width, float) and width > 0:
+            side = max(h - low for low, h in zip(lo, hi, strict=True))
+            reach = width * (data.get("cutoff", 3.0) if data.get("kernel", "gaussian") == "gaussian" else 1.0)
+            if side > 0 and reach > 10 * side:
+                out.append(
+                    (
+                        ("width",),
+                        f"width = {width!r} m reaches {reach:.3g} m, more than 10 times the grid's largest "
+                        f"side ({side:.3g} m): every node would average the same grains, at a cost of "
+                        "every node times every grain; give a width of about a grain diameter",
+                    )
+                )
         counts = data.get("counts")
         if isinstance(counts, list) and all(isinstance(c, int) and not isinstance(c, bool) for c in counts):
             if len(counts) != 3 or min(counts, default=0) < 1:
