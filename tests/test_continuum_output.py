@@ -293,3 +293,30 @@ def test_field_pictures_tool_draws_and_profiles(serial_run, tmp_path, capsys):
     np.testing.assert_allclose(phi, frame["solid_fraction"].mean(axis=(0, 1)))
     with pytest.raises(SystemExit, match="fabric"):
         field_pictures.main([str(out), "coarse", "-q", "fabric.zz", "-o", str(tmp_path / "x.png")])
+
+
+def test_default_width_waits_for_grains(tmp_path):
+    """Without a width the kernel is one mean grain diameter: before any grain exists (a later
+    stage's source) no frame is written, and the first frame after the grains arrive takes it."""
+    import pdem
+    from pdem.deck.schema import ContinuumSpec
+    from pdem.io.continuum import ContinuumWriter
+    from pdem.parallel.comm import SerialComm
+
+    sim = pdem.Simulation()
+    sim.add_material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.5,
+                     friction=0.4)  # fmt: skip
+    sim.dt = 1e-5
+    spec = ContinuumSpec(lo=[0, 0, 0], hi=[0.01, 0.01, 0.01], counts=[2, 2, 2], average_every_steps=5)
+    w = ContinuumWriter(tmp_path, "g", spec, comm=SerialComm())
+    w.sample(sim)
+    w.write(sim, "empty")
+    assert w.last_step is None and w.width is None
+    x = (np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * 3e-3
+    sim.add_particles(x, np.linspace(0.4e-3, 0.6e-3, len(x)))
+    sim.run(steps=10)
+    w.write(sim, "full")
+    w.close()
+    frames = read_continuum(tmp_path, "g")
+    assert [(f["step"], f["stage"], f["samples"]) for f in frames] == [(10, "full", 1)]
+    assert w.width == pytest.approx(1e-3)

@@ -256,7 +256,8 @@ class ContinuumWriter:
         return [frames[k] for k in sorted(frames)], free
 
     # ------------------------------------------------------------------ the fields
-    def _coarse_graining(self, sim) -> CoarseGraining:
+    def _coarse_graining(self, sim) -> CoarseGraining | None:
+        """The grid's coarse graining; None while the default width waits for grains (collective)."""
         if self.cg is None:
             if self.width is None:  # one mean grain diameter, the same bits on any rank count
                 from ..parallel.exact import exact_sum, global_count
@@ -264,11 +265,8 @@ class ContinuumWriter:
                 p = sim.own_particles()
                 n = global_count(self.comm, len(p["r"]))
                 total = exact_sum(self.comm, 2.0 * np.asarray(p["r"], dtype=float))
-                if n == 0:
-                    raise OutputError(
-                        f"output.continuum.{self.name}.width: no grains to take the default width (a mean "
-                        "diameter) from; give width [m]"
-                    )
+                if n == 0:  # e.g. before a later stage's source: no frame until there are grains
+                    return None
                 self.width = total / n
             kern = (
                 GaussianKernel(self.width, self.spec.cutoff)
@@ -286,7 +284,7 @@ class ContinuumWriter:
     def sample(self, sim) -> None:
         """Add the current state to the running time average (collective; ``average_every_steps``)."""
         step = int(sim.step_count)
-        if self._last_sample == step:
+        if self._last_sample == step or self._coarse_graining(sim) is None:
             return
         block, self._first = self._block(sim)
         if self._sum is None:
@@ -303,7 +301,7 @@ class ContinuumWriter:
         ``average_every_steps`` the mean of the samples since the previous frame (this step's
         included)."""
         step = int(sim.step_count)
-        if self.last_step == step:
+        if self.last_step == step or self._coarse_graining(sim) is None:
             return
         time = float(sim.time)
         if self.spec.average_every_steps:
