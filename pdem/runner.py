@@ -525,14 +525,22 @@ class Runner:
         part = None
         if sim.comm.size > 1 and source.partitioned:  # each rank makes its own grains only
             dec = sim.decomposition
+            box = sim.box
             if dec is None or not dec.placed:
                 survey = source.survey(base_dir=args["base_dir"], seed=args["seed"], material=mat)
-                sim.place_decomposition(survey.sample)
+                # (a source may place grains outside a periodic box: they are wrapped into it)
+                sim.place_decomposition(survey.sample if box is None else box.wrapped(survey.sample))
                 dec = sim.decomposition
             # a little wider than the subdomain: positions are snapped to a periodic box's grid
             finite = np.isfinite(dec.sub_hi - dec.sub_lo)
             pad = 1e-9 * np.maximum(np.where(finite, np.abs(dec.sub_hi) + np.abs(dec.sub_lo), 1.0), 1.0)
-            part = produce_part(source, lo=dec.sub_lo - pad, hi=dec.sub_hi + pad, **args)
+            lo, hi = dec.sub_lo - pad, dec.sub_hi + pad
+            if box is not None:  # along a periodic axis the source's own coordinates may be an image
+                bounds = source.bounds()
+                for d in np.flatnonzero(box.periodic):
+                    if bounds is None or bounds[0][d] < box.lo[d] or bounds[1][d] >= box.hi[d]:
+                        lo[d], hi[d] = -np.inf, np.inf
+            part = produce_part(source, lo=lo, hi=hi, **args)
             out = part.output
         else:
             out = produce(source, comm=sim.comm, **args)

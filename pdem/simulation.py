@@ -497,7 +497,8 @@ class Simulation:
                 )
             self.dt = self.dt_fraction * self.dt_critical
         if self._dt is None:
-            dt = self.law.suggested_dt(self.materials, p.r, p.mat, p.mass)
+            # (the smallest over the ranks: a rank may own no particle yet)
+            dt = all_min(self.comm, self.law.suggested_dt(self.materials, p.r, p.mat, p.mass))
             if not math.isfinite(dt):
                 raise InputError("no time step given and none can be estimated without particles; set dt")
             self.dt = dt

@@ -761,3 +761,90 @@ def test_the_file_source_is_partitioned_by_contract(tmp_path, order, fmt):
     source.chunk = 317  # (many chunks, the last one short)
     glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
     check_partitioned(source, base_dir=tmp_path, seed=1, material=glass, pieces=4)
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Random fills in blocks of about 300 spheres (the default block holds 100,000)."""
+    import sys
+
+    import pdem.sources.random_fill  # noqa: F401  (the module; the package exports the function)
+
+    monkeypatch.setattr(sys.modules["pdem.sources.random_fill"], "BLOCK_SPHERES", 300)
+
+
+@pytest.mark.parametrize("region, amount", [
+    ({"type": "box", "lo": [0.0, 0.0, 0.0], "hi": [0.03, 0.02, 0.025]}, {"n": 2000}),
+    ({"type": "box", "lo": [0.0, 0.0, 0.0], "hi": [0.03, 0.027, 0.025]}, {"volume_fraction": 0.2}),
+    ({"type": "cylinder", "base_center": [0.001, 0.002, 0.0], "radius": 0.013, "height": 0.03}, {"n": 2500}),
+    ({"type": "cylinder", "base_center": [0.001, 0.002, 0.0], "radius": 0.013, "height": 0.03},
+     {"volume_fraction": 0.2}),
+])  # fmt: skip
+def test_a_random_fill_in_blocks_is_partitioned_by_contract(small_blocks, region, amount):
+    """A fill larger than a block is made block by block: the spheres do not overlap (brute force
+    over all pairs), lie in the region, number n (or fill the fraction to within a sphere per
+    block), and any box's part is bitwise generate()'s spheres at the indices it names."""
+    import sys
+
+    from pdem.materials import Material
+    from pdem.sources.builtin import RandomFillParams, RandomFillSource
+    from pdem.testing.source_contract import check_partitioned
+
+    params = RandomFillParams.model_validate(
+        {"source": "random_fill", "material": "glass", "region": region,
+         "sizes": {"type": "uniform", "r_min": 0.4e-3, "r_max": 0.6e-3}, **amount}  # fmt: skip
+    )
+    source = RandomFillSource(params)
+    plan = source._plan(3)
+    assert not plan.single and plan.count >= 2, plan.count  # blocks are really used
+    glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
+    out = source.generate(base_dir=Path("."), seed=3, material=glass)
+    x, r = out.positions, out.radii
+    d = np.linalg.norm(x[:, None] - x[None], axis=2) - (r[:, None] + r[None])
+    np.fill_diagonal(d, np.inf)
+    assert d.min() >= 0.0
+    reg = params.region.build()
+    assert reg.contains_spheres(x, r).all()
+    if "n" in amount:
+        assert len(r) == amount["n"]
+    else:
+        filled = float(np.sum(4.0 / 3.0 * np.pi * r**3)) / reg.volume
+        assert abs(filled - 0.2) < plan.count * 4.0 / 3.0 * np.pi * 0.6e-3**3 / reg.volume + 0.01
+    check_partitioned(source, base_dir=Path("."), seed=3, material=glass)
+    assert sys.modules["pdem.sources.random_fill"].BLOCK_SPHERES == 300
+
+
+def test_a_random_fill_of_one_block_is_the_classic_fill(small_blocks):
+    """A fill that fits one block (or a region too small to cut) is random sequential addition
+    from the one stream default_rng(seed), as before blocks existed: redone here by hand."""
+    from pdem.sources import random_fill
+    from pdem.sources.regions import BoxRegion
+    from pdem.sources.sizes import Uniform
+
+    region, sizes = BoxRegion((0, 0, 0), (0.008, 0.008, 0.008)), Uniform(0.4e-3, 0.6e-3)
+    x, r = random_fill(region, sizes, n=250, seed=4)
+    rng = np.random.default_rng(4)
+    radii = np.asarray(sizes.sample(rng, 250))
+    assert np.array_equal(np.sort(r), np.sort(radii))
+    # a 600-sphere fill of a region too narrow for two 10-diameter blocks is one block too
+    x2, r2 = random_fill(BoxRegion((0, 0, 0), (0.008, 0.008, 0.02)), sizes, n=600, seed=4)
+    assert np.array_equal(np.sort(r2), np.sort(np.asarray(sizes.sample(np.random.default_rng(4), 600))))
+
+
+def test_blocks_of_a_fill_leave_no_sphere_across_their_faces(small_blocks):
+    """Each block's spheres lie wholly inside it (that is what lets blocks be made alone)."""
+    import sys
+
+    from pdem.sources.regions import BoxRegion
+    from pdem.sources.sizes import Uniform
+
+    rf = sys.modules["pdem.sources.random_fill"]
+    plan = rf.fill_plan(BoxRegion((0, 0, 0), (0.03, 0.03, 0.02)), Uniform(0.4e-3, 0.6e-3), n=3000, seed=2)
+    assert plan.count >= 4
+    total = 0
+    for b, start, x, r in plan.blocks():
+        lo, hi = plan.bounds(b)
+        assert np.all(x - r[:, None] >= lo) and np.all(x + r[:, None] <= hi), b
+        assert start == total
+        total += len(r)
+    assert total == 3000 == plan.total()

@@ -316,6 +316,46 @@ class RandomFillSource(Source):
         )
         return SourceOutput(x, r)
 
+    def _plan(self, seed: int):
+        from .random_fill import fill_plan
+
+        p = self.params
+        return fill_plan(p.region.build(), p.sizes.build(), n=p.n, volume_fraction=p.volume_fraction,
+                         seed=seed, gap=p.gap)  # fmt: skip
+
+    #: a fill of more than BLOCK_SPHERES spheres is made in blocks: each rank makes those over its
+    #: subdomain, and surveys the others one at a time (a fill of one block is made whole)
+    partitioned = True
+
+    def survey(self, *, base_dir: Path, seed: int, material: Material) -> Survey:
+        plan = self._plan(seed)
+        sampler, r_max = Sampler(), 0.0
+        if plan.single:
+            x, r = plan.fill_single()
+            sampler.add(x)
+            return sampler.survey(float(r.max()) if r.shape[0] else 0.0)
+        for _, _, x, r in plan.blocks():
+            sampler.add(x)
+            if r.shape[0]:
+                r_max = max(r_max, float(r.max()))
+        return sampler.survey(r_max)
+
+    def generate_part(self, *, base_dir: Path, seed: int, material: Material, lo, hi) -> SourcePart:
+        plan = self._plan(seed)
+        if plan.single:
+            x, r = plan.fill_single()
+            return SourcePart(SourceOutput(x, r), np.arange(r.shape[0], dtype=np.int64), r.shape[0])
+        xs, rs, index = [], [], []
+        for _, start, x, r in plan.blocks(lo, hi):
+            inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))
+            xs.append(x[inside])
+            rs.append(r[inside])
+            index.append(start + inside)
+        x = np.concatenate(xs).reshape(-1, 3) if xs else np.zeros((0, 3))
+        r = np.concatenate(rs) if rs else np.zeros(0)
+        idx = np.concatenate(index).astype(np.int64) if index else np.zeros(0, np.int64)
+        return SourcePart(SourceOutput(x, r), idx, plan.total())
+
 
 class LatticeSource(Source):
     """``source = "lattice"``: :func:`pdem.sources.simple_cubic`, ``fcc``, ``hcp`` or ``hex2d``."""
