@@ -55,3 +55,34 @@ def test_compare_refuses_missing_series_and_mismatched_labels(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert cone_drop_series.main(["--compare", str(p), "--labels", "A", "B", "--out", str(tmp_path)]) == 2
     assert "--labels" in capsys.readouterr().err
+
+
+def test_the_bed_size_study_writes_decks_pdem_accepts(tmp_path):
+    """tools/drop_bed_size.py: the bed deck (random fill, settle to a kinetic energy per bead) and
+    the drop deck (inputs/cone_drop.toml reading the bed's packing, its box as wide as the bed) are
+    valid decks; the drop deck's box and settle threshold follow the bed."""
+    import tomllib
+
+    import drop_bed_size as tool
+
+    from pdem.cli import main as pdem
+    from pdem.sources import write_spheres_text
+
+    half = 0.04
+    bed = tmp_path / "bed.txt"
+    x = np.array([[0.0, 0.0, 0.0015], [0.004, 0.0, 0.0015]])
+    write_spheres_text(bed, x, np.full(2, tool.R_BEAD))
+    deck = tmp_path / "drop.toml"
+    deck.write_text(tool.drop_deck(bed, 2 * half, 2))
+    parsed = tomllib.loads(deck.read_text())
+    assert parsed["particles"][0] == {"source": "file", "material": "bead", "path": "bed.txt"}
+    assert parsed["boundaries"]["box"]["lo"][:2] == [-half, -half]
+    assert parsed["boundaries"]["box"]["hi"][:2] == [half, half]
+    assert parsed["stages"][0]["end"]["kinetic_energy_below"] == 2 * tool.REST_ENERGY_PER_BEAD
+    assert pdem(["check", str(deck)]) == 0
+    bed_deck = tmp_path / "bed.toml"
+    bed_deck.write_text(tool.BED_DECK.format(
+        width=0.1, depth=0.06, seed=1, lo=-0.05, hi=0.05, fill_top=0.144, box_top=0.18, r=tool.R_BEAD,
+        rest=1e-6,
+    ))  # fmt: skip
+    assert pdem(["check", str(bed_deck), "--deck-only"]) == 0

@@ -1,0 +1,256 @@
+#!/usr/bin/env python
+"""Does the drop bed set the answer? Drop the ball on a bed and on one twice as wide and deep.
+
+    python tools/drop_bed_size.py [--width 0.1] [--depth 0.06] [--heights 0.02 0.05 0.1 0.3]
+                                  [--ranks 2] [--out out/drop_bed] [--set KEY=VALUE ...]
+                                  [--beds 1 2]
+
+For each bed scale s in ``--beds`` (1: the given width and depth; 2: both doubled):
+
+1. **Bed.** A deck (written to ``OUT/bed_s<s>/bed.toml``) fills a box ``s·width`` square at random
+   with the 3 mm beads of ``inputs/cone_drop.toml`` (same material), at a solid fraction of 0.25 up
+   to 2.4 × ``s·depth`` (which settles to about ``s·depth``), lets them fall and settle until
+   their kinetic energy is below 3e-11 J per bead (about 1.3 mm/s each), and the settled bed is
+   written as a packing file ``OUT/bed_s<s>/bed.txt``. Both beds are made the same way.
+2. **Drops.** ``inputs/cone_drop.toml`` with its particles read from that file, its box the bed's,
+   and its settle stage ending at the same kinetic energy per bead, is dropped from each height
+   with :mod:`tools.cone_drop_series` (1-inch sphere, ``--tips sphere``), into ``OUT/drops_s<s>``.
+
+With ``--carve S``, the first bed is not filled on its own but cut out of the bed of scale S
+(its central ``width`` square and its top ``depth`` + 8 %, the grains wholly inside; lowered onto
+the floor), so that both beds have the same surface packing and only the walls and the floor
+differ: what then changes the depth is the bed's size, not how it was made.
+
+Finished steps are kept (a bed whose packing exists, a drop whose ``summary.json`` exists), so the
+study can be stopped and started again. Last, ``OUT/bed_size.csv`` gives, for each height, the
+final depth on each bed and the change from the first bed to the others, and ``OUT/bed_size.json``
+the power-law fits d = A (H + d)^n of each bed. Extra ``--set``s go to the drops (e.g.
+``contact.law=complementarity``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+R_BEAD = 0.0015  # m, the drop deck's beads
+BEAD_MASS = 2500.0 * 4.0 / 3.0 * math.pi * R_BEAD**3
+REST_ENERGY_PER_BEAD = 3e-11  # J: 1/2 m v² at v ≈ 1.3 mm/s
+
+BED_DECK = """\
+# A drop bed, made by tools/drop_bed_size.py: 3 mm beads filled at random and settled.
+title = "Drop bed {width:.3g} x {width:.3g} m, {depth:.3g} m deep"
+
+[run]
+gravity = [0.0, 0.0, -9.81]
+seed = {seed}
+
+[contact]
+law = "hertz_mindlin"
+
+[contact.hertz_mindlin]
+dt = 1.0e-5
+
+[materials.bead]
+density = 2500.0
+youngs_modulus = 1.0e8
+poisson_ratio = 0.3
+restitution = 0.1
+friction = 0.3
+
+[materials.steel]
+rigid = true
+friction = 0.3
+
+[[particles]]
+source = "random_fill"
+material = "bead"
+region = {{ type = "box", lo = [{lo}, {lo}, 0.0], hi = [{hi}, {hi}, {fill_top}] }}
+sizes = {{ type = "single", radius = {r} }}
+volume_fraction = 0.25
+
+[boundaries.box]
+type = "box"
+material = "steel"
+lo = [{lo}, {lo}, 0.0]
+hi = [{hi}, {hi}, {box_top}]
+open_faces = ["zhi"]
+
+[[stages]]
+name = "settle"
+[stages.end]
+kinetic_energy_below = {rest}
+max_time = 3.0
+check_every = 500
+
+[output]
+formats = ["hdf5"]
+every_time = 0.1
+series_every_steps = 500
+checkpoint_every_steps = 20000
+"""
+
+
+def bead_count(path: Path) -> int:
+    with open(path) as fh:
+        return sum(1 for line in fh if line.strip() and not line.lstrip().startswith("#")) - 1
+
+
+def drop_deck(bed: Path, width: float, n: int) -> str:
+    """inputs/cone_drop.toml with its particles read from ``bed`` and its box ``width`` wide."""
+    text = (ROOT / "inputs" / "cone_drop.toml").read_text()
+    deck = tomllib.loads(text)
+    start = text.index("[[particles]]")
+    end = text.index("[boundaries.box]")
+    table = f'[[particles]]\nsource = "file"\nmaterial = "bead"\npath = "{bed.name}"\n\n'
+    text = text[:start] + table + text[end:]
+    old_box = deck["boundaries"]["box"]
+    half = width / 2.0
+    text = text.replace(f"lo = {_toml_list(old_box['lo'])}", f"lo = [{-half!r}, {-half!r}, 0.0]", 1)
+    text = text.replace(f"hi = {_toml_list(old_box['hi'])}", f"hi = [{half!r}, {half!r}, 0.3]", 1)
+    rest = f"kinetic_energy_below = {REST_ENERGY_PER_BEAD * n!r}"
+    text, k = re.subn(r"(?m)^kinetic_energy_below = \S+", rest, text, count=1)
+    if k != 1:
+        raise SystemExit("drop_bed_size.py: inputs/cone_drop.toml's settle stage has no kinetic_energy_below")
+    return text
+
+
+def _toml_list(values) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def run(cmd: list[str], cwd: Path | None = None) -> None:
+    print("$", " ".join(cmd), flush=True)
+    code = subprocess.call(cmd, cwd=cwd)
+    if code != 0:
+        raise SystemExit(f"drop_bed_size.py: the command above failed with exit code {code}")
+
+
+def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int) -> Path:
+    """The settled bed's packing file (made once)."""
+    from pdem.io.checkpoint import read_checkpoint
+    from pdem.sources import write_spheres_text
+
+    packing = out / "bed.txt"
+    if packing.exists():
+        return packing
+    out.mkdir(parents=True, exist_ok=True)
+    half = width / 2.0
+    n_est = 0.6 * width * width * depth / (4.0 / 3.0 * math.pi * R_BEAD**3)
+    deck = BED_DECK.format(
+        width=width, depth=depth, seed=seed, lo=repr(-half), hi=repr(half), fill_top=repr(2.4 * depth),
+        box_top=repr(3.0 * depth), r=repr(R_BEAD), rest=repr(REST_ENERGY_PER_BEAD * n_est),
+    )  # fmt: skip
+    (out / "bed.toml").write_text(deck)
+    head = ["mpiexec", "-n", str(ranks)] if ranks > 1 else []
+    exe = str(Path(sys.executable).parent / "pdem")
+    if ranks > 1:
+        head[0] = str(Path(sys.executable).parent / "mpiexec")
+    run([*head, exe, str(out / "bed.toml"), "--output", str(out / "run"), "--overwrite"])
+    state, _ = read_checkpoint(out / "run" / "checkpoints" / "latest.h5")
+    x, r = state["particles/x"], state["particles/r"]
+    tmp = packing.with_suffix(".tmp")
+    write_spheres_text(tmp, x, r)
+    tmp.replace(packing)
+    top = float(np.max(x[:, 2] + r))
+    print(f"bed: {len(r)} beads, highest bead top {top:.4f} m", flush=True)
+    return packing
+
+
+def carve_bed(out: Path, source: Path, width: float, depth: float) -> Path:
+    """The bed cut out of the packing ``source``: grains wholly inside the central ``width`` square
+    and within 1.08 ``depth`` of its top (the fill's beds settle about 8 % above ``depth``),
+    lowered so that the lowest touches the floor."""
+    from pdem.sources import read_spheres, write_spheres_text
+
+    packing = out / "bed.txt"
+    if packing.exists():
+        return packing
+    out.mkdir(parents=True, exist_ok=True)
+    d = read_spheres(source)
+    x, r = d["positions"], d["radii"]
+    top = float(np.max(x[:, 2] + r))
+    half = width / 2.0
+    keep = (
+        (np.abs(x[:, 0]) + r <= half) & (np.abs(x[:, 1]) + r <= half) & (x[:, 2] - r >= top - 1.08 * depth)
+    )
+    x, r = x[keep].copy(), r[keep]
+    x[:, 2] -= float(np.min(x[:, 2] - r))
+    tmp = packing.with_suffix(".tmp")
+    write_spheres_text(tmp, x, r)
+    tmp.replace(packing)
+    print(f"bed carved from {source}: {len(r)} beads, top {float(np.max(x[:, 2] + r)):.4f} m", flush=True)
+    return packing
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--width", type=float, default=0.1, help="the first bed's width [m]")
+    ap.add_argument("--depth", type=float, default=0.06, help="the first bed's depth [m] (about)")
+    ap.add_argument("--heights", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.3], help="H [m]")
+    ap.add_argument("--beds", type=int, nargs="+", default=[1, 2], help="bed scales (1: as given)")
+    ap.add_argument("--ranks", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=Path("out") / "drop_bed")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--carve", type=int, default=None, metavar="S",
+                    help="cut the first bed out of the bed of scale S (made first) instead of "
+                    "filling it")  # fmt: skip
+    args = ap.parse_args(argv)
+    if args.carve is not None and args.carve not in args.beds[1:]:
+        ap.error(f"--carve {args.carve}: the scale to carve from must be one of the later --beds")
+    out = args.out.resolve()
+    fits, depths = {}, {}
+    order = [args.carve, *[b for b in args.beds if b != args.carve]] if args.carve else args.beds
+    for s in order:
+        width, depth = s * args.width, s * args.depth
+        if args.carve and s == args.beds[0]:
+            source = out / f"bed_s{args.carve}" / "bed.txt"
+            bed = carve_bed(out / f"bed_s{s}_carved", source, width, depth)
+        else:
+            bed = make_bed(out / f"bed_s{s}", width, depth, args.ranks, args.seed)
+        n = bead_count(bed)
+        deck = bed.parent / "drop.toml"
+        deck.write_text(drop_deck(bed, width, n))
+        series = out / f"drops_{bed.parent.name.removeprefix('bed_')}"
+        cmd = [sys.executable, str(ROOT / "tools" / "cone_drop_series.py"), str(deck), "--tips", "sphere",
+               "--heights", *map(str, args.heights), "--ranks", str(args.ranks),
+               "--out", str(series)]  # fmt: skip
+        for o in args.overrides:
+            cmd += ["--set", o]
+        run(cmd)
+        result = json.loads((series / "drop_series.json").read_text())
+        fits[s] = {"beads": n, "width": width, "depth": depth, **result["fits"]["sphere"]}
+        depths[s] = {round(float(r["H_m"]), 6): float(r["depth_m"]) for r in result["runs"]}
+    first = args.beds[0]
+    rows = []
+    for h in args.heights:
+        row = {"H": h}
+        for s in args.beds:
+            d = depths[s].get(round(h, 6), math.nan)
+            row[f"d_s{s}"] = d
+            if s != first:
+                row[f"change_s{s}"] = d / depths[first].get(round(h, 6), math.nan) - 1.0
+        rows.append(row)
+    with open(out / "bed_size.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (out / "bed_size.json").write_text(json.dumps({"beds": fits, "rows": rows}, indent=2))
+    for row in rows:
+        print("  ".join(f"{k} = {v:.4g}" for k, v in row.items()), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
