@@ -526,8 +526,9 @@ class Runner:
         if sim.comm.size > 1 and source.partitioned:  # each rank makes its own grains only
             dec = sim.decomposition
             box = sim.box
+            talk = {"comm": sim.comm} if source.collective else {}  # (a collective source shares its work)
             if dec is None or not dec.placed:
-                survey = source.survey(base_dir=args["base_dir"], seed=args["seed"], material=mat)
+                survey = source.survey(base_dir=args["base_dir"], seed=args["seed"], material=mat, **talk)
                 # (a source may place grains outside a periodic box: they are wrapped into it)
                 sim.place_decomposition(survey.sample if box is None else box.wrapped(survey.sample))
                 dec = sim.decomposition
@@ -540,7 +541,7 @@ class Runner:
                 for d in np.flatnonzero(box.periodic):
                     if bounds is None or bounds[0][d] < box.lo[d] or bounds[1][d] >= box.hi[d]:
                         lo[d], hi[d] = -np.inf, np.inf
-            part = produce_part(source, lo=lo, hi=hi, **args)
+            part = produce_part(source, lo=lo, hi=hi, comm=sim.comm, **args)
             out = part.output
         else:
             out = produce(source, comm=sim.comm, **args)

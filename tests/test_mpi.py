@@ -551,11 +551,16 @@ _POUR_SCRIPT = textwrap.dedent(
     from pdem.sources.sizes import Uniform
     comm = default_comm()
     mat = Material("g", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.1, friction=0.3)
+    sizes = Uniform(0.9e-3, 1.1e-3)
+    if sys.argv[1] == "blocks":  # a fill of several blocks (of about 300 spheres) to pour from
+        import pdem.sources.random_fill
+        sys.modules["pdem.sources.random_fill"].BLOCK_SPHERES = 300
+        sizes = Uniform(0.45e-3, 0.55e-3)
     if sys.argv[1] == "cylinder":
         container = CylinderRegion((0.001, -0.002, 0.0), 0.008, 0.05)
     else:
         container = BoxRegion((0.0, 0.0, 0.0), (0.012, 0.009, 0.05))
-    x, r = pluviate(container, Uniform(0.9e-3, 1.1e-3), int(sys.argv[2]), mat, seed=3, comm=comm)
+    x, r = pluviate(container, sizes, int(sys.argv[2]), mat, seed=3, comm=comm)
     line = hashlib.sha256(x.tobytes() + r.tobytes()).hexdigest() + f" {len(r)}"
     lines = comm.allgather(line)
     if comm.rank == 0:
@@ -566,11 +571,13 @@ _POUR_SCRIPT = textwrap.dedent(
 
 @pytest.mark.parametrize(
     "container,n,ranks",
-    [("cylinder", 300, 2), pytest.param("box", 400, 3, marks=pytest.mark.integration)],
-)
+    [("cylinder", 300, 2), pytest.param("box", 400, 3, marks=pytest.mark.integration),
+     pytest.param("blocks", 1500, 2, marks=pytest.mark.integration)],
+)  # fmt: skip
 def test_pour_shared_over_ranks_is_the_serial_pour(tmp_path, container, n, ranks):
     """A pour (``source = "pluviate"``) runs as one MPI simulation over the run's ranks: every rank
-    gets the whole packing, bitwise the packing of the serial pour (the same script on one rank)."""
+    gets the whole packing, bitwise the packing of the serial pour (the same script on one rank);
+    also when its loose fill is made in blocks, each rank making its own."""
     script = tmp_path / "pour.py"
     script.write_text(_POUR_SCRIPT)
     out = {}

@@ -348,3 +348,29 @@ def test_a_random_fill_made_in_blocks_runs_bitwise_as_serially(tmp_path, ranks):
     parts, _ = read_checkpoint(checkpoints(tmp_path / "parts") / "latest.h5")
     assert serial["particles/id"].shape[0] == 1500
     assert compare(serial, parts) is None
+
+
+POUR_TABLE = """source = "pluviate"
+material = "glass"
+region = { type = "cylinder", base_center = [0.002, 0.002, 0.0], radius = 0.006, height = 0.02 }
+sizes = { type = "uniform", r_min = 0.45e-3, r_max = 0.55e-3 }
+n = 400
+"""
+POUR_DECK = TINY_LATTICE.replace(LATTICE_TABLE, POUR_TABLE)
+
+
+@pytest.mark.parametrize("ranks", [2, pytest.param(3, marks=pytest.mark.integration)])
+def test_a_pour_shared_over_ranks_never_gathers_and_runs_bitwise_as_serially(tmp_path, ranks):
+    """400 beads poured (one MPI pour over the run's ranks): the settled packing stays spread over
+    the ranks that poured it, each rank is handed the beads in its own subdomain (no rank reserves
+    storage for all 400, nothing gathers by id), and the run is bitwise the serial one."""
+    (tmp_path / "deck.toml").write_text(POUR_DECK)
+    serial_script = _LARGEST.replace("= refuse", "= comm.gather_by_id")
+    pdem(tmp_path, 1, "serial", "deck.toml", "--output", "serial", script=serial_script)
+    pdem(tmp_path, ranks, "parts", "deck.toml", "--output", "parts", script=_LARGEST)
+    sizes = [json.loads((tmp_path / f"parts.{k}").read_text()) for k in range(ranks)]
+    assert 0 < max(sizes) < 400, sizes
+    serial, _ = read_checkpoint(checkpoints(tmp_path / "serial") / "latest.h5")
+    parts, _ = read_checkpoint(checkpoints(tmp_path / "parts") / "latest.h5")
+    assert serial["particles/id"].shape[0] == 400
+    assert compare(serial, parts) is None

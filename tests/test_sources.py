@@ -814,6 +814,24 @@ def test_a_random_fill_in_blocks_is_partitioned_by_contract(small_blocks, region
     assert sys.modules["pdem.sources.random_fill"].BLOCK_SPHERES == 300
 
 
+def test_a_random_fill_of_one_block_is_partitioned_by_contract():
+    """A fill of one block (the default block holds 100,000 spheres) is made whole on each rank
+    and cut: the contract holds there too."""
+    from pdem.materials import Material
+    from pdem.sources.builtin import RandomFillParams, RandomFillSource
+    from pdem.testing.source_contract import check_partitioned
+
+    params = RandomFillParams.model_validate(
+        {"source": "random_fill", "material": "glass", "n": 800,
+         "region": {"type": "cylinder", "base_center": [0.0, 0.0, 0.0], "radius": 0.01, "height": 0.02},
+         "sizes": {"type": "uniform", "r_min": 0.4e-3, "r_max": 0.6e-3}}  # fmt: skip
+    )
+    source = RandomFillSource(params)
+    assert source._plan(1).single
+    glass = Material("glass", density=2500.0, youngs_modulus=5e7, poisson_ratio=0.3)
+    check_partitioned(source, base_dir=Path("."), seed=1, material=glass)
+
+
 def test_a_random_fill_of_one_block_is_the_classic_fill(small_blocks):
     """A fill that fits one block (or a region too small to cut) is random sequential addition
     from the one stream default_rng(seed), as before blocks existed: redone here by hand."""
@@ -848,3 +866,21 @@ def test_blocks_of_a_fill_leave_no_sphere_across_their_faces(small_blocks):
         assert start == total
         total += len(r)
     assert total == 3000 == plan.total()
+
+
+def test_the_pour_is_partitioned_by_contract():
+    """A pour (collective, checked on one rank): any box's part is bitwise generate()'s spheres at
+    the indices it names; the survey counts, bounds and samples them."""
+    from pdem.materials import Material
+    from pdem.sources.builtin import PluviateParams, PluviateSource
+    from pdem.testing.source_contract import check_partitioned
+
+    params = PluviateParams.model_validate(
+        {"source": "pluviate", "material": "glass", "n": 200,
+         "region": {"type": "cylinder", "base_center": [0.0, 0.0, 0.0], "radius": 0.006, "height": 0.02},
+         "sizes": {"type": "uniform", "r_min": 0.45e-3, "r_max": 0.55e-3}}  # fmt: skip
+    )
+    source = PluviateSource(params)
+    glass = Material("glass", density=2500.0, youngs_modulus=1e7, poisson_ratio=0.3, restitution=0.1,
+                     friction=0.3)  # fmt: skip
+    check_partitioned(source, base_dir=Path("."), seed=2, material=glass, pieces=2)

@@ -58,8 +58,12 @@ own spheres, so that no rank ever holds them all. Such a class also implements
   each with its ``index`` in ``generate``'s order, and the total count. Every sphere must be
   bitwise the one ``generate`` returns at that index (``pdem.testing.source_contract`` checks it).
 
-Neither may communicate. Sources that are not partitioned are generated on every rank, each keeping
-its own spheres.
+Neither may communicate, unless the class is also ``collective``: then both are given ``comm=``
+and called by every rank together (``survey`` first, then ``generate_part`` with each rank's own
+box; ``generate_part`` may also come without a ``survey`` when an earlier source placed the cut
+planes), so the work may be shared — the pour keeps its settled packing spread over the ranks that
+poured it and hands each rank the spheres in its box. Sources that are not partitioned are
+generated on every rank, each keeping its own spheres.
 """
 
 from __future__ import annotations
@@ -318,15 +322,29 @@ class Source:
 
 
 def produce_part(
-    source: Source, *, base_dir: Path, seed: int, material: Material, lo, hi, where: str = ""
+    source: Source,
+    *,
+    base_dir: Path,
+    seed: int,
+    material: Material,
+    lo,
+    hi,
+    where: str = "",
+    comm: Any = None,
 ) -> SourcePart:
     """Call a partitioned source's ``generate_part`` and check what it returns against the contract
-    (``where`` is named in the error)."""
+    (``where`` is named in the error). ``comm``: the run's communicator, given to a ``collective``
+    source (None: serial)."""
     label = f"particle source '{source.params.source}'" + (f" ({where})" if where else "")
+    kwargs: dict[str, Any] = {}
+    if source.collective:
+        from ..parallel.comm import SerialComm
+
+        kwargs["comm"] = comm if comm is not None else SerialComm()
     try:
         part: Any = source.generate_part(
             base_dir=Path(base_dir), seed=int(seed), material=material,
-            lo=np.asarray(lo, dtype=float), hi=np.asarray(hi, dtype=float),
+            lo=np.asarray(lo, dtype=float), hi=np.asarray(hi, dtype=float), **kwargs,
         )  # fmt: skip
     except PluginError as exc:
         raise PluginError(f"{label}: {exc}") from exc

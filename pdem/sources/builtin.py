@@ -328,33 +328,11 @@ class RandomFillSource(Source):
     partitioned = True
 
     def survey(self, *, base_dir: Path, seed: int, material: Material) -> Survey:
-        plan = self._plan(seed)
-        sampler, r_max = Sampler(), 0.0
-        if plan.single:
-            x, r = plan.fill_single()
-            sampler.add(x)
-            return sampler.survey(float(r.max()) if r.shape[0] else 0.0)
-        for _, _, x, r in plan.blocks():
-            sampler.add(x)
-            if r.shape[0]:
-                r_max = max(r_max, float(r.max()))
-        return sampler.survey(r_max)
+        return self._plan(seed).survey()
 
     def generate_part(self, *, base_dir: Path, seed: int, material: Material, lo, hi) -> SourcePart:
-        plan = self._plan(seed)
-        if plan.single:
-            x, r = plan.fill_single()
-            return SourcePart(SourceOutput(x, r), np.arange(r.shape[0], dtype=np.int64), r.shape[0])
-        xs, rs, index = [], [], []
-        for _, start, x, r in plan.blocks(lo, hi):
-            inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))
-            xs.append(x[inside])
-            rs.append(r[inside])
-            index.append(start + inside)
-        x = np.concatenate(xs).reshape(-1, 3) if xs else np.zeros((0, 3))
-        r = np.concatenate(rs) if rs else np.zeros(0)
-        idx = np.concatenate(index).astype(np.int64) if index else np.zeros(0, np.int64)
-        return SourcePart(SourceOutput(x, r), idx, plan.total())
+        x, r, index, total = self._plan(seed).part(lo, hi)
+        return SourcePart(SourceOutput(x, r), index, total)
 
 
 class LatticeSource(Source):
@@ -560,13 +538,17 @@ class PluviateSource(Source):
         """``n``."""
         return _capacity.fill_count(data, by_fraction=False)
 
-    def generate(self, *, base_dir: Path, seed: int, material: Material, comm: Any = None) -> SourceOutput:
-        from . import pluviate
+    #: under MPI the settled packing stays spread over the ranks that poured it: ``survey`` pours
+    #: (collectively) and keeps the bed, ``generate_part`` hands each rank the spheres in its box
+    partitioned = True
+
+    def _pour(self, seed: int, material: Material, comm: Any):
+        from .pluviation import pour
 
         p = self.params
         if p.friction is not None:
             material = dataclasses.replace(material, friction=p.friction)
-        x, r = pluviate(
+        return pour(
             p.region.build(),
             p.sizes.build(),
             p.n,
@@ -577,4 +559,21 @@ class PluviateSource(Source):
             rest_speed=p.rest_speed,
             comm=comm,
         )
+
+    def generate(self, *, base_dir: Path, seed: int, material: Material, comm: Any = None) -> SourceOutput:
+        x, r = self._pour(seed, material, comm).whole()
         return SourceOutput(x, r)
+
+    def survey(self, *, base_dir: Path, seed: int, material: Material, comm: Any = None) -> Survey:
+        self._bed = (seed, self._pour(seed, material, comm))  # kept for generate_part
+        return self._bed[1].survey()
+
+    def generate_part(
+        self, *, base_dir: Path, seed: int, material: Material, lo, hi, comm: Any = None
+    ) -> SourcePart:
+        kept = getattr(self, "_bed", None)
+        if kept is None or kept[0] != seed:  # (cut planes placed by an earlier source: no survey)
+            kept = self._bed = (seed, self._pour(seed, material, comm))
+        bed = kept[1]
+        x, r, index = bed.part(lo, hi)
+        return SourcePart(SourceOutput(x, r), index, bed.count)

@@ -330,7 +330,7 @@ class BlockPlan:
         ext = self.hi - self.lo
         edge = (region.volume * BLOCK_SPHERES / estimate) ** (1.0 / 3.0)
         smallest = BLOCK_MIN_DIAMETERS * 2.0 * sizes.r_max
-        self.m = np.maximum(np.minimum(np.floor(ext / edge), np.floor(ext / smallest)), 1).astype(np.int64)
+        self.m = np.maximum(np.minimum(np.ceil(ext / edge), np.floor(ext / smallest)), 1).astype(np.int64)
         self.edges = [np.linspace(self.lo[d], self.hi[d], int(self.m[d]) + 1) for d in range(3)]
         self.count = int(np.prod(self.m))
         if self.count == 1:  # (a region too small to cut into blocks that large)
@@ -389,7 +389,13 @@ class BlockPlan:
 
     # ------------------------------------------------------------------ making the spheres
     def fill_single(self):
-        """The whole fill as one block (the classic algorithm, one random stream)."""
+        """The whole fill as one block (the classic algorithm, one random stream); made once per plan
+        (a Generator seed is advanced only then)."""
+        if getattr(self, "_whole", None) is None:
+            self._whole = self._fill_single()
+        return self._whole
+
+    def _fill_single(self):
         region = self.region
         rng = self.seed if isinstance(self.seed, np.random.Generator) else np.random.default_rng(self.seed)
         target = None if self.n is not None else float(self.volume_fraction) * region.volume
@@ -452,3 +458,37 @@ class BlockPlan:
 
     def total(self) -> int:
         return int(self.counts().sum())
+
+    def survey(self):
+        """``(count, lo, hi, r_max, sample)`` of the fill, made one block at a time (a whole fill of one
+        block is made at once), as :class:`pdem.sources.api.Survey` wants them."""
+        from .api import Sampler
+
+        sampler, r_max = Sampler(), 0.0
+        for x, r in ([self.fill_single()] if self.single else (b[2:] for b in self.blocks())):
+            sampler.add(x)
+            if r.shape[0]:
+                r_max = max(r_max, float(r.max()))
+        return sampler.survey(r_max)
+
+    def part(self, lo, hi):
+        """``(positions, radii, index, total)`` of the spheres centred in the box ``[lo, hi]``, made from
+        the blocks that meet it only (a fill of one block is made whole), ``index`` their places in
+        the whole fill of ``total`` spheres."""
+        lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+        if self.single:
+            x, r = self.fill_single()
+            blocks, total = [(0, x, r)], r.shape[0]
+        else:
+            total = self.total()
+            blocks = [(start, x, r) for _, start, x, r in self.blocks(lo, hi)]
+        xs, rs, index = [], [], []
+        for start, x, r in blocks:
+            inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))
+            xs.append(x[inside])
+            rs.append(r[inside])
+            index.append(start + inside)
+        x = np.concatenate(xs).reshape(-1, 3) if xs else np.zeros((0, 3))
+        r = np.concatenate(rs) if rs else np.zeros(0)
+        index = np.concatenate(index).astype(np.int64) if index else np.zeros(0, np.int64)
+        return x, r, index, total

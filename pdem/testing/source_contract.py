@@ -28,9 +28,14 @@ def _same(a, b) -> bool:
 
 def check_partitioned(source: Source, *, base_dir: Path, seed: int, material, pieces: int = 3) -> None:
     """Raise AssertionError naming the first breach of the contract."""
-    whole = source.generate(base_dir=Path(base_dir), seed=seed, material=material)
+    talk: dict = {}
+    if source.collective:  # (checked serially: a one-rank communicator)
+        from ..parallel.comm import SerialComm
+
+        talk["comm"] = SerialComm()
+    whole = source.generate(base_dir=Path(base_dir), seed=seed, material=material, **talk)
     n = len(whole)
-    survey = source.survey(base_dir=Path(base_dir), seed=seed, material=material)
+    survey = source.survey(base_dir=Path(base_dir), seed=seed, material=material, **talk)
     assert survey.count == n, f"survey counts {survey.count} spheres, generate makes {n}"
     if n:
         assert np.array_equal(survey.lo, whole.positions.min(axis=0)), "survey.lo is not the centres' minimum"
