@@ -141,6 +141,34 @@ def profile(
         return coord, np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
+def flux(frame: dict, z: float, grain_density: float | None = None) -> list[tuple[float, float]]:
+    """``[(z_k, W_k)]``: the mass flux down through the node planes nearest below and above ``z`` of
+    a section (ny = 1) taken as axisymmetric about x = 0, W = -∫ ρ V_z 2π r dr over r = |x| (the
+    trapezoid rule on the nodes, the two sides of the axis averaged; a side without a mirror node
+    is used alone)."""
+    pts = frame["points"]
+    if "density" in frame:
+        rho = frame["density"][:, 0, :]
+    elif grain_density is not None and "solid_fraction" in frame:
+        rho = grain_density * frame["solid_fraction"][:, 0, :]
+    else:
+        raise SystemExit("--flux needs the grid's density, or its solid_fraction and --grain-density")
+    vz = _need(frame, "velocity")[:, 0, :, 2]
+    x, zs = pts[:, 0, 0, 0], pts[0, 0, :, 2]
+    below = np.flatnonzero(zs <= z)
+    above = np.flatnonzero(zs >= z)
+    planes = sorted({int(k) for k in (*below[-1:], *above[:1])})
+    out = []
+    right = x >= 0.0
+    r = x[right]
+    for k in planes:
+        f = rho[:, k] * vz[:, k]
+        mirror = np.interp(r, -x[::-1], f[::-1], left=np.nan, right=np.nan)  # f at -r
+        prof = np.where(np.isnan(mirror), f[right], 0.5 * (f[right] + np.nan_to_num(mirror)))
+        out.append((float(zs[k]), float(-np.trapezoid(prof * 2.0 * np.pi * r, r))))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="the run's output directory")
@@ -160,6 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--band", type=float, metavar="ENDS",
                     help="profiles: print the 10/50/90 %% heights between the means within ENDS [m] "
                     "of the ends")
+    ap.add_argument("--flux", type=float, metavar="Z",
+                    help="print the mass flux down through the plane z = Z, the section taken as "
+                    "axisymmetric about x = 0: -∫ rho V_z 2 pi r dr on the node planes nearest below and "
+                    "above Z (both sides of the axis averaged)")
+    ap.add_argument("--grain-density", type=float,
+                    help="with --flux, for a grid without density: rho = solid_fraction × this [kg/m³]")
     ap.add_argument("--log", action="store_true", help="colour scale logarithmic")
     ap.add_argument("--clip", type=float, default=100.0,
                     help="sections: colour scale up to this percentile of the values (default 100)")
@@ -185,6 +219,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         frame = frames[args.frame]
     names = args.quantity or ["shear_rate"]
+    if args.flux is not None:
+        for z, value in flux(frame, args.flux, args.grain_density):
+            print(f"mass flux through z = {z:.6g} m: {value:.6g} kg/s")
+        if not args.quantity:
+            return 0
 
     import matplotlib
 

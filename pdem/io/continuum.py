@@ -273,20 +273,32 @@ class ContinuumWriter:
                 if self.spec.kernel == "gaussian"
                 else LucyKernel(self.width)
             )
-            self.cg = CoarseGraining(kern, self.grid, walls=self.spec.walls, quantities=self.quantities)
+            computed = list(self.quantities)
+            if self._weighted():  # the mass-weighted mean velocity needs the density and momentum
+                computed += [q for q in ("density", "momentum") if q not in computed]
+            self.cg = CoarseGraining(kern, self.grid, walls=self.spec.walls, quantities=computed)
         return self.cg
 
-    def _block(self, sim) -> tuple[dict[str, np.ndarray], int]:
+    def _weighted(self) -> bool:
+        """Frames are time averages that include the velocity (averaged by mass)."""
+        return bool(self.spec.average_every_steps) and "velocity" in self.quantities
+
+    def _block(self, sim, extra: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], int]:
         fields, first = self._coarse_graining(sim).block(sim)
         arrays = fields.arrays()
-        return {q: arrays[q] for q in self.quantities}, first
+        out = {q: arrays[q] for q in self.quantities}
+        out.update({f"_{q}": arrays[q] for q in extra})
+        return out, first
 
     def sample(self, sim) -> None:
         """Add the current state to the running time average (collective; ``average_every_steps``)."""
         step = int(sim.step_count)
         if self._last_sample == step or self._coarse_graining(sim) is None:
             return
-        block, self._first = self._block(sim)
+        # the mean velocity is the mean momentum over the mean density (mass-weighted, as MercuryCG
+        # averages it): a mean of each sample's velocity would count a node's empty samples as at
+        # rest, and under an intermittent flow (an orifice) understate the flux
+        block, self._first = self._block(sim, ("density", "momentum") if self._weighted() else ())
         if self._sum is None:
             self._sum = {k: v.copy() for k, v in block.items()}
             self._t_first = float(sim.time)
@@ -306,7 +318,11 @@ class ContinuumWriter:
         time = float(sim.time)
         if self.spec.average_every_steps:
             self.sample(sim)
-            block = {k: v / self._samples for k, v in self._sum.items()}
+            block = {k: v / self._samples for k, v in self._sum.items() if not k.startswith("_")}
+            if "_momentum" in self._sum:
+                rho, mom = self._sum["_density"], self._sum["_momentum"]
+                held = (rho > 0.0)[..., None]
+                block["velocity"] = np.where(held, mom / np.where(held, rho[..., None], 1.0), 0.0)
             first, samples, since = self._first, self._samples, self._t_first
             self._sum, self._samples, self._last_sample = None, 0, step
         else:
