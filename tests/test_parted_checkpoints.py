@@ -320,6 +320,22 @@ def test_bitwise_identical_on_1_to_8_ranks_with_per_rank_checkpoints(tmp_path):
         assert len(list(parts_of(checkpoints(tmp_path / f"r{ranks}") / "latest.h5").iterdir())) == ranks
 
 
+def _parts_without_gather(tmp_path: Path, deck: str, ranks: int, n: int, script: str = _LARGEST) -> None:
+    """Run ``deck`` serially and on ``ranks`` ranks under ``script`` (the largest particle storage
+    counted, gathers by id refused on several ranks): no rank reserves storage for all ``n`` grains,
+    and the final state is bitwise the serial one."""
+    (tmp_path / "deck.toml").write_text(deck)
+    serial_script = script.replace("= refuse", "= comm.gather_by_id")  # (a serial run gathers trivially)
+    pdem(tmp_path, 1, "serial", "deck.toml", "--output", "serial", script=serial_script)
+    pdem(tmp_path, ranks, "parts", "deck.toml", "--output", "parts", script=script)
+    sizes = [json.loads((tmp_path / f"parts.{k}").read_text()) for k in range(ranks)]
+    assert 0 < max(sizes) < n, sizes
+    serial, _ = read_checkpoint(checkpoints(tmp_path / "serial") / "latest.h5")
+    parts, _ = read_checkpoint(checkpoints(tmp_path / "parts") / "latest.h5")
+    assert serial["particles/id"].shape[0] == n
+    assert compare(serial, parts) is None
+
+
 FILL_TABLE = """source = "random_fill"
 material = "glass"
 region = { type = "box", lo = [0.0, 0.0, 0.0], hi = [0.03, 0.03, 0.02] }
@@ -338,16 +354,7 @@ def test_a_random_fill_made_in_blocks_runs_bitwise_as_serially(tmp_path, ranks):
         "from pdem.cli import main\nimport pdem.sources.random_fill\n"
         "sys.modules['pdem.sources.random_fill'].BLOCK_SPHERES = 300",
     )
-    (tmp_path / "deck.toml").write_text(FILL_DECK)
-    serial_blocks = blocks.replace("= refuse", "= comm.gather_by_id")  # (a serial run gathers trivially)
-    pdem(tmp_path, 1, "serial", "deck.toml", "--output", "serial", script=serial_blocks)
-    pdem(tmp_path, ranks, "parts", "deck.toml", "--output", "parts", script=blocks)
-    sizes = [json.loads((tmp_path / f"parts.{k}").read_text()) for k in range(ranks)]
-    assert 0 < max(sizes) < 1500, sizes
-    serial, _ = read_checkpoint(checkpoints(tmp_path / "serial") / "latest.h5")
-    parts, _ = read_checkpoint(checkpoints(tmp_path / "parts") / "latest.h5")
-    assert serial["particles/id"].shape[0] == 1500
-    assert compare(serial, parts) is None
+    _parts_without_gather(tmp_path, FILL_DECK, ranks, 1500, blocks)
 
 
 POUR_TABLE = """source = "pluviate"
@@ -364,13 +371,4 @@ def test_a_pour_shared_over_ranks_never_gathers_and_runs_bitwise_as_serially(tmp
     """400 beads poured (one MPI pour over the run's ranks): the settled packing stays spread over
     the ranks that poured it, each rank is handed the beads in its own subdomain (no rank reserves
     storage for all 400, nothing gathers by id), and the run is bitwise the serial one."""
-    (tmp_path / "deck.toml").write_text(POUR_DECK)
-    serial_script = _LARGEST.replace("= refuse", "= comm.gather_by_id")
-    pdem(tmp_path, 1, "serial", "deck.toml", "--output", "serial", script=serial_script)
-    pdem(tmp_path, ranks, "parts", "deck.toml", "--output", "parts", script=_LARGEST)
-    sizes = [json.loads((tmp_path / f"parts.{k}").read_text()) for k in range(ranks)]
-    assert 0 < max(sizes) < 400, sizes
-    serial, _ = read_checkpoint(checkpoints(tmp_path / "serial") / "latest.h5")
-    parts, _ = read_checkpoint(checkpoints(tmp_path / "parts") / "latest.h5")
-    assert serial["particles/id"].shape[0] == 400
-    assert compare(serial, parts) is None
+    _parts_without_gather(tmp_path, POUR_DECK, ranks, 400)
