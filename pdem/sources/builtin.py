@@ -317,11 +317,17 @@ class RandomFillSource(Source):
         return SourceOutput(x, r)
 
     def _plan(self, seed: int):
+        """The fill's plan, kept for the seed last asked: the survey and the part share it (a fill
+        of one block is then made once)."""
         from .random_fill import fill_plan
 
-        p = self.params
-        return fill_plan(p.region.build(), p.sizes.build(), n=p.n, volume_fraction=p.volume_fraction,
-                         seed=seed, gap=p.gap)  # fmt: skip
+        kept = getattr(self, "_kept_plan", None)
+        if kept is None or kept[0] != seed:
+            p = self.params
+            plan = fill_plan(p.region.build(), p.sizes.build(), n=p.n, volume_fraction=p.volume_fraction,
+                             seed=seed, gap=p.gap)  # fmt: skip
+            kept = self._kept_plan = (seed, plan)
+        return kept[1]
 
     #: a fill of more than BLOCK_SPHERES spheres is made in blocks: each rank makes those over its
     #: subdomain, and surveys the others one at a time (a fill of one block is made whole)

@@ -423,7 +423,9 @@ class BlockPlan:
         """Spheres per block (draws the radii of every block when filling to a volume fraction)."""
         if self.n is not None:
             return self.quota.copy()
-        return np.array([self._radii(b)[1].shape[0] for b in range(self.count)], dtype=np.int64)
+        if getattr(self, "_counts", None) is None:  # (drawn once per plan)
+            self._counts = np.array([self._radii(b)[1].shape[0] for b in range(self.count)], dtype=np.int64)
+        return self._counts.copy()
 
     def block(self, b: int):
         """Block ``b``'s spheres: positions and radii, in spatial order."""
