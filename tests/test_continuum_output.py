@@ -56,6 +56,21 @@ DECK = settling_bed(
     counts = [7, 6, 9]
     quantities = ["velocity"]
     average_every_steps = 50
+    [output.continuum.cell]
+    type = "cylinder"
+    base_center = [0.01, 0.01, 0.0]
+    radius = 0.009
+    inner_radius = 0.001
+    height = 0.03
+    counts = [5, 8, 6]
+    quantities = ["density", "velocity", "stress"]
+    every_steps = 100
+    [output.continuum.probe]
+    type = "points"
+    points = [[0.01, 0.01, 0.001], [0.01, 0.01, 0.003], [0.005, 0.012, 0.005], [0.0, 0.0, 0.0],
+              [0.019, 0.002, 0.007]]
+    quantities = ["density", "velocity", "stress"]
+    average_every_steps = 50
     """),
 )
 
@@ -81,6 +96,8 @@ def _same(a: list[dict], b: list[dict]) -> None:
         for k, v in fa.items():
             if isinstance(v, np.ndarray):
                 assert v.tobytes() == fb[k].tobytes(), (k, fa["step"])
+            elif k == "where":  # a Grid or CylindricalGrid
+                assert repr(v) == repr(fb[k])
             else:
                 assert v == fb[k], k
 
@@ -99,6 +116,7 @@ def test_files_and_frames(serial_run):
     assert {p.name for p in out.glob("continuum_*")} == {
         "continuum_bed.h5", "continuum_bed.xdmf", "continuum_coarse.h5", "continuum_coarse.xdmf",
         "continuum_instant.h5", "continuum_instant.xdmf", "continuum_moving.h5", "continuum_moving.xdmf",
+        "continuum_cell.h5", "continuum_cell.xdmf", "continuum_probe.h5", "continuum_probe.xdmf",
     }  # fmt: skip
     assert all(named_as_pdem(p.name) for p in out.glob("continuum_*"))  # --overwrite may remove them
     bed = read_continuum(out, "bed")
@@ -109,7 +127,7 @@ def test_files_and_frames(serial_run):
     assert bed[-1]["density"].shape == (7, 6, 9) and bed[-1]["stress"].shape == (7, 6, 9, 3, 3)
     coarse = read_continuum(out, "coarse")
     assert [f["step"] for f in coarse] == [0, 100, 200, 300, 400, 500, 600]
-    head = {"time", "since", "step", "stage", "samples", "points"}
+    head = {"time", "since", "step", "stage", "samples", "points", "where"}
     assert set(coarse[0]) == head | {"density", "stress", "velocity"}
     # each averaged frame's first sample: 50 steps after the previous frame
     assert [f["since"] for f in bed] == pytest.approx([0.0, 0.001, 0.005, 0.009])
@@ -148,14 +166,17 @@ def test_an_averaged_frame_is_the_mean_of_its_samples_and_its_velocity_mass_weig
         assert moving.any() and not np.allclose(frame["velocity"][moving], plain[moving], rtol=1e-3)
     # a grid asking for the velocity alone averages it the same way, to the bit
     only = read_continuum(out, "moving")
-    assert set(only[-1]) == {"time", "since", "step", "stage", "samples", "points", "velocity"}
+    assert set(only[-1]) == {"time", "since", "step", "stage", "samples", "points", "where", "velocity"}
     for a, b in zip(only, bed, strict=True):
         assert a["velocity"].tobytes() == b["velocity"].tobytes()
 
 
 def test_written_fields_are_those_of_the_state(serial_run, tmp_path):
-    """The fields a frame holds are pdem.fields' on the checkpoint of the same step, bit for bit
-    (an instant grid)."""
+    """The fields a frame holds are pdem.fields' on the state of the same step, bit for bit (the
+    instant grids: a box's, a cylinder's). The state is the step-400 checkpoint run on to step 600,
+    which is the run's bit for bit, forces included: a checkpoint of step 600 reloaded would give
+    the same positions and velocities, but its first forces see the whole-step velocities in the
+    normal damping where the run's saw the half-step ones (velocity Verlet)."""
     from pdem.deck import load_deck
     from pdem.fields import CoarseGraining, Grid, LucyKernel
     from pdem.io.checkpoint import read_checkpoint
@@ -163,12 +184,43 @@ def test_written_fields_are_those_of_the_state(serial_run, tmp_path):
 
     tmp, out = serial_run
     sim = Runner(load_deck(tmp / "bed.toml"), progress=None, dry=True).build()
-    sim.load_state(read_checkpoint(out / "checkpoints" / "step_0000000600.h5")[0])
+    sim.load_state(read_checkpoint(out / "checkpoints" / "step_0000000400.h5")[0])
+    from pdem.fields import CylindricalGrid, GaussianKernel
+
+    width = float(h5py.File(out / "continuum_cell.h5", "r").attrs["width"])
+    pts = np.array([[0.01, 0.01, 0.001], [0.01, 0.01, 0.003], [0.005, 0.012, 0.005], [0.0, 0.0, 0.0],
+                    [0.019, 0.002, 0.007]])  # fmt: skip
+    at_points = CoarseGraining(GaussianKernel(width), pts, quantities=["density", "stress", "momentum"])
+    samples = []
+    for _ in range(4):  # the probe's last frame: the mean of the samples at steps 450, 500, 550, 600
+        sim.run(steps=50)
+        samples.append(at_points(sim))
     grid = Grid((-0.002, 0.0, 0.0), (0.022, 0.02, 0.03), (3, 2, 4))
     f = CoarseGraining(LucyKernel(0.003), grid)(sim)
     last = read_continuum(out, "coarse")[-1]
     for q in ("density", "stress", "velocity"):
         assert getattr(f, q).tobytes() == last[q].tobytes(), q
+    # the cylinder's and the point list's: the same as pdem.fields on those nodes
+    cyl = CylindricalGrid((0.01, 0.01, 0.0), 0.009, 0.03, (5, 8, 6), inner_radius=0.001)
+    cell = read_continuum(out, "cell")[-1]
+    assert isinstance(cell["where"], CylindricalGrid) and cell["density"].shape == (5, 8, 6)
+    assert cell["points"].tobytes() == cyl.points().reshape(5, 8, 6, 3).tobytes()
+    f = CoarseGraining(GaussianKernel(width), cyl, quantities=["density", "stress", "velocity"])(sim)
+    for q in ("density", "stress", "velocity"):
+        assert getattr(f, q).tobytes() == cell[q].tobytes(), q
+    probe = read_continuum(out, "probe")
+    assert [fr["samples"] for fr in probe] == [1, 4, 4, 4]
+    last = probe[-1]
+    assert last["points"].tobytes() == pts.tobytes() and last["stress"].shape == (5, 3, 3)
+    for q in ("density", "stress"):
+        total = getattr(samples[0], q).copy()
+        for f in samples[1:]:
+            total += getattr(f, q)
+        assert (total / 4).tobytes() == last[q].tobytes(), q
+    rho = sum(f.density for f in samples)
+    mom = sum(f.momentum for f in samples)
+    np.testing.assert_allclose(last["velocity"], mom / rho[:, None], rtol=1e-12, atol=1e-15)
+    assert np.all(last["density"] > 0.0) and np.any(last["stress"] != 0.0)
 
 
 @pytest.mark.skipif(MPIEXEC is None, reason="mpiexec not found (pip install mpich)")
@@ -185,7 +237,7 @@ def test_two_ranks_and_a_resume_write_the_same_bits(serial_run):
     shutil.copytree(one, resumed)
     proc = _run(tmp, "resume", ["resume", str(resumed / "checkpoints" / "step_0000000200.h5")], ranks=2)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    for name in ("bed", "coarse"):
+    for name in ("bed", "coarse", "cell", "probe"):
         ref = read_continuum(one, name)
         _same(ref, read_continuum(two, name))
         _same(ref, read_continuum(resumed, name))
@@ -194,6 +246,8 @@ def test_two_ranks_and_a_resume_write_the_same_bits(serial_run):
     assert len(frames) == 4 and all(len(fr.findall("Grid")) == 2 for fr in frames)
     dims = [g.find("Topology").get("Dimensions") for g in frames[-1].findall("Grid")]
     assert dims == ["9 6 4", "9 6 4"]  # of the 7 x-planes: 0–2 and the next slab's first, then 3–6
+    origins = [float(g.find("Geometry/DataItem").text.split()[2]) for g in frames[-1].findall("Grid")]
+    assert origins == pytest.approx([0.02 / 14, 0.02 / 14 + 3 * 0.02 / 7], rel=1e-12)  # x of each slab
     index = ET.parse(resumed / "continuum_bed.xdmf").getroot()
     assert [len(fr.findall("Grid")) for fr in index.findall("./Domain/Grid/Grid")] == [1, 1, 2, 2]
 
@@ -238,6 +292,65 @@ def test_paraview_opens_the_index(serial_run, tmp_path):
     assert [float(v) for v in lines[-1].split()] == last["stress"][2, 3, 4].ravel().tolist()
 
 
+_PV_NODES = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from paraview.simple import XDMFReader, servermanager
+    from vtk.util.numpy_support import vtk_to_numpy
+    r = XDMFReader(FileNames=[sys.argv[1]])
+    r.UpdatePipelineInformation()
+    times = list(r.TimestepValues)
+    r.UpdatePipeline(times[-1])
+    d = servermanager.Fetch(r)
+    pts, rho, kinds = [], [], []
+    for k in range(d.GetNumberOfBlocks()):
+        b = d.GetBlock(k)
+        kinds.append(b.GetClassName())
+        pts.append(vtk_to_numpy(b.GetPoints().GetData()))
+        rho.append(vtk_to_numpy(b.GetPointData().GetArray("density")))
+    np.savez(sys.argv[2], points=np.concatenate(pts), density=np.concatenate(rho), times=np.array(times))
+    print(*kinds)
+    """
+)
+
+
+@pytest.mark.skipif(PVPYTHON is None or MPIEXEC is None, reason="pvpython or mpiexec is not installed")
+@pytest.mark.parametrize(
+    "name, kind", [("cell", "vtkStructuredGrid"), ("probe", "vtkPolyData|vtkUnstructuredGrid")]
+)
+def test_paraview_opens_a_cylinder_and_a_point_list(serial_run, tmp_path, name, kind):
+    """The 2-rank run's cylindrical grid (two slabs of r-planes, each a structured grid whose θ ring
+    is closed) and point list (two runs of points) in ParaView: every node where pdem puts it, with
+    the density read_continuum gives there, and every node of pdem's shown."""
+    tmp, _ = serial_run
+    two = tmp / "two"
+    if not two.is_dir():
+        proc = _run(tmp, "two", [str(tmp / "bed.toml"), "--output", str(two)], ranks=2)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    script = tmp_path / "pv.py"
+    script.write_text(_PV_NODES)
+    got = tmp_path / "nodes.npz"
+    cmd = [PVPYTHON, str(script), str(two / f"continuum_{name}.xdmf"), str(got)]
+    if XVFB:
+        cmd = [XVFB, "-a", *cmd]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    kinds = proc.stdout.strip().splitlines()[-1].split()
+    assert len(kinds) == 2 and all(k in kind.split("|") for k in kinds), kinds
+    seen = np.load(got)
+    last = read_continuum(two, name)[-1]
+    assert len(seen["times"]) == len(read_continuum(two, name))
+    nodes = zip(last["points"].reshape(-1, 3), last["density"].ravel(), strict=True)
+    ours = {p.tobytes(): v for p, v in nodes}
+    assert len(ours) == last["density"].size
+    for p, v in zip(seen["points"], seen["density"], strict=True):
+        assert p.tobytes() in ours and ours[p.tobytes()] == v
+    assert {p.tobytes() for p in seen["points"]} == set(ours)
+    if name == "cell":  # 5 r-planes in slabs of 2 (+1 shared) and 3, 8 θ columns + 1 closing the ring
+        assert len(seen["points"]) == (3 + 3) * 9 * 6
+
+
 @pytest.mark.parametrize(
     "table, key, words",
     [
@@ -251,6 +364,20 @@ def test_paraview_opens_the_index(serial_run, tmp_path):
         ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "kernel": "tophat"}, "kernel", "gaussian"),
         ({"lo": [0, 0, 0], "hi": [1, 1, 1], "counts": [2, 2, 2], "spacing": 0.1}, "spacing", "unknown"),
         ({"lo": [0, 0, 0], "hi": [0.1, 0.1, 0.1], "counts": [2, 2, 2], "width": 0.5}, "width", "10 times"),
+        ({"type": "cylinder", "base_center": [0, 0, 0], "height": 0.1, "counts": [2, 4, 2]}, "radius",
+         "needs radius"),
+        ({"type": "cylinder", "base_center": [0, 0, 0], "radius": 0.1, "height": 0.1, "counts": [2, 4, 2],
+          "inner_radius": 0.1}, "inner_radius", "below radius"),
+        ({"type": "cylinder", "base_center": [0, 0, 0], "radius": 0.1, "height": 0.1, "counts": [2, 4, 2],
+          "lo": [0, 0, 0]}, "lo", "not a key of a cylinder grid"),
+        ({"type": "cylinder", "base_center": [0, 0, 0], "radius": 0.01, "height": 0.01, "counts": [2, 4, 2],
+          "width": 0.5}, "width", "10 times"),
+        ({"type": "points", "points": []}, "points", "empty"),
+        ({"type": "points", "points": [[0, 0]]}, "points.0", "exactly 3 items"),
+        ({"type": "points", "points": [[0, 0, 0]], "counts": [1, 1, 1]}, "counts",
+         "not a key of a points grid"),
+        ({"type": "sphere", "points": [[0, 0, 0]]}, "type", "cylinder"),
+        ({"lo": [0, 0, 0], "counts": [2, 2, 2]}, "hi", "needs hi"),
     ],
 )  # fmt: skip
 def test_deck_errors_name_the_key(table, key, words):
@@ -335,6 +462,30 @@ def test_field_pictures_tool_draws_and_profiles(serial_run, tmp_path, capsys):
     np.testing.assert_allclose(phi, frame["solid_fraction"].mean(axis=(0, 1)))
     with pytest.raises(SystemExit, match="fabric"):
         field_pictures.main([str(out), "coarse", "-q", "fabric.zz", "-o", str(tmp_path / "x.png")])
+
+
+def test_field_pictures_on_a_cylindrical_grid(serial_run, tmp_path, capsys):
+    """tools/field_pictures.py on the cylinder: the r–z section is the mean over θ, a θ-plane with
+    --at, (r, θ, z) components of the stress, and a profile along r; x is refused there."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import field_pictures
+
+    _, out = serial_run
+    frame = read_continuum(out, "cell")[-1]
+    r, z, v = field_pictures.section(frame, "stress.rr", None)
+    local = frame["where"].cylindrical(frame["stress"])
+    np.testing.assert_allclose(v, local[..., 0, 0].mean(axis=1).T)
+    assert r.shape == (5,) and z.shape == (6,)
+    _, _, v = field_pictures.section(frame, "stress.tt", 100.0)  # θ-plane 2 of 8: 112.5°
+    np.testing.assert_allclose(v, local[:, 2, :, 1, 1].T)
+    assert np.array_equal(field_pictures.quantity(frame, "stress.zz"), frame["stress"][..., 2, 2])
+    png = tmp_path / "c.png"
+    assert field_pictures.main([str(out), "cell", "-q", "stress.rr", "-q", "pressure", "-o", str(png)]) == 0
+    assert png.stat().st_size > 1000
+    assert field_pictures.main([str(out), "cell", "--profile", "r", "-q", "density", "-o", str(png)]) == 0
+    assert "# density along r" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="give r or z"):
+        field_pictures.main([str(out), "cell", "--profile", "x", "-q", "density", "-o", str(png)])
 
 
 def test_field_pictures_flux_through_a_plane_of_an_axisymmetric_jet():

@@ -550,3 +550,61 @@ def test_fields_are_bitwise_the_same_on_any_rank_count(tmp_path, ranks):
         assert int(a[3]) > 300 and int(a[4]) > 30, a
         assert a[2] == b[2], f"{a[0]}: the simulation itself differs between rank counts"
         assert a == b
+
+
+# ---------------------------------------------------------------------------------------------
+# cylindrical grids
+# ---------------------------------------------------------------------------------------------
+
+
+def test_cylindrical_grid_nodes_volumes_and_components():
+    """The nodes of a CylindricalGrid are at the cells' centres in r, θ and z about its axis; its node
+    volumes add up to the ring's volume (the midpoint rule is exact for r dr); and a vector and a
+    tensor built from e_r, e_θ, e_z come back as their (r, θ, z) components."""
+    from pdem.fields import CylindricalGrid, cylindrical_components
+
+    g = CylindricalGrid((0.1, -0.2, 0.05), 0.03, 0.08, (4, 12, 5), inner_radius=0.01)
+    assert g.shape == (4, 12, 5)
+    p = g.points().reshape(4, 12, 5, 3)
+    r = np.hypot(p[..., 0] - 0.1, p[..., 1] + 0.2)
+    np.testing.assert_allclose(r[:, 0, 0], 0.01 + (np.arange(4) + 0.5) * 0.005, rtol=1e-12)
+    np.testing.assert_allclose(p[0, 0, :, 2], 0.05 + (np.arange(5) + 0.5) * 0.016, rtol=1e-12)
+    theta = np.mod(np.arctan2(p[0, :, 0, 1] + 0.2, p[0, :, 0, 0] - 0.1), 2 * np.pi)
+    np.testing.assert_allclose(theta, (np.arange(12) + 0.5) * np.pi / 6, rtol=1e-12)
+    assert g.node_volumes().sum() == pytest.approx(np.pi * (0.03**2 - 0.01**2) * 0.08, rel=1e-12)
+    t = np.arctan2(p[..., 1] + 0.2, p[..., 0] - 0.1)
+    er = np.stack([np.cos(t), np.sin(t), 0 * t], -1)
+    et = np.stack([-np.sin(t), np.cos(t), 0 * t], -1)
+    ez = np.broadcast_to([0.0, 0.0, 1.0], er.shape)
+    v = 2.0 * er - 3.0 * et + 0.5 * ez
+    np.testing.assert_allclose(g.cylindrical(v), np.broadcast_to([2.0, -3.0, 0.5], v.shape), atol=1e-12)
+    dyad = lambda a, b: a[..., :, None] * b[..., None, :]  # noqa: E731
+    tensor = 5.0 * dyad(er, er) + 7.0 * dyad(et, et) + 11.0 * dyad(ez, ez)
+    tensor += 2.0 * (dyad(er, ez) + dyad(ez, er))
+    local = cylindrical_components(tensor, p, (0.1, -0.2))
+    expect = np.broadcast_to([[5, 0, 2], [0, 7, 0], [2, 0, 11]], tensor.shape)
+    np.testing.assert_allclose(local, expect, atol=1e-12)
+    with pytest.raises(InputError, match="inner_radius"):
+        CylindricalGrid((0, 0, 0), 0.01, 0.1, (2, 4, 2), inner_radius=0.01)
+    with pytest.raises(InputError, match="counts"):
+        CylindricalGrid((0, 0, 0), 0.01, 0.1, (2, 0, 2))
+    with pytest.raises(InputError, match="vectors"):
+        g.cylindrical(np.zeros((4, 12, 5, 2)))
+
+
+def test_fields_on_a_cylindrical_grid_are_those_at_its_nodes(packing):
+    """A CylindricalGrid's fields are, bit for bit, those at its nodes given as a list of points,
+    shaped (nr, nθ, nz, …); their (r, θ, z) components keep the stress's trace."""
+    from pdem.fields import CylindricalGrid
+
+    sim, period, (zlo, zhi), *_ = packing
+    g = CylindricalGrid((0.5 * period, 0.5 * period, zlo), 0.45 * period, zhi - zlo, (3, 8, 4))
+    kern = GaussianKernel(0.5e-3)
+    f = coarse_grain(sim, kern, g)
+    h = coarse_grain(sim, kern, g.points())
+    assert f.stress.shape == (3, 8, 4, 3, 3) and h.stress.shape == (96, 3, 3)
+    for q in ("density", "stress", "velocity", "fabric"):
+        assert getattr(f, q).tobytes() == getattr(h, q).tobytes(), q
+    local = g.cylindrical(f.stress)
+    trace = np.trace(f.stress, axis1=-2, axis2=-1)
+    np.testing.assert_allclose(np.trace(local, axis1=-2, axis2=-1), trace, rtol=1e-12)

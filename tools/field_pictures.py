@@ -7,6 +7,9 @@
 Draws the section y = const (the grid's middle y-plane, or ``--at``) of one frame, one panel per
 quantity, x across and z up; or, with ``--profile AXIS``, prints and plots one quantity along x or z
 averaged over the other two axes (over the cells where the solid fraction exceeds ``--min-solid``).
+On a cylindrical grid (``type = "cylinder"``) the section is the r–z plane, the mean over θ (or the
+θ-plane nearest ``--at`` degrees), the profiles run along r or z, and vectors and tensors have
+(r, θ, z) components: ``velocity.r``, ``stress.rr``, ``stress.tt`` (θθ), ``strain_rate.rz``.
 
 Quantities: any scalar field (``density``, ``solid_fraction``, ``coordination``, …), a component
 ``velocity.x`` / ``stress.zz`` / ``strain_rate.xz`` / ``fabric.zz``, or a derived one:
@@ -26,9 +29,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from pdem.fields import CylindricalGrid  # noqa: E402
 from pdem.io.continuum import read_continuum  # noqa: E402
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+_CYL_AXES = {"r": 0, "t": 1, "z": 2}
 _LABELS = {
     "shear_rate": "equivalent shear rate √(2 D':D') [1/s]",
     "dilation_rate": "volumetric strain rate tr D [1/s]",
@@ -48,7 +53,13 @@ def quantity(frame: dict, name: str) -> np.ndarray:
     if "." in name:
         base, comp = name.split(".", 1)
         arr = _need(frame, base)
-        idx = [_AXES[c] for c in comp]
+        cyl = _cylinder(frame)
+        if cyl is not None and set(comp) & {"r", "t"}:  # (r, θ, z) components
+            arr = cyl.cylindrical(arr)
+        axes = _AXES | (_CYL_AXES if cyl is not None else {})
+        if not set(comp) <= set(axes):
+            raise SystemExit(f"{name}: components are {', '.join(axes)} on this grid")
+        idx = [axes[c] for c in comp]
         if arr.ndim == 4 and len(idx) == 1:
             return arr[..., idx[0]]
         if arr.ndim == 5 and len(idx) == 2:
@@ -84,8 +95,32 @@ def _need(frame: dict, name: str) -> np.ndarray:
     return frame[name]
 
 
+def _cylinder(frame: dict) -> CylindricalGrid | None:
+    where = frame.get("where")
+    return where if isinstance(where, CylindricalGrid) else None
+
+
+def _coords(frame: dict) -> np.ndarray:
+    """The nodes' coordinates (…, 3): x, y, z, or on a cylindrical grid r, θ, z."""
+    cyl = _cylinder(frame)
+    if cyl is None:
+        return frame["points"]
+    r, t, z = np.meshgrid(*cyl.axes(), indexing="ij")
+    return np.stack([r, t, z], axis=-1)
+
+
 def section(frame: dict, name: str, at: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x, z, values (nz, nx)) of the plane y = ``at`` (nearest grid plane; default the middle one)."""
+    """(x, z, values (nz, nx)) of the plane y = ``at`` (nearest grid plane; default the middle one);
+    on a cylindrical grid (r, z, values (nz, nr)), the mean over θ or, with ``at`` [degrees], the
+    θ-plane nearest it."""
+    cyl = _cylinder(frame)
+    if cyl is not None:
+        r, t, z = cyl.axes()
+        v = quantity(frame, name)
+        if at is None:
+            return r, z, v.mean(axis=1).T
+        j = int(np.argmin(np.abs(np.angle(np.exp(1j * (t - np.radians(at)))))))
+        return r, z, v[:, j, :].T
     pts = frame["points"]
     ys = pts[0, :, 0, 1]
     j = len(ys) // 2 if at is None else int(np.argmin(np.abs(ys - at)))
@@ -127,16 +162,21 @@ def profile(
     """(coordinate, mean of ``name`` over the other two axes) along ``axis``, the mean taken over the
     cells whose solid fraction exceeds ``min_solid`` (NaN where none does) and, with ``within``
     (lo, hi), whose x (for a z profile) or z (for an x profile) lies in that range."""
-    a = _AXES[axis]
+    axes = _CYL_AXES if _cylinder(frame) is not None else _AXES
+    if axis not in axes or axis in "yt":
+        allowed = " or ".join(k for k in axes if k not in "yt")
+        raise SystemExit(f"--profile {axis}: give {allowed} on this grid")
+    a = axes[axis]
+    coords = _coords(frame)
     values = quantity(frame, name)
     keep = _need(frame, "solid_fraction") > min_solid if min_solid > 0 else np.ones(values.shape, bool)
     if within is not None:
-        across = frame["points"][..., 2 if axis == "x" else 0]
+        across = coords[..., 0 if axis == "z" else 2]
         keep = keep & (across >= within[0]) & (across <= within[1])
     other = tuple(k for k in range(3) if k != a)
     total = np.sum(np.where(keep, values, 0.0), axis=other)
     count = np.sum(keep, axis=other)
-    coord = frame["points"][..., a].mean(axis=other)
+    coord = coords[..., a].mean(axis=other)
     with np.errstate(invalid="ignore", divide="ignore"):
         return coord, np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
@@ -176,8 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frame", type=int, default=-1, help="frame index (default the last)")
     ap.add_argument("--step", type=int, help="the frame at this step instead of --frame")
     ap.add_argument("--quantity", "-q", action="append", help="quantities to draw (default shear_rate)")
-    ap.add_argument("--at", type=float, help="y of the section [m] (default the middle y-plane)")
-    ap.add_argument("--profile", choices=["x", "z"], help="print and plot a profile along this axis")
+    ap.add_argument("--at", type=float, help="y of the section [m] (default the middle y-plane); on a "
+                    "cylindrical grid θ [degrees] (default the mean over θ)")
+    ap.add_argument("--profile", choices=["x", "r", "z"],
+                    help="print and plot a profile along this axis (r: a cylindrical grid's)")
     ap.add_argument("--min-solid", type=float, default=0.0, help="profiles: only cells denser than this")
     ap.add_argument("--within", type=float, nargs=2, metavar=("LO", "HI"),
                     help="profiles: only cells whose other coordinate (x for a z profile) lies in LO–HI [m]")
@@ -263,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
             kw = {} if norm is not None else {"vmax": top}
             im = ax.pcolormesh(x, z, v, shading="nearest", cmap="viridis", norm=norm, **kw)
             ax.set_aspect("equal")
-            ax.set_xlabel("x [m]")
+            ax.set_xlabel("r [m]" if _cylinder(frame) is not None else "x [m]")
             ax.set_ylabel("z [m]")
             fig.colorbar(im, ax=ax, shrink=0.8, label=_LABELS.get(name, name))
     fig.suptitle(args.title or head, fontsize=9)

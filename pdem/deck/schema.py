@@ -978,14 +978,34 @@ CONTINUUM_QUANTITIES: tuple[str, ...] = (
 
 
 class ContinuumSpec(_DeckModel):
-    """``[output.continuum.<name>]``: coarse-grained fields on a regular grid, written beside the
-    grains (continuum_<name>.h5 and continuum_<name>.xdmf; docs/fields.md)."""
+    """``[output.continuum.<name>]``: coarse-grained fields on a grid (a box's regular grid, a
+    cylindrical grid about an upright axis, or a list of points), written beside the grains
+    (continuum_<name>.h5 and continuum_<name>.xdmf; docs/fields.md)."""
 
-    lo: Vec3 = Field(description="low corner of the grid's box (x, y, z) [m]")
-    hi: Vec3 = Field(description="high corner of the grid's box (x, y, z) [m]; every component above lo's")
-    counts: list[Int] = Field(
-        description="cells along x, y and z (three positive integers); the fields are at the cells' "
-        "centres"
+    type: Literal["box", "cylinder", "points"] = Field(
+        "box", description="where the fields are: 'box' (a regular grid, keys lo, hi, counts), 'cylinder' "
+        "(a grid in r, θ, z about an upright axis, keys base_center, radius, height, counts, "
+        "inner_radius) or 'points' (key points)"
+    )
+    lo: Vec3 | None = Field(None, description="box: low corner of the grid's box (x, y, z) [m]")
+    hi: Vec3 | None = Field(
+        None, description="box: high corner of the grid's box (x, y, z) [m]; every component above lo's"
+    )
+    counts: list[Int] | None = Field(
+        None, description="box: cells along x, y and z; cylinder: along r, θ and z (three positive "
+        "integers); the fields are at the cells' centres"
+    )
+    base_center: Vec3 | None = Field(
+        None, description="cylinder: centre of the bottom face (x, y, z) [m]; the axis is +z from it"
+    )
+    radius: Float | None = Field(None, gt=0, description="cylinder: outer radius [m]")
+    height: Float | None = Field(None, gt=0, description="cylinder: height [m]")
+    inner_radius: Float | None = Field(
+        None, ge=0, description="cylinder: inner radius [m]; default 0 (a full disc)"
+    )
+    points: list[Vec3] | None = Field(
+        None, description="points: the points (x, y, z) [m] where the fields are written, e.g. probes "
+        "along a line"
     )
     kernel: Literal["gaussian", "lucy"] = Field(
         "gaussian", description="coarse-graining kernel: 'gaussian' (width = its standard deviation) or "
@@ -1010,14 +1030,48 @@ class ContinuumSpec(_DeckModel):
     @classmethod
     def rules(cls, data: dict, context: dict) -> Problems:
         out: Problems = []
+        kind = data.get("type", "box")
+        keys = {"box": ("lo", "hi", "counts"), "cylinder": ("base_center", "radius", "height", "counts"),
+                "points": ("points",)}  # fmt: skip
+        if kind not in keys:
+            return out  # the type's own error says which types there are
+        others = {"lo", "hi", "base_center", "radius", "height", "inner_radius", "points", "counts"}
+        for key in keys[kind]:
+            if data.get(key) is None:
+                need = ", ".join(keys[kind])
+                out.append(((key,), f"a {kind} grid needs {key} (type = {_q(kind)}: keys {need})"))
+        for key in sorted(others - set(keys[kind]) - ({"inner_radius"} if kind == "cylinder" else set())):
+            if data.get(key) is not None:
+                out.append(
+                    ((key,), f"{key} is not a key of a {kind} grid (type = {_q(kind)}: keys "
+                     f"{', '.join(keys[kind])}{', inner_radius' if kind == 'cylinder' else ''})")
+                )  # fmt: skip
+        side = None  # the grid's largest extent [m]
         lo, hi = data.get("lo"), data.get("hi")
-        if _is_vec3(lo) and _is_vec3(hi):
+        if kind == "box" and _is_vec3(lo) and _is_vec3(hi):
             bad = [a for a, lo_c, hi_c in zip("xyz", lo, hi, strict=True) if hi_c <= lo_c]
             if bad:
                 out.append((("hi",), f"hi = {list(hi)} must exceed lo = {list(lo)} along {', '.join(bad)}"))
-        width = data.get("width")
-        if _is_vec3(lo) and _is_vec3(hi) and isinstance(width, float) and width > 0:
             side = max(h - low for low, h in zip(lo, hi, strict=True))
+        radius, inner = data.get("radius"), data.get("inner_radius") or 0.0
+        if kind == "cylinder" and _is_num(radius) and _is_num(inner) and radius > 0:
+            if inner >= radius:
+                out.append(
+                    (("inner_radius",), f"inner_radius = {inner!r} m must be below radius = {radius!r} m")
+                )
+            height = data.get("height")
+            side = max(2.0 * radius, height) if _is_num(height) else 2.0 * radius
+        pts = data.get("points")
+        n_points = None
+        if kind == "points" and isinstance(pts, list):
+            n_points = len(pts)
+            if not pts:
+                out.append((("points",), "points is empty; give at least one point [x, y, z]"))
+            elif all(_is_vec3(v) for v in pts):
+                arr = [[float(c) for c in v] for v in pts]
+                side = max(max(v[a] for v in arr) - min(v[a] for v in arr) for a in range(3))
+        width = data.get("width")
+        if side is not None and isinstance(width, float) and width > 0:
             reach = width * (data.get("cutoff", 3.0) if data.get("kernel", "gaussian") == "gaussian" else 1.0)
             if side > 0 and reach > 10 * side:
                 out.append(
@@ -1029,18 +1083,27 @@ class ContinuumSpec(_DeckModel):
                     )
                 )
         counts = data.get("counts")
-        if isinstance(counts, list) and all(isinstance(c, int) and not isinstance(c, bool) for c in counts):
+        axes = "(nr, nθ, nz)" if kind == "cylinder" else "(nx, ny, nz)"
+        if kind != "points" and isinstance(counts, list) and all(
+            isinstance(c, int) and not isinstance(c, bool) for c in counts
+        ):
             if len(counts) != 3 or min(counts, default=0) < 1:
-                out.append((("counts",), f"counts = {counts} must be three positive integers (nx, ny, nz)"))
-            elif math.prod(counts) > MAX_CONTINUUM_POINTS:
-                out.append(
-                    (
-                        ("counts",),
-                        f"counts = {counts} make {math.prod(counts):,} points, more than the "
-                        f"{MAX_CONTINUUM_POINTS:,} a grid may have (its sums take 344 bytes a point on "
-                        "every rank); use fewer cells or several smaller grids",
-                    )
+                out.append((("counts",), f"counts = {counts} must be three positive integers {axes}"))
+            else:
+                n_points = math.prod(counts)
+        if n_points is not None and n_points > MAX_CONTINUUM_POINTS:
+            key = "points" if kind == "points" else "counts"
+            what = f"{n_points:,} points" if kind == "points" else (
+                f"counts = {counts} make {n_points:,} points"
+            )
+            out.append(
+                (
+                    (key,),
+                    f"{what}, more than the {MAX_CONTINUUM_POINTS:,} a grid may "
+                    "have (its sums take 344 bytes a point on every rank); use fewer points or several "
+                    "smaller grids",
                 )
+            )
         q = data.get("quantities")
         if isinstance(q, list):
             dup = _repeated([v for v in q if isinstance(v, str)])

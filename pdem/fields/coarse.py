@@ -98,7 +98,10 @@ from ..parallel.comm import any_rank
 from ..state.particles import REMOVED
 from . import _kernels as _k
 
-__all__ = ["GaussianKernel", "LucyKernel", "Grid", "Fields", "CoarseGraining", "TimeAverage", "coarse_grain"]
+__all__ = [
+    "GaussianKernel", "LucyKernel", "Grid", "CylindricalGrid", "cylindrical_components", "Fields",
+    "CoarseGraining", "TimeAverage", "coarse_grain",
+]  # fmt: skip
 
 #: raw column layout: (name, first column, number of columns)
 _GRAIN0, _LINE0, _END0, _POINT0 = 0, 24, 33, 40
@@ -254,6 +257,117 @@ class Grid:
         return f"Grid(lo={self.lo.tolist()}, hi={self.hi.tolist()}, counts={self.counts})"
 
 
+class CylindricalGrid:
+    """A cylindrical grid about an upright axis (the triaxial cell's, a hopper's, a cone's): the
+    centres of ``counts`` = (nr, nθ, nz) equal cells in r, θ and z of the ring ``inner_radius`` ≤ r ≤
+    ``radius``, 0 ≤ θ < 2π, of height ``height`` above ``base_center`` (x, y, z) [m] (as the deck's
+    cylinder region). Node (i, j, k) is at r = r_in + (i + ½) Δr, θ = (j + ½) 2π/nθ (from +x towards
+    +y), z = z₀ + (k + ½) Δz. Fields on it have the shape (nr, nθ, nz, …) (C order: z fastest), in
+    Cartesian components; :meth:`cylindrical` turns vectors and tensors into (r, θ, z) ones. A node
+    stands for the volume :meth:`node_volumes` (r Δr Δθ Δz), so Σ f·V over the nodes is the
+    midpoint-rule integral over the ring."""
+
+    def __init__(
+        self,
+        base_center: Sequence[float],
+        radius: float,
+        height: float,
+        counts: Sequence[int],
+        inner_radius: float = 0.0,
+    ) -> None:
+        c = np.asarray(base_center, dtype=float).reshape(-1) if _is_numeric(base_center) else None
+        if c is None or c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise InputError(
+                f"CylindricalGrid base_center = {base_center!r} must be three finite numbers (x, y, z) [m]"
+            )
+        self.radius = _positive("CylindricalGrid radius", radius, "give the outer radius in metres")
+        self.height = _positive("CylindricalGrid height", height, "give the height in metres")
+        try:
+            r_in = float(inner_radius)
+        except (TypeError, ValueError):
+            r_in = math.nan
+        if not (math.isfinite(r_in) and 0.0 <= r_in < self.radius):
+            raise InputError(
+                f"CylindricalGrid inner_radius = {inner_radius!r} must be at least 0 and below radius = "
+                f"{radius!r} m"
+            )
+        try:
+            n = [int(v) for v in counts]
+            ok = len(n) == 3 and all(int(v) == v for v in counts)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok or min(n) < 1:
+            raise InputError(
+                f"CylindricalGrid counts = {counts!r} must be three positive integers (nr, nθ, nz)"
+            )
+        self.base_center = c
+        self.inner_radius = r_in
+        self.counts = tuple(n)
+        self.spacing = np.array([(self.radius - r_in) / n[0], 2.0 * math.pi / n[1], self.height / n[2]])
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.counts
+
+    def axes(self) -> list[np.ndarray]:
+        """The node coordinates along r [m], θ [rad] and z [m]."""
+        nr, nt, nz = self.counts
+        return [
+            self.inner_radius + (np.arange(nr) + 0.5) * (self.radius - self.inner_radius) / nr,
+            (np.arange(nt) + 0.5) * (2.0 * math.pi / nt),
+            self.base_center[2] + (np.arange(nz) + 0.5) * self.height / nz,
+        ]
+
+    def points(self) -> np.ndarray:
+        """The nodes in x, y, z, (nr·nθ·nz, 3), z fastest."""
+        r, t, z = np.meshgrid(*self.axes(), indexing="ij")
+        x = self.base_center[0] + r * np.cos(t)
+        y = self.base_center[1] + r * np.sin(t)
+        return np.ascontiguousarray(np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1))
+
+    def node_volumes(self) -> np.ndarray:
+        """The volume each node stands for, r Δr Δθ Δz [m³], shape (nr, nθ, nz)."""
+        r = self.axes()[0]
+        v = r * float(np.prod(self.spacing))
+        return np.broadcast_to(v[:, None, None], self.counts).copy()
+
+    def cylindrical(self, values: np.ndarray) -> np.ndarray:
+        """Vectors (nr, nθ, nz, 3) or tensors (nr, nθ, nz, 3, 3) of this grid in the local (r, θ, z)
+        components: v' = Q v, T' = Q T Qᵀ with the rows of Q the unit vectors e_r, e_θ, e_z."""
+        return cylindrical_components(values, self.points().reshape(*self.counts, 3), self.base_center)
+
+    def __repr__(self) -> str:
+        return (
+            f"CylindricalGrid(base_center={self.base_center.tolist()}, radius={self.radius!r}, "
+            f"height={self.height!r}, counts={self.counts}, inner_radius={self.inner_radius!r})"
+        )
+
+
+def cylindrical_components(values, points, center) -> np.ndarray:
+    """Vectors (…, 3) or tensors (…, 3, 3) at ``points`` (…, 3) in the local cylindrical components
+    (r, θ, z) about the upright axis through ``center`` (x, y[, z]): v' = Q v and T' = Q T Qᵀ, the
+    rows of Q being e_r = (cos θ, sin θ, 0), e_θ = (−sin θ, cos θ, 0) and e_z. On the axis itself
+    (r = 0) θ is taken as 0."""
+    v = np.asarray(values, dtype=float)
+    p = np.asarray(points, dtype=float)
+    c = np.asarray(center, dtype=float).reshape(-1)
+    theta = np.arctan2(p[..., 1] - c[1], p[..., 0] - c[0])
+    cos, sin = np.cos(theta), np.sin(theta)
+    q = np.zeros((*theta.shape, 3, 3))
+    q[..., 0, 0], q[..., 0, 1] = cos, sin
+    q[..., 1, 0], q[..., 1, 1] = -sin, cos
+    q[..., 2, 2] = 1.0
+    lead = theta.ndim
+    if v.shape == (*theta.shape, 3):
+        return np.einsum("...ab,...b->...a", q, v)
+    if v.shape == (*theta.shape, 3, 3):
+        return np.einsum("...ab,...bc,...dc->...ad", q, v, q)
+    raise InputError(
+        f"cylindrical_components: values of shape {v.shape} must be vectors {(*theta.shape, 3)} or "
+        f"tensors {(*theta.shape, 3, 3)} at the {lead}-dimensional points' shape {theta.shape}"
+    )
+
+
 def _is_numeric(v) -> bool:
     try:
         np.asarray(v, dtype=float)
@@ -263,10 +377,13 @@ def _is_numeric(v) -> bool:
 
 
 def _points_of(where) -> tuple[np.ndarray, tuple[int, ...]]:
-    if isinstance(where, Grid):
+    if isinstance(where, Grid | CylindricalGrid):
         return where.points(), where.shape
     if not _is_numeric(where):
-        raise InputError(f"where = {where!r}: give a Grid(lo, hi, counts) or an (m, 3) array of points [m]")
+        raise InputError(
+            f"where = {where!r}: give a Grid(lo, hi, counts), a CylindricalGrid(base_center, radius, "
+            "height, counts) or an (m, 3) array of points [m]"
+        )
     pts = np.asarray(where, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 1:
         raise InputError(
@@ -389,9 +506,9 @@ def _sym_full(six: np.ndarray) -> np.ndarray:
 
 class CoarseGraining:
     """Fields of a simulation with ``kernel`` (:class:`GaussianKernel` or :class:`LucyKernel`) at
-    ``where`` (a :class:`Grid` or an (m, 3) array of points [m]); ``walls``: include the wall
-    contacts (stress, contact density, fabric, wall force density). The points are binned once;
-    call the object with a simulation for each snapshot."""
+    ``where`` (a :class:`Grid`, a :class:`CylindricalGrid` or an (m, 3) array of points [m]);
+    ``walls``: include the wall contacts (stress, contact density, fabric, wall force density). The
+    points are binned once; call the object with a simulation for each snapshot."""
 
     def __init__(self, kernel, where, *, walls: bool = True, quantities=None) -> None:
         if not isinstance(kernel, GaussianKernel | LucyKernel):
@@ -604,10 +721,11 @@ class CoarseGraining:
 
     def block_bounds(self, size: int) -> np.ndarray:
         """The points' cut into ``size`` blocks, one per rank: point indices ``bounds[k]`` to
-        ``bounds[k + 1]`` are rank k's. On a :class:`Grid` the cuts fall between x-planes, so that
-        each block is a slab of whole planes (a grid of its own); otherwise into equal counts."""
+        ``bounds[k + 1]`` are rank k's. On a grid the cuts fall between planes of its first axis (x,
+        or r), so that each block is a slab of whole planes (a grid of its own); otherwise into equal
+        counts."""
         m = self.points.shape[0]
-        if isinstance(self.where, Grid):
+        if len(self.shape) == 3:  # a Grid or a CylindricalGrid
             nx = self.shape[0]
             plane = m // nx
             return np.array([(nx * k // size) * plane for k in range(size + 1)], dtype=np.int64)
@@ -615,9 +733,9 @@ class CoarseGraining:
 
     def block(self, sim, *, overlap: bool = True) -> tuple[Fields, int]:
         """This rank's block of the fields (collective): ``(fields, first)``, the fields at points
-        ``first`` to ``first + n`` of the flattened points (on a :class:`Grid`, the slab of x-planes
+        ``first`` to ``first + n`` of the flattened points (on a grid, the slab of first-axis planes
         ``first // (ny nz)`` on, of shape (planes, ny, nz, …)). No rank holds another's block: the
-        ranks' sums meet at the blocks' owners (one ``Reduce_scatter``). ``overlap``: on a Grid, a
+        ranks' sums meet at the blocks' owners (one ``Reduce_scatter``). ``overlap``: on a grid, a
         block also holds the next non-empty block's first plane, so that slabs drawn side by side
         leave no gap. The values are bitwise those of ``self(sim)`` at the same points on any rank
         count. Serially the block is every point."""
@@ -628,7 +746,7 @@ class CoarseGraining:
             return self(sim), 0
         raw = self._raw_block(sim, bounds)
         b0 = int(bounds[comm.rank])
-        grid = isinstance(self.where, Grid)
+        grid = len(self.shape) == 3  # a Grid or a CylindricalGrid: blocks of whole planes
         plane = self.points.shape[0] // self.shape[0] if grid else 0
         if grid and overlap:
             counts = np.diff(bounds)
@@ -722,8 +840,9 @@ def _reduce_over_ranks(comm, raw: np.ndarray, parts, root, bounds: np.ndarray) -
 def coarse_grain(
     sim, kernel, where, *, walls: bool = True, root: int | None = None, quantities=None
 ) -> Fields | None:
-    """The coarse-grained fields of ``sim`` with ``kernel`` at ``where`` (a :class:`Grid` or an
-    (m, 3) array of points) — :class:`CoarseGraining` for one snapshot (collective)."""
+    """The coarse-grained fields of ``sim`` with ``kernel`` at ``where`` (a :class:`Grid`, a
+    :class:`CylindricalGrid` or an (m, 3) array of points) — :class:`CoarseGraining` for one
+    snapshot (collective)."""
     return CoarseGraining(kernel, where, walls=walls, quantities=quantities)(sim, root=root)
 
 

@@ -58,11 +58,11 @@ import h5py
 import numpy as np
 
 from ..errors import OutputError
-from ..fields import CoarseGraining, GaussianKernel, Grid, LucyKernel
+from ..fields import CoarseGraining, CylindricalGrid, GaussianKernel, Grid, LucyKernel
 from .base import atomic_write_text, piece_name
 from .journal import discard_frame
 
-__all__ = ["ContinuumWriter", "QUANTITIES", "read_continuum", "continuum_files"]
+__all__ = ["ContinuumWriter", "QUANTITIES", "read_continuum", "continuum_files", "where_of"]
 
 #: the quantities a grid may write, and their number of components (1, 3 or 9)
 QUANTITIES: dict[str, int] = {
@@ -131,18 +131,52 @@ def _keep_until(directory: Path, f: h5py.File, step: int) -> None:
         discard_frame(directory, batches, key)  # held while the resume is undecided
 
 
-def _to_file(arr: np.ndarray) -> np.ndarray:
-    """(planes, ny, nz, …) → ParaView's (nz, ny, planes, k) with k components, x fastest."""
+def _to_file(arr: np.ndarray, kind: str = "box") -> np.ndarray:
+    """A block in pdem's order → the file's, with k components: a grid's (planes, n1, n2, …) →
+    ParaView's (n2, n1, planes, k), first axis fastest (a cylinder's θ column 0 repeated after the
+    last, which closes the ring in ParaView); a point list's (n, …) → (n, k)."""
+    if kind == "points":
+        k = int(np.prod(arr.shape[1:])) if arr.ndim > 1 else 1
+        a = arr.reshape(arr.shape[0], k)
+        return np.ascontiguousarray(a if k > 1 else a[:, 0])
     k = int(np.prod(arr.shape[3:])) if arr.ndim > 3 else 1
     a = arr.reshape(*arr.shape[:3], k).transpose(2, 1, 0, 3)
+    if kind == "cylinder":
+        a = np.concatenate([a, a[:, :1]], axis=1)
     return np.ascontiguousarray(a if k > 1 else a[..., 0])
 
 
-def _from_file(arr: np.ndarray, k: int) -> np.ndarray:
-    a = arr if k > 1 else arr[..., None]
-    a = a.transpose(2, 1, 0, 3)
+def _from_file(arr: np.ndarray, k: int, kind: str = "box") -> np.ndarray:
     tail = () if k == 1 else (3,) if k == 3 else (3, 3)
+    if kind == "points":
+        return np.ascontiguousarray(arr.reshape(arr.shape[0], *tail))
+    a = arr if k > 1 else arr[..., None]
+    if kind == "cylinder":
+        a = a[:, :-1]
+    a = a.transpose(2, 1, 0, 3)
     return np.ascontiguousarray(a.reshape(*a.shape[:3], *tail))
+
+
+def where_of(spec: Any) -> Grid | CylindricalGrid | np.ndarray:
+    """Where a ``[output.continuum.<name>]`` table puts its fields: a :class:`~pdem.fields.Grid`
+    (``type = "box"``), a :class:`~pdem.fields.CylindricalGrid` (``"cylinder"``) or an (m, 3) array
+    (``"points"``)."""
+    kind = getattr(spec, "type", "box")
+    if kind == "cylinder":
+        inner = spec.inner_radius or 0.0
+        return CylindricalGrid(spec.base_center, spec.radius, spec.height, spec.counts, inner)
+    if kind == "points":
+        return np.ascontiguousarray(np.asarray(spec.points, dtype=float).reshape(-1, 3))
+    return Grid(spec.lo, spec.hi, spec.counts)
+
+
+def _geometry(where, kind: str, first: int, planes: int) -> np.ndarray:
+    """The nodes of a block in the file's order: a cylinder's (nz, nθ + 1, planes, 3), a point
+    list's (planes, 3)."""
+    if kind == "points":
+        return np.ascontiguousarray(where[first : first + planes])
+    pts = where.points().reshape(*where.counts, 3)[first : first + planes]
+    return _to_file(pts, kind)
 
 
 class ContinuumWriter:
@@ -170,7 +204,10 @@ class ContinuumWriter:
         self.rank = int(comm.rank)
         self.size = int(comm.size)
         self.metadata = dict(metadata or {})
-        self.grid = Grid(spec.lo, spec.hi, spec.counts)
+        self.kind = getattr(spec, "type", "box")
+        self.grid = where_of(spec)
+        #: points per plane of the first axis (a point list: 1, its blocks are runs of points)
+        self.plane = 1 if self.kind == "points" else self.grid.counts[1] * self.grid.counts[2]
         self.quantities = list(spec.quantities) if spec.quantities else list(QUANTITIES)
         self.cg: CoarseGraining | None = None
         self.width: float | None = spec.width
@@ -333,7 +370,8 @@ class ContinuumWriter:
         self._pending.append((number, block, first, planes, (samples, since, time, step, stage)))
         # rank 0's clock decides, for every rank alike, whether the frames held are written now
         due = _time.monotonic() - self._flushed >= self.flush_seconds
-        blocks = self.comm.allgather((self.path.name, first, planes, due))
+        # the index names a block by its first plane (``first`` is a point index)
+        blocks = self.comm.allgather((self.path.name, first // self.plane, planes, due))
         if self.rank == 0:  # the blocks' batch and row are known when the frames are written
             self._headers.append({
                 "number": number, "time": time, "step": step, "stage": stage,
@@ -371,14 +409,24 @@ class ContinuumWriter:
         if not pending:
             return
         self.directory.mkdir(parents=True, exist_ok=True)
-        plane = self.grid.counts[1] * self.grid.counts[2]
+        plane = self.plane
         with h5py.File(self.path, "a") as f:
             if "lo" not in f.attrs:
                 for k, v in self.metadata.items():
                     f.attrs[k] = v
-                f.attrs["lo"] = self.grid.lo
-                f.attrs["hi"] = self.grid.hi
-                f.attrs["counts"] = np.array(self.grid.counts, dtype=np.int64)
+                f.attrs["type"] = self.kind
+                if self.kind == "box":
+                    f.attrs["lo"] = self.grid.lo
+                    f.attrs["hi"] = self.grid.hi
+                if self.kind == "cylinder":
+                    f.attrs["base_center"] = self.grid.base_center
+                    f.attrs["radius"] = self.grid.radius
+                    f.attrs["height"] = self.grid.height
+                    f.attrs["inner_radius"] = self.grid.inner_radius
+                if self.kind == "points":
+                    f.attrs["count"] = np.int64(len(self.grid))
+                else:
+                    f.attrs["counts"] = np.array(self.grid.counts, dtype=np.int64)
                 f.attrs["kernel"] = self.spec.kernel
                 f.attrs["width"] = float(self.width)
                 f.attrs["cutoff"] = float(self.spec.cutoff)
@@ -392,7 +440,11 @@ class ContinuumWriter:
             g.attrs["stages"] = json.dumps([fr[4][4] for fr in pending])
             if pending[0][3]:
                 for q in pending[0][1]:
-                    g.create_dataset(q, data=np.stack([_to_file(fr[1][q]) for fr in pending]))
+                    g.create_dataset(q, data=np.stack([_to_file(fr[1][q], self.kind) for fr in pending]))
+                first, planes = pending[0][2] // plane, pending[0][3]
+                geo = f"{first}_{planes}"
+                if self.kind != "box" and geo not in f.require_group("geometry"):
+                    f["geometry"].create_dataset(geo, data=_geometry(self.grid, self.kind, first, planes))
             f.flush()
 
     # ------------------------------------------------------------------ the index
@@ -413,31 +465,46 @@ class ContinuumWriter:
         atomic_write_text(self.index_path, head + "".join(frames) + "    </Grid>\n  </Domain>\n</Xdmf>\n")
 
     def _frame_xml(self, h: dict[str, Any]) -> str:
-        """One frame of the index: a spatial collection of the blocks' 3DCoRectMesh grids."""
-        nx, ny, nz = self.grid.counts
-        dx, dy, dz = (float(v) for v in self.grid.spacing)
-        x0, y0, z0 = (float(v) for v in self.grid.lo + 0.5 * self.grid.spacing)
+        """One frame of the index: a spatial collection of the blocks' grids (a box's
+        3DCoRectMesh, a cylinder's 3DSMesh, a point list's Polyvertex)."""
         frame = ET.Element("Grid", Name=f"frame_{h['number']:06d}", GridType="Collection",
                            CollectionType="Spatial")  # fmt: skip
         ET.SubElement(frame, "Time", Value=repr(float(h["time"])))
         ET.SubElement(frame, "Information", Name="step", Value=str(h["step"]))
         ET.SubElement(frame, "Information", Name="stage", Value=str(h["stage"]))
+        three = {"Dimensions": "3", "Format": "XML", "NumberType": "Float", "Precision": "8"}
         for fname, first, planes, names, batch, row, count in h["blocks"]:
             part = re.fullmatch(r".*\.(r\d+)\.h5", fname)
             grid = ET.SubElement(frame, "Grid", Name=part.group(1) if part else "grid", GridType="Uniform")
-            dims = f"{nz} {ny} {planes}"
-            ET.SubElement(grid, "Topology", TopologyType="3DCoRectMesh", Dimensions=dims)
-            geo = ET.SubElement(grid, "Geometry", GeometryType="ORIGIN_DXDYDZ")
-            three = {"Dimensions": "3", "Format": "XML", "NumberType": "Float", "Precision": "8"}
-            o = ET.SubElement(geo, "DataItem", three)
-            o.text = f"{z0!r} {y0!r} {x0 + first * dx!r}"
-            d = ET.SubElement(geo, "DataItem", three)
-            d.text = f"{dz!r} {dy!r} {dx!r}"
+            if self.kind == "points":
+                dims = f"{planes}"
+                ET.SubElement(grid, "Topology", TopologyType="Polyvertex", NumberOfElements=dims,
+                              NodesPerElement="1")  # fmt: skip
+            else:
+                _, n1, n2 = self.grid.counts
+                n1 += 1 if self.kind == "cylinder" else 0  # the ring closed: θ column 0 repeated
+                dims = f"{n2} {n1} {planes}"
+                topology = "3DCoRectMesh" if self.kind == "box" else "3DSMesh"
+                ET.SubElement(grid, "Topology", TopologyType=topology, Dimensions=dims)
+            if self.kind == "box":
+                dx, dy, dz = (float(v) for v in self.grid.spacing)
+                x0, y0, z0 = (float(v) for v in self.grid.lo + 0.5 * self.grid.spacing)
+                geo = ET.SubElement(grid, "Geometry", GeometryType="ORIGIN_DXDYDZ")
+                o = ET.SubElement(geo, "DataItem", three)
+                o.text = f"{z0!r} {y0!r} {x0 + first * dx!r}"
+                d = ET.SubElement(geo, "DataItem", three)
+                d.text = f"{dz!r} {dy!r} {dx!r}"
+            else:
+                geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
+                item = ET.SubElement(geo, "DataItem", Dimensions=f"{dims} 3", Format="HDF",
+                                     NumberType="Float", Precision="8")  # fmt: skip
+                item.text = f"{fname}:/geometry/{first}_{planes}"
+            space = len(dims.split())
             for q in names:
                 k = QUANTITIES[q]
                 att = ET.SubElement(grid, "Attribute", Name=q, AttributeType=_XDMF_TYPE[k], Center="Node")
                 shape = dims if k == 1 else f"{dims} {k}"
-                rank = 4 if k == 1 else 5
+                rank = space + 1 if k == 1 else space + 2
                 slab = ET.SubElement(att, "DataItem", ItemType="HyperSlab", Dimensions=shape,
                                      Type="HyperSlab")  # fmt: skip
                 sel = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
@@ -461,20 +528,41 @@ class ContinuumWriter:
             self._write_index()
 
 
+def _where_in(f: h5py.File, files: list[Path]) -> tuple[str, Any]:
+    """The kind and the nodes' description of a grid's files (``f`` one of them): a box's or a
+    cylinder's grid, or a point list's (m, 3) points gathered from every file's blocks."""
+    kind = f.attrs.get("type", "box")
+    kind = kind.decode() if isinstance(kind, bytes) else str(kind)
+    if kind == "cylinder":
+        a = f.attrs
+        return kind, CylindricalGrid(a["base_center"], float(a["radius"]), float(a["height"]), a["counts"],
+                                     float(a["inner_radius"]))  # fmt: skip
+    if kind == "points":
+        pts = np.full((int(f.attrs["count"]), 3), np.nan)
+        for p in files:
+            with h5py.File(p, "r") as g:
+                for key, ds in g.get("geometry", {}).items():
+                    first, planes = (int(v) for v in key.split("_"))
+                    pts[first : first + planes] = ds[()]
+        return kind, pts
+    return kind, Grid(f.attrs["lo"], f.attrs["hi"], f.attrs["counts"])
+
+
 def read_continuum(directory: Path | str, name: str) -> list[dict[str, Any]]:
     """Every frame of grid ``name`` in ``directory``, its blocks joined: a list (in frame order) of
-    dicts with ``time``, ``step``, ``stage``, ``samples`` and each quantity in pdem's (nx, ny, nz, …)
-    order, plus ``points`` (nx, ny, nz, 3)."""
+    dicts with ``time``, ``step``, ``stage``, ``samples`` and each quantity in pdem's order (a grid's
+    (n0, n1, n2, …): (nx, ny, nz) or a cylinder's (nr, nθ, nz); a point list's (m, …)), plus
+    ``points``, the nodes' positions (…, 3) [m], and ``where``, the :class:`~pdem.fields.Grid`,
+    :class:`~pdem.fields.CylindricalGrid` or (m, 3) points."""
     files = continuum_files(Path(directory), name)
     if not files:
         raise OutputError(f"no continuum_{name}*.h5 in {directory}")
     out: dict[int, dict[str, Any]] = {}
-    grid = None
+    kind, where = None, None
     for p in files:
         with h5py.File(p, "r") as f:
-            if grid is None:
-                grid = Grid(f.attrs["lo"], f.attrs["hi"], f.attrs["counts"])
-            nx, ny, nz = grid.counts
+            if where is None and "batches" in f:
+                kind, where = _where_in(f, files)
             for _key, g in f.get("batches", {}).items():
                 table, stages, numbers = _batch_table(g)
                 for row, (number, info, stage) in enumerate(zip(numbers, table, stages, strict=True)):
@@ -484,12 +572,16 @@ def read_continuum(directory: Path | str, name: str) -> list[dict[str, Any]]:
                     first, planes = int(info[4]), int(info[5])
                     for q in g:
                         k = QUANTITIES[q]
-                        arr = _from_file(g[q][row], k)
+                        arr = _from_file(g[q][row], k, kind)
                         if q not in fr:
-                            fr[q] = np.full((nx, ny, nz, *arr.shape[3:]), np.nan)
+                            shape = (len(where),) if kind == "points" else where.counts
+                            fr[q] = np.full((*shape, *arr.shape[len(shape) :]), np.nan)
                         fr[q][first : first + planes] = arr
-    pts = grid.points().reshape(*grid.counts, 3)
+    if where is None:
+        return []
+    pts = where if kind == "points" else where.points().reshape(*where.counts, 3)
     frames = [out[k] for k in sorted(out)]
     for fr in frames:
         fr["points"] = pts
+        fr["where"] = where
     return frames
