@@ -26,14 +26,14 @@ at 25°; ``mindlin_rescale`` is further off (1.8° at 25°) and ``mindlin_rescal
 the elastic force with the contact radius, unlike YADE) gives ω' 29 % higher at 5° (these are reported,
 not asserted). In gross sliding all four options agree with the closed forms.
 
-The paper's own figure values could not be used as an asserted reference: the only public
-tabulation found is a digitization in the repository dineshadepu/pysph
-(``pysph/examples/dem/discontinuous_dem/chung_test_4_incident_angle_vs_post_collision_angular_velocity.csv``,
-which curve of the figure it follows is not stated, no reading error given). Its ω' agree with the
-closed forms within 1.5 % from 30° to 80° but are 4.2 rad/s (7 %) off the exact 61.9 rad/s at 85°, so
-its reading error is of that order; at 5° and 10° it gives 21 and 211 rad/s where YADE gives 38 and
-192 and ``mindlin_force`` 38 and 196 (``linear_history``: 13 and 205). Its rebound-angle file does not
-match either the patch or the centroid angle at small angles (25° at 5° incidence) and was not used.
+The paper's own curves (aluminium oxide) are a second reference, read from its figures
+(``tests/data/chung_ooi_test4_figure.csv``, which names the reading's source; a second, independent
+reading agrees within 2 rad/s at 5° and 10°). Against them ``mindlin_force`` meets ω' within 5 % and the
+rebound angle within 0.5° (each plus the reading error, estimated where the closed forms hold) from
+15° and 20° on; in the sticking and microslip regime (5°–15°) neither pdem nor YADE lands on the
+figure (test_chung_ooi_test4_against_the_papers_figure says by how much). The default
+``linear_history`` gives ω' 33 % below the figure at 5° and angles 0.7°–1.05° off at 5°–20°
+(at whole degrees, against the figure's nearest points).
 
 **Test 6** — a spinning sphere meets the rigid plane with v_n = 0.2 m/s, no tangential velocity, and
 ω from 0.175 to 21 rad/s; aluminium alloy (E = 70 GPa, ν = 0.33, ρ = 2700 kg/m³, r = 0.1 m), μ = 0.4,
@@ -69,6 +69,7 @@ STEPS = 1000  # time steps per elastic contact time
 # test 4
 R4, V4, MU4, E4 = 2.5e-3, 3.9, 0.092, 0.98
 YADE = Path(__file__).resolve().parent / "data" / "chung_ooi_test4_yade.csv"
+FIGURE = Path(__file__).resolve().parent / "data" / "chung_ooi_test4_figure.csv"
 
 # test 6
 R6, VN6, MU6, E6 = 0.1, 0.2, 0.4, 0.5
@@ -105,12 +106,13 @@ def _impact(law: dict, mat: dict, r: float, v: tuple, w: tuple, tc: float, horiz
     return float(p["v"][0, 2]), float(p["v"][0, 0]), float(p["w"][0, 1])
 
 
-def _test4(tangential: str) -> list[tuple[float, float, float, float, float, float]]:
+def _test4(tangential: str, angles=None) -> list[tuple[float, float, float, float, float, float]]:
+    """(incidence, v_n, v_t, v_n', v_t', ω') at ``angles`` [deg] (default the peer's)."""
     mat = dict(density=4000.0, youngs_modulus=3.8e11, poisson_ratio=0.23, restitution=E4, friction=MU4)
     m = 4000.0 * 4.0 / 3.0 * math.pi * R4**3
     es = _e_star(3.8e11, 0.23, 3.8e14)
     out = []
-    for deg in _yade()[:, 0]:
+    for deg in _yade()[:, 0] if angles is None else angles:
         th = math.radians(deg)
         vn0, vt0 = V4 * math.cos(th), V4 * math.sin(th)
         vn, vt, w = _impact({"tangential": tangential}, mat, R4, (vt0, 0.0, -vn0), (0.0, 0.0, 0.0),
@@ -153,6 +155,56 @@ def test_chung_ooi_test4_mindlin_force_matches_the_peer():
         assert abs(d_w) < 0.05
         worst = (max(worst[0], abs(d_angle)), max(worst[1], abs(d_w)))
     print(f"largest differences: {worst[0]:.3f}°, {worst[1]:.2%}")
+
+
+def _sliding_refs(vn0: float, vt0: float, vn: float, th: float) -> tuple[float, float]:
+    """The rigid-body closed forms in gross sliding, with the realised e_n: (ω', patch angle [deg])."""
+    one_plus_e = 1.0 + vn / vn0
+    e_t = 1.0 - MU4 * one_plus_e / math.tan(th)
+    w_ref = 2.5 * MU4 * one_plus_e * vn0 / R4
+    return w_ref, math.degrees(math.atan((e_t * vt0 - R4 * w_ref) / vn))
+
+
+def test_chung_ooi_test4_against_the_papers_figure():
+    """The paper's own curves (aluminium oxide, read from its figures; tests/data says by whom): ω' and
+    the rebound angle at the figure's incident angles, with ``mindlin_force``.
+
+    The reading error is taken from the gross-sliding points (tan θ ≥ 3.5 μ (1 + e), with a 5 %
+    margin), where the rigid-body closed forms are exact: the largest |figure − closed form| there,
+    per quantity (measured: 3.7 rad/s and 0.35°). ω' is within 5 % plus that error from 15° on
+    (−1.2 % to +2.0 % up to 70°, −2.9 % at 80°), the rebound angle within 0.5° plus it from 20° on
+    (at most 0.57°, at 25°). Not met, printed and not asserted: ω' at 5° and 10° (37.1 and
+    198.9 rad/s against the figure's 19.3 and 213.0) and the angle at 5°, 10° and 15° (−0.66°,
+    +1.47°, +0.93°), the sticking and microslip regime. YADE's incremental Mindlin law gives what
+    pdem gives there (37.6 and 192.0 rad/s, 3.14° and 0.07° at 5° and 10°: the test above), so the
+    gap is between this tangential law and the one behind the paper's curve, not in pdem's
+    implementation of it.
+    """
+    rows = [line.split(",") for line in FIGURE.read_text().splitlines() if line[:1].isdigit()]
+    fig = np.array(rows, dtype=float)
+    omega = {round(r[0], 2): r for r in _test4("mindlin_force", fig[:, 0])}
+    angle = {round(r[0], 2): r for r in _test4("mindlin_force", fig[:, 2])}
+    slides = lambda deg: math.tan(math.radians(deg)) >= 3.5 * MU4 * (1 + E4) * 1.05  # noqa: E731
+    err_w = err_a = 0.0
+    for th_w, w_fig, th_a, a_fig in fig:
+        if slides(th_w):
+            _, vn0, vt0, vn, _, _ = omega[round(th_w, 2)]
+            err_w = max(err_w, abs(w_fig - _sliding_refs(vn0, vt0, vn, math.radians(th_w))[0]))
+        if slides(th_a):
+            _, vn0, vt0, vn, _, _ = angle[round(th_a, 2)]
+            err_a = max(err_a, abs(a_fig - _sliding_refs(vn0, vt0, vn, math.radians(th_a))[1]))
+    print(f"reading error (gross sliding): ω' {err_w:.2f} rad/s, angle {err_a:.2f}°")
+    assert 0.0 < err_w < 5.0 and 0.0 < err_a < 0.6  # a reading, not a copy of a closed form
+    for th_w, w_fig, th_a, a_fig in fig:
+        w = omega[round(th_w, 2)][5]
+        _, _, _, vn, vt, w_a = angle[round(th_a, 2)]
+        patch = _patch_angle(vn, vt, w_a)
+        print(f"ω' at {th_w:5.2f}°: {w:7.1f} rad/s (figure {w_fig:6.1f}, {w / w_fig - 1:+.1%}); angle at "
+              f"{th_a:5.2f}°: {patch:+6.2f}° (figure {a_fig:+6.2f}°, {patch - a_fig:+.2f}°)")  # fmt: skip
+        if th_w >= 14.0:
+            assert abs(w - w_fig) <= 0.05 * w_fig + err_w
+        if th_a >= 19.0:
+            assert abs(patch - a_fig) <= 0.5 + err_a
 
 
 @pytest.mark.parametrize("tangential", OPTIONS)
