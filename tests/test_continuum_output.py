@@ -511,6 +511,20 @@ def test_field_pictures_flux_through_a_plane_of_an_axisymmetric_jet():
         assert w == pytest.approx(exact, rel=0.03)
     with pytest.raises(SystemExit, match="density"):
         field_pictures.flux(frame, 0.0)
+    # the same jet on a cylindrical grid whose ring edge falls on the jet's: exact (midpoint rule)
+    from pdem.fields import CylindricalGrid
+
+    cyl = CylindricalGrid((0.0, 0.0, -0.0015), 0.012, 0.003, (8, 6, 2))
+    r = cyl.axes()[0]
+    shape = (8, 6, 2)
+    vel = np.zeros((*shape, 3))
+    vel[..., 2] = np.where(r < 0.006, -0.3, 0.0)[:, None, None]
+    frame = {"points": cyl.points().reshape(*shape, 3), "where": cyl, "velocity": vel,
+             "density": np.full(shape, 1500.0)}  # fmt: skip
+    got = field_pictures.flux(frame, 0.0)
+    assert [round(zk, 6) for zk, _ in got] == [-0.00075, 0.00075]
+    for _, w in got:
+        assert w == pytest.approx(exact, rel=1e-12)
 
 
 def test_default_width_waits_for_grains(tmp_path):

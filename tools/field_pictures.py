@@ -185,15 +185,23 @@ def flux(frame: dict, z: float, grain_density: float | None = None) -> list[tupl
     """``[(z_k, W_k)]``: the mass flux down through the node planes nearest below and above ``z`` of
     a section (ny = 1) taken as axisymmetric about x = 0, W = -∫ ρ V_z 2π r dr over r = |x| (the
     trapezoid rule on the nodes, the two sides of the axis averaged; a side without a mirror node
-    is used alone)."""
+    is used alone); on a cylindrical grid W = -Σ ρ V_z r Δr Δθ over the plane's nodes."""
     pts = frame["points"]
     if "density" in frame:
-        rho = frame["density"][:, 0, :]
+        rho = frame["density"]
     elif grain_density is not None and "solid_fraction" in frame:
-        rho = grain_density * frame["solid_fraction"][:, 0, :]
+        rho = grain_density * frame["solid_fraction"]
     else:
         raise SystemExit("--flux needs the grid's density, or its solid_fraction and --grain-density")
-    vz = _need(frame, "velocity")[:, 0, :, 2]
+    vz = _need(frame, "velocity")[..., 2]
+    cyl = _cylinder(frame)
+    if cyl is not None:  # W = -Σ ρ V_z r Δr Δθ over a z-plane: the midpoint rule in r and θ
+        zs = cyl.axes()[2]
+        below, above = np.flatnonzero(zs <= z), np.flatnonzero(zs >= z)
+        planes = sorted({int(k) for k in (*below[-1:], *above[:1])})
+        area = cyl.node_volumes()[..., 0] / cyl.spacing[2]  # r Δr Δθ
+        return [(float(zs[k]), float(-np.sum(rho[..., k] * vz[..., k] * area))) for k in planes]
+    rho, vz = rho[:, 0, :], vz[:, 0, :]
     x, zs = pts[:, 0, 0, 0], pts[0, 0, :, 2]
     below = np.flatnonzero(zs <= z)
     above = np.flatnonzero(zs >= z)
