@@ -252,9 +252,11 @@ def test_two_ranks_and_a_resume_write_the_same_bits(serial_run):
     assert [len(fr.findall("Grid")) for fr in index.findall("./Domain/Grid/Grid")] == [1, 1, 2, 2]
 
 
-_PV_SCRIPT = textwrap.dedent(
+#: pvpython: the last frame of the index argv[1], as ``d``, its times as ``times``
+_PV_OPEN = textwrap.dedent(
     """
     import sys
+    import numpy as np
     from paraview.simple import XDMFReader, servermanager
     from vtk.util.numpy_support import vtk_to_numpy
     r = XDMFReader(FileNames=[sys.argv[1]])
@@ -262,6 +264,10 @@ _PV_SCRIPT = textwrap.dedent(
     times = list(r.TimestepValues)
     r.UpdatePipeline(times[-1])
     d = servermanager.Fetch(r)
+    """
+)
+_PV_SCRIPT = _PV_OPEN + textwrap.dedent(
+    """
     b = d.GetBlock(0)
     s = vtk_to_numpy(b.GetPointData().GetArray("stress"))
     print(len(times), d.GetNumberOfBlocks(), *b.GetDimensions(), *b.GetOrigin(), *b.GetSpacing())
@@ -292,17 +298,8 @@ def test_paraview_opens_the_index(serial_run, tmp_path):
     assert [float(v) for v in lines[-1].split()] == last["stress"][2, 3, 4].ravel().tolist()
 
 
-_PV_NODES = textwrap.dedent(
+_PV_NODES = _PV_OPEN + textwrap.dedent(
     """
-    import sys
-    import numpy as np
-    from paraview.simple import XDMFReader, servermanager
-    from vtk.util.numpy_support import vtk_to_numpy
-    r = XDMFReader(FileNames=[sys.argv[1]])
-    r.UpdatePipelineInformation()
-    times = list(r.TimestepValues)
-    r.UpdatePipeline(times[-1])
-    d = servermanager.Fetch(r)
     pts, rho, kinds = [], [], []
     for k in range(d.GetNumberOfBlocks()):
         b = d.GetBlock(k)

@@ -225,14 +225,8 @@ class Grid:
             raise InputError(f"Grid hi = {hi!r} must be three finite numbers (x, y, z) [m]")
         if not np.all(hi_a > lo_a):
             raise InputError(f"Grid hi = {hi!r} must exceed lo = {lo!r} along every axis; swap or widen them")
-        try:
-            n = [int(c) for c in counts]
-            ok = len(n) == 3 and all(int(c) == c for c in counts)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok or min(n) < 1:
-            raise InputError(f"Grid counts = {counts!r} must be three positive integers (nx, ny, nz)")
-        self.lo, self.hi, self.counts = lo_a, hi_a, tuple(n)
+        n = _counts(counts, "Grid", "(nx, ny, nz)")
+        self.lo, self.hi, self.counts = lo_a, hi_a, n
         self.spacing = (hi_a - lo_a) / np.array(n)
 
     @property
@@ -291,18 +285,10 @@ class CylindricalGrid:
                 f"CylindricalGrid inner_radius = {inner_radius!r} must be at least 0 and below radius = "
                 f"{radius!r} m"
             )
-        try:
-            n = [int(v) for v in counts]
-            ok = len(n) == 3 and all(int(v) == v for v in counts)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok or min(n) < 1:
-            raise InputError(
-                f"CylindricalGrid counts = {counts!r} must be three positive integers (nr, nθ, nz)"
-            )
+        n = _counts(counts, "CylindricalGrid", "(nr, nθ, nz)")
         self.base_center = c
         self.inner_radius = r_in
-        self.counts = tuple(n)
+        self.counts = n
         self.spacing = np.array([(self.radius - r_in) / n[0], 2.0 * math.pi / n[1], self.height / n[2]])
 
     @property
@@ -366,6 +352,18 @@ def cylindrical_components(values, points, center) -> np.ndarray:
         f"cylindrical_components: values of shape {v.shape} must be vectors {(*theta.shape, 3)} or "
         f"tensors {(*theta.shape, 3, 3)} at the {lead}-dimensional points' shape {theta.shape}"
     )
+
+
+def _counts(counts, what: str, axes: str) -> tuple[int, int, int]:
+    """A grid's three positive cell counts, or an InputError naming them."""
+    try:
+        n = [int(c) for c in counts]
+        ok = len(n) == 3 and all(int(c) == c for c in counts)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or min(n) < 1:
+        raise InputError(f"{what} counts = {counts!r} must be three positive integers {axes}")
+    return tuple(n)
 
 
 def _is_numeric(v) -> bool:
