@@ -456,7 +456,8 @@ _MPI_SCRIPT = textwrap.dedent(
     import hashlib, sys
     import numpy as np
     import pdem
-    from pdem.fields import CoarseGraining, GaussianKernel, Grid, LucyKernel, TimeAverage, coarse_grain
+    from pdem.fields import (CoarseGraining, CylindricalGrid, GaussianKernel, Grid, LucyKernel, TimeAverage,
+                             coarse_grain)
     from pdem.geometry.shapes import Plane
     from pdem.parallel.comm import default_comm
 
@@ -480,7 +481,9 @@ _MPI_SCRIPT = textwrap.dedent(
         h = hashlib.sha256()
         grid = Grid((-0.001, -0.001, -0.001), (0.008, 0.008, 0.006), (9, 9, 7))
         pts = np.random.default_rng(5).uniform((-0.002, -0.002, -0.001), (0.01, 0.01, 0.006), (40, 3))
-        kernels = (GaussianKernel(0.5e-3), grid), (LucyKernel(1.5e-3), grid), (GaussianKernel(0.4e-3), pts)
+        cyl = CylindricalGrid((0.0035, 0.0035, -0.001), 0.005, 0.007, (5, 12, 7), inner_radius=0.0005)
+        kernels = ((GaussianKernel(0.5e-3), grid), (LucyKernel(1.5e-3), grid), (GaussianKernel(0.4e-3), pts),
+                   (GaussianKernel(0.5e-3), cyl))
         for kern, where in kernels:
             for name, arr in coarse_grain(sim, kern, where).arrays().items():
                 h.update(name.encode())
@@ -494,11 +497,11 @@ _MPI_SCRIPT = textwrap.dedent(
         for kern, where in kernels:  # each rank's block (a slab of the grid) is the whole's, bit for bit
             cg = CoarseGraining(kern, where)
             whole = cg(sim).arrays()
-            plane = 9 * 7 if where is grid else 1
+            plane = 9 * 7 if where is grid else 12 * 7 if where is cyl else 1
             for overlap in (True, False):
                 part, first = cg.block(sim, overlap=overlap)
                 for name, arr in part.arrays().items():
-                    n = arr.shape[0] * (plane if where is grid else 1)
+                    n = arr.shape[0] * plane
                     ref = whole[name].reshape(-1, *whole[name].shape[len(cg.shape):])[first : first + n]
                     assert arr.reshape(ref.shape).tobytes() == ref.tobytes(), (name, overlap)
                 counts = comm.allgather(part.density.size)
@@ -540,9 +543,10 @@ def _fields_hashes(tmp_path, ranks: int) -> list[list[str]]:
                                    pytest.param(4, marks=pytest.mark.integration)])  # fmt: skip
 def test_fields_are_bitwise_the_same_on_any_rank_count(tmp_path, ranks):
     """A packing in contact with two walls, periodic in x and y, run with DEM-P and with DEM-C on 1
-    and on K ranks: every field (two kernels on a grid, arbitrary points, a time average, a
-    root-only result) has the same bytes; the contact and wall-contact counts show what was summed
-    (pairs across the periodic faces and the ranks' cuts, wall contacts)."""
+    and on K ranks: every field (two kernels on a grid, arbitrary points, a cylindrical grid, a time
+    average, a root-only result, each rank's block) has the same bytes; the contact and wall-contact
+    counts show what was summed (pairs across the periodic faces and the ranks' cuts, wall
+    contacts)."""
     one = _fields_hashes(tmp_path, 1)
     many = _fields_hashes(tmp_path, ranks)
     assert [row[0] for row in one] == ["hertz_mindlin", "complementarity"], one
