@@ -265,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
             stages = sorted({f["stage"] for f in frames})
             raise SystemExit(f"no frame of stage {args.stage!r}; stages: {stages}")
         frame = mean_frame(chosen)
+        frame["window"] = (chosen[0]["since"], chosen[-1]["time"], len(chosen))
         print(f"# the mean of {len(chosen)} frames, steps {chosen[0]['step']}–{chosen[-1]['step']}")
     else:
         frame = frames[args.frame]
@@ -282,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     from matplotlib.colors import LogNorm
 
     head = f"t = {frame['time']:.4g} s, step {frame['step']} ({frame['stage']}), {frame['samples']} sample(s)"
+    if "window" in frame:  # a mean of frames: the time it covers
+        t0, t1, k = frame["window"]
+        head = f"mean of {k} frames, t = {t0:.4g}–{t1:.4g} s ({frame['stage']}), {frame['samples']} samples"
     if args.profile:
         fig, ax = plt.subplots(figsize=(4.5, 4.0))
         for name in names:
