@@ -86,3 +86,28 @@ def test_the_bed_size_study_writes_decks_pdem_accepts(tmp_path):
         rest=1e-6,
     ))  # fmt: skip
     assert pdem(["check", str(bed_deck), "--deck-only"]) == 0
+
+
+def test_a_cut_bed_is_settled_again_before_it_is_dropped_on(tmp_path):
+    """tools/drop_bed_size.py --carve: the beads wholly inside the central square and the top layers
+    of a packing are cut out, lowered onto the floor and settled in their own box until at rest
+    (the bed deck's kinetic-energy criterion), and that settled packing is the cut bed."""
+    import drop_bed_size as tool
+
+    from pdem.sources import read_spheres, write_spheres_text
+
+    r = tool.R_BEAD
+    idx = np.stack(np.meshgrid(np.arange(6), np.arange(6), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    x = (idx - np.array([2.5, 2.5, 0.0])) * 2.0 * r + np.array([0.0, 0.0, r + 0.002])  # 2 mm above z = 0
+    source = tmp_path / "big.txt"
+    write_spheres_text(source, x, np.full(len(x), r))
+    bed = tool.carve_bed(tmp_path / "cut", source, 0.012, 0.006, 1)
+    cut = read_spheres(tmp_path / "cut" / "cut.txt")
+    settled = read_spheres(bed)
+    assert len(cut["radii"]) == len(settled["radii"]) == 4 * 4 * 2  # the inner columns, top two layers
+    assert cut["positions"][:, 2].min() == pytest.approx(r)  # lowered onto the floor
+    assert np.all(np.abs(settled["positions"][:, :2]) <= 0.006 - r + 1e-9)
+    assert settled["positions"][:, 2].min() == pytest.approx(r, abs=1e-5)  # resting on it
+    summary = json.loads((tmp_path / "cut" / "run" / "summary.json").read_text())
+    assert summary["completed"]
+    assert tool.carve_bed(tmp_path / "cut", source, 0.012, 0.006, 1) == bed  # kept, not made again

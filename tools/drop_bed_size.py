@@ -18,8 +18,11 @@ For each bed scale s in ``--beds`` (1: the given width and depth; 2: both double
 
 With ``--carve S``, the first bed is not filled on its own but cut out of the bed of scale S
 (its central ``width`` square and its top ``depth`` + 8 %, the grains wholly inside; lowered onto
-the floor), so that both beds have the same surface packing and only the walls and the floor
-differ: what then changes the depth is the bed's size, not how it was made.
+the floor and settled again to the same rest criterion, in ``OUT/bed_s1_cut``), so that both beds
+have the same surface packing and only the walls and the floor differ: what then changes the depth
+is the bed's size, not how it was made. (Without the second settling the cut's rough underside
+sags onto the floor during the drop deck's settle stage, which ends at its time limit with the bed
+still moving.)
 
 Finished steps are kept (a bed whose packing exists, a drop whose ``summary.json`` exists), so the
 study can be stopped and started again. Last, ``OUT/bed_size.csv`` gives, for each height, the
@@ -167,10 +170,43 @@ def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int) -> Pa
     return packing
 
 
-def carve_bed(out: Path, source: Path, width: float, depth: float) -> Path:
+def settle_packing(out: Path, cut: Path, width: float, depth: float, ranks: int) -> Path:
+    """``cut`` (a packing in ``out``) settled under gravity in its ``width`` box until its kinetic
+    energy is below the beds' rest threshold (as :func:`make_bed` settles a fill), written as
+    ``out/bed.txt``."""
+    from pdem.io.checkpoint import read_checkpoint
+    from pdem.sources import write_spheres_text
+
+    packing = out / "bed.txt"
+    half = width / 2.0
+    n = bead_count(cut)
+    deck = BED_DECK.format(
+        width=width, depth=depth, seed=1, lo=repr(-half), hi=repr(half), fill_top=repr(2.4 * depth),
+        box_top=repr(3.0 * depth), r=repr(R_BEAD), rest=repr(REST_ENERGY_PER_BEAD * n),
+    )  # fmt: skip
+    start, end = deck.index("[[particles]]"), deck.index("[boundaries.box]")
+    table = f'[[particles]]\nsource = "file"\nmaterial = "bead"\npath = "{cut.name}"\n\n'
+    deck = deck[:start] + table + deck[end:]
+    deck = deck.replace("# A drop bed, made by", "# A drop bed cut from a larger one, settled again by", 1)
+    (out / "settle.toml").write_text(deck)
+    bin_dir = Path(sys.executable).parent
+    head = [str(bin_dir / "mpiexec"), "-n", str(ranks)] if ranks > 1 else []
+    run([*head, str(bin_dir / "pdem"), str(out / "settle.toml"), "--output", str(out / "run"), "--overwrite"])
+    state, _ = read_checkpoint(out / "run" / "checkpoints" / "latest.h5")
+    x, r = state["particles/x"], state["particles/r"]
+    tmp = packing.with_suffix(".tmp")
+    write_spheres_text(tmp, x, r)
+    tmp.replace(packing)
+    print(f"cut bed settled: {len(r)} beads, highest bead top {float(np.max(x[:, 2] + r)):.4f} m", flush=True)
+    return packing
+
+
+def carve_bed(out: Path, source: Path, width: float, depth: float, ranks: int) -> Path:
     """The bed cut out of the packing ``source``: grains wholly inside the central ``width`` square
     and within 1.08 ``depth`` of its top (the fill's beds settle about 8 % above ``depth``),
-    lowered so that the lowest touches the floor."""
+    lowered so that the lowest touches the floor, then settled again to rest
+    (:func:`settle_packing`): the cut's underside is rough, so it sags onto the floor, and a drop
+    deck's short settle stage does not bring it to rest."""
     from pdem.sources import read_spheres, write_spheres_text
 
     packing = out / "bed.txt"
@@ -186,11 +222,12 @@ def carve_bed(out: Path, source: Path, width: float, depth: float) -> Path:
     )
     x, r = x[keep].copy(), r[keep]
     x[:, 2] -= float(np.min(x[:, 2] - r))
-    tmp = packing.with_suffix(".tmp")
+    cut = out / "cut.txt"
+    tmp = cut.with_suffix(".tmp")
     write_spheres_text(tmp, x, r)
-    tmp.replace(packing)
+    tmp.replace(cut)
     print(f"bed carved from {source}: {len(r)} beads, top {float(np.max(x[:, 2] + r)):.4f} m", flush=True)
-    return packing
+    return settle_packing(out, cut, width, depth, ranks)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -216,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         width, depth = s * args.width, s * args.depth
         if args.carve and s == args.beds[0]:
             source = out / f"bed_s{args.carve}" / "bed.txt"
-            bed = carve_bed(out / f"bed_s{s}_carved", source, width, depth)
+            bed = carve_bed(out / f"bed_s{s}_cut", source, width, depth, args.ranks)
         else:
             bed = make_bed(out / f"bed_s{s}", width, depth, args.ranks, args.seed)
         n = bead_count(bed)
