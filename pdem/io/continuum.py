@@ -411,7 +411,7 @@ class ContinuumWriter:
         self.directory.mkdir(parents=True, exist_ok=True)
         plane = self.plane
         with h5py.File(self.path, "a") as f:
-            if "lo" not in f.attrs:
+            if "kernel" not in f.attrs:  # the file's first batch (every type writes the kernel)
                 for k, v in self.metadata.items():
                     f.attrs[k] = v
                 f.attrs["type"] = self.kind
