@@ -612,3 +612,18 @@ def test_fields_on_a_cylindrical_grid_are_those_at_its_nodes(packing):
     local = g.cylindrical(f.stress)
     trace = np.trace(f.stress, axis1=-2, axis2=-1)
     np.testing.assert_allclose(np.trace(local, axis1=-2, axis2=-1), trace, rtol=1e-12)
+
+
+def test_a_grid_spanning_huge_distances_gives_fields_not_an_overflow():
+    """Grid corners 1e100 m apart (the deck's largest magnitude) with a millimetre kernel: the
+    points' cells are counted in floats, so the fields come out (zero far from the grain, its
+    density at its node) instead of an integer overflow."""
+    sim = pdem.Simulation()
+    _material(sim)
+    sim.add_particles([[0.0, 0.0, 0.0]], 0.5e-3)
+    grid = Grid((-1e100, -1e-3, -1e-3), (1e100, 1e-3, 1e-3), (3, 1, 1))
+    points = np.array([[0.0, 0.0, 0.0], [1e100, 0.0, 0.0], [-1e100, 0.0, 0.0]])
+    f = coarse_grain(sim, GaussianKernel(1e-3), points)
+    g = coarse_grain(sim, GaussianKernel(1e-3), grid)
+    assert f.density[0] > 0.0 and f.density[1] == f.density[2] == 0.0
+    assert g.density[1, 0, 0] == f.density[0] and g.density[0, 0, 0] == 0.0

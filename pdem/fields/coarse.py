@@ -546,8 +546,9 @@ class CoarseGraining:
         s = self.kernel.radius
         span = self.hi - self.lo
         while True:  # cells of the cut-off radius, fewer than ~4 per point (scattered points)
-            ncell = np.floor(span / s).astype(np.int64) + 1
-            if int(np.prod(ncell)) <= 4 * pts.shape[0] + 64:
+            per_axis = np.floor(span / s) + 1.0  # in floats: a far-flung grid would overflow int64
+            if float(np.prod(per_axis)) <= 4 * pts.shape[0] + 64:
+                ncell = per_axis.astype(np.int64)
                 break
             s *= 2.0
         self.cell = s
