@@ -207,10 +207,15 @@ def test_dropped_ball_falls_ballistically_then_rests_on_a_layer(law, dt):
         assert pen.tip_z() == pytest.approx(z0 - g * dt * dt * steps * (steps + 1) / 2, abs=1e-12)
         assert abs(pen.tip_z() - (z0 - 0.5 * g * t * t)) <= g * dt * t  # ballistic within O(dt)
     assert steps * dt == pytest.approx(math.sqrt(2 * (0.02 - 1e-3) / g), abs=2 * dt)
+    assert math.isnan(pen.impact_velocity)
     for _ in range(int(0.2 / dt)):
         sim.step()
         if pen.measurements(sim)["at_rest"] == 1.0:
             break
+    # the impact velocity is the fall's as the ball meets the grain under the axis (its tip at the
+    # grain tops, 2 cm below the release), with either law: a rigid contact stops the ball within
+    # its first step, so it is read before that step
+    assert pen.impact_velocity == pytest.approx(-math.sqrt(2 * g * 0.02), abs=3 * g * dt)
     m = pen.measurements(sim)
     assert m["at_rest"] == 1.0
     assert -1e-6 <= m["depth"] <= 5e-5

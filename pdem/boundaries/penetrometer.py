@@ -52,7 +52,9 @@ default the larger of the cone length and half the final depth, so the tip is bu
 transient is left out), its depth range, ``qc_slope`` [Pa/m] (least squares over the same part),
 ``shaft_force_mean``, ``final_depth``; ``drop``: ``final_depth`` (at the end of the run),
 ``max_depth``, ``release_height`` H, ``total_drop`` = H + final depth, ``impact_velocity``
-(when the tip first reached the surface), ``mass``, ``rest_time``.
+(the body's vertical velocity as it first touches a grain, before that contact acts: the same
+quantity for a soft contact that builds up over many steps and a rigid one that acts within its
+first step), ``mass``, ``rest_time``.
 
 It uses only the public plugin API (:mod:`pdem.api`).
 """
@@ -268,6 +270,7 @@ class Penetrometer(Boundary):
         self.touched = False
         self.rest_clock = 0.0
         self.impact_velocity = math.nan
+        self._v_before = math.nan  # the body's velocity at the start of the step (drop, until it touches)
         self._stage_t0 = 0.0
         self._restored: dict | None = None
         self._cache: tuple[int, dict] | None = None
@@ -494,6 +497,8 @@ class Penetrometer(Boundary):
 
     # ------------------------------------------------------------------ hooks
     def before_step(self, sim: Any) -> None:
+        if self.phase == "drop" and math.isnan(self.impact_velocity):
+            self._v_before = self._velocity()
         if self.phase != "push":
             return
         p = self.params
@@ -515,9 +520,10 @@ class Penetrometer(Boundary):
         if self.phase != "drop":
             return
         v = self._velocity()
+        if math.isnan(self.impact_velocity) and bool(np.any(self.body.force != 0.0)):  # collective
+            self.impact_velocity = self._v_before
         if not self.touched and self.tip_z() <= self.surface:
             self.touched = True
-            self.impact_velocity = v
         if self.touched and abs(v) < self.params.rest_speed:
             self.rest_clock += sim.dt
         else:
