@@ -111,3 +111,25 @@ def test_a_cut_bed_is_settled_again_before_it_is_dropped_on(tmp_path):
     summary = json.loads((tmp_path / "cut" / "run" / "summary.json").read_text())
     assert summary["completed"]
     assert tool.carve_bed(tmp_path / "cut", source, 0.012, 0.006, 1) == bed  # kept, not made again
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--cut", "0.1", "0.2"], "--carve"),
+        (["--carve", "2", "--cut", "0.1", "-0.2"], "positive"),
+        (["--carve", "2", "--cut", "0.1", "nan"], "positive"),
+        (["--carve", "2", "--cut", "0.25", "0.06"], "wider"),
+    ],
+)
+def test_a_cut_of_another_size_is_checked_before_anything_runs(tmp_path, capsys, argv, message):
+    """tools/drop_bed_size.py --cut W D: without --carve, with a length that is not positive, or
+    wider than the bed it is cut from, the study stops at once with a message naming the option."""
+    import drop_bed_size as tool
+
+    with pytest.raises(SystemExit) as exc:
+        tool.main([*argv, "--out", str(tmp_path / "study")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--cut" in err and message in err
+    assert not (tmp_path / "study").exists()

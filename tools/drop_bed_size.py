@@ -27,7 +27,11 @@ still moving.)
 Finished steps are kept (a bed whose packing exists, a drop whose ``summary.json`` exists), so the
 study can be stopped and started again. Last, ``OUT/bed_size.csv`` gives, for each height, the
 final depth on each bed and the change from the first bed to the others, and ``OUT/bed_size.json``
-the power-law fits d = A (H + d)^n of each bed. Extra ``--set``s go to the drops (e.g.
+the power-law fits d = A (H + d)^n of each bed.
+
+``--cut W D`` (with ``--carve S``) cuts a bed of another width and depth, e.g. one as deep as the
+large bed but narrower (only the walls differ) or as wide but shallower (only the floor differs),
+into ``OUT/bed_cut_<W>x<D>mm``; its table is ``OUT/bed_size_cut_<W>x<D>mm.csv``. Extra ``--set``s go to the drops (e.g.
 ``contact.law=complementarity``).
 """
 
@@ -243,9 +247,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--carve", type=int, default=None, metavar="S",
                     help="cut the first bed out of the bed of scale S (made first) instead of "
                     "filling it")  # fmt: skip
+    ap.add_argument("--cut", type=float, nargs=2, default=None, metavar=("W", "D"),
+                    help="with --carve: cut a W wide, D deep bed [m] instead of the first bed's width "
+                    "and depth (D larger than the source bed keeps its whole depth); written to "
+                    "OUT/bed_cut_<W>x<D>mm")  # fmt: skip
     args = ap.parse_args(argv)
     if args.carve is not None and args.carve not in args.beds[1:]:
         ap.error(f"--carve {args.carve}: the scale to carve from must be one of the later --beds")
+    if args.cut is not None:
+        if args.carve is None:
+            ap.error("--cut: give --carve S too (the bed to cut from)")
+        if not all(math.isfinite(v) and v > 0.0 for v in args.cut):
+            ap.error(f"--cut {args.cut[0]} {args.cut[1]}: the width and depth must be positive lengths in m")
+        if args.cut[0] > args.carve * args.width:
+            ap.error(f"--cut: a width of {args.cut[0]} m is wider than the bed it is cut from "
+                     f"({args.carve * args.width} m)")  # fmt: skip
     out = args.out.resolve()
     fits, depths = {}, {}
     order = [args.carve, *[b for b in args.beds if b != args.carve]] if args.carve else args.beds
@@ -253,7 +269,11 @@ def main(argv: list[str] | None = None) -> int:
         width, depth = s * args.width, s * args.depth
         if args.carve and s == args.beds[0]:
             source = out / f"bed_s{args.carve}" / "bed.txt"
-            bed = carve_bed(out / f"bed_s{s}_cut", source, width, depth, args.ranks)
+            name = f"bed_s{s}_cut"
+            if args.cut is not None:
+                width, depth = args.cut
+                name = f"bed_cut_{width * 1000:.0f}x{depth * 1000:.0f}mm"
+            bed = carve_bed(out / name, source, width, depth, args.ranks)
         else:
             bed = make_bed(out / f"bed_s{s}", width, depth, args.ranks, args.seed)
         n = bead_count(bed)
@@ -279,11 +299,12 @@ def main(argv: list[str] | None = None) -> int:
             if s != first:
                 row[f"change_s{s}"] = d / depths[first].get(round(h, 6), math.nan) - 1.0
         rows.append(row)
-    with open(out / "bed_size.csv", "w", newline="") as fh:
+    stem = "bed_size" if args.cut is None else f"bed_size_cut_{args.cut[0] * 1000:.0f}x{args.cut[1] * 1000:.0f}mm"
+    with open(out / f"{stem}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    (out / "bed_size.json").write_text(json.dumps({"beds": fits, "rows": rows}, indent=2))
+    (out / f"{stem}.json").write_text(json.dumps({"beds": fits, "rows": rows}, indent=2))
     for row in rows:
         print("  ".join(f"{k} = {v:.4g}" for k, v in row.items()), flush=True)
     return 0
