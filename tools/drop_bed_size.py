@@ -31,8 +31,9 @@ the power-law fits d = A (H + d)^n of each bed.
 
 ``--cut W D`` (with ``--carve S``) cuts a bed of another width and depth, e.g. one as deep as the
 large bed but narrower (only the walls differ) or as wide but shallower (only the floor differs),
-into ``OUT/bed_cut_<W>x<D>mm``; its table is ``OUT/bed_size_cut_<W>x<D>mm.csv``. Extra ``--set``s go to the drops (e.g.
-``contact.law=complementarity``).
+into ``OUT/bed_cut_<W>x<D>mm``; its table is ``OUT/bed_size_cut_<W>x<D>mm.csv``.
+
+Extra ``--set``s go to the drops (e.g. ``contact.law=complementarity``).
 """
 
 from __future__ import annotations
@@ -299,7 +300,9 @@ def main(argv: list[str] | None = None) -> int:
             if s != first:
                 row[f"change_s{s}"] = d / depths[first].get(round(h, 6), math.nan) - 1.0
         rows.append(row)
-    stem = "bed_size" if args.cut is None else f"bed_size_cut_{args.cut[0] * 1000:.0f}x{args.cut[1] * 1000:.0f}mm"
+    stem = "bed_size"
+    if args.cut is not None:
+        stem = f"bed_size_cut_{args.cut[0] * 1000:.0f}x{args.cut[1] * 1000:.0f}mm"
     with open(out / f"{stem}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
