@@ -263,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.cut[0] > args.carve * args.width:
             ap.error(f"--cut: a width of {args.cut[0]} m is wider than the bed it is cut from "
                      f"({args.carve * args.width} m)")  # fmt: skip
+    cut_tag = None if args.cut is None else f"cut_{args.cut[0] * 1000:.0f}x{args.cut[1] * 1000:.0f}mm"
     out = args.out.resolve()
     fits, depths = {}, {}
     order = [args.carve, *[b for b in args.beds if b != args.carve]] if args.carve else args.beds
@@ -271,9 +272,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.carve and s == args.beds[0]:
             source = out / f"bed_s{args.carve}" / "bed.txt"
             name = f"bed_s{s}_cut"
-            if args.cut is not None:
+            if cut_tag is not None:
                 width, depth = args.cut
-                name = f"bed_cut_{width * 1000:.0f}x{depth * 1000:.0f}mm"
+                name = f"bed_{cut_tag}"
             bed = carve_bed(out / name, source, width, depth, args.ranks)
         else:
             bed = make_bed(out / f"bed_s{s}", width, depth, args.ranks, args.seed)
@@ -300,9 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             if s != first:
                 row[f"change_s{s}"] = d / depths[first].get(round(h, 6), math.nan) - 1.0
         rows.append(row)
-    stem = "bed_size"
-    if args.cut is not None:
-        stem = f"bed_size_cut_{args.cut[0] * 1000:.0f}x{args.cut[1] * 1000:.0f}mm"
+    stem = "bed_size" if cut_tag is None else f"bed_size_{cut_tag}"
     with open(out / f"{stem}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
