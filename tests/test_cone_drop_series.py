@@ -81,11 +81,53 @@ def test_the_bed_size_study_writes_decks_pdem_accepts(tmp_path):
     assert parsed["stages"][0]["end"]["kinetic_energy_below"] == 2 * tool.REST_ENERGY_PER_BEAD
     assert pdem(["check", str(deck)]) == 0
     bed_deck = tmp_path / "bed.toml"
-    bed_deck.write_text(tool.BED_DECK.format(
-        width=0.1, depth=0.06, seed=1, lo=-0.05, hi=0.05, fill_top=0.144, box_top=0.18, r=tool.R_BEAD,
-        rest=1e-6,
-    ))  # fmt: skip
+    bed_deck.write_text(tool._bed_deck(0.1, 0.06, 1, 1000))
     assert pdem(["check", str(bed_deck), "--deck-only"]) == 0
+    parsed = tomllib.loads(bed_deck.read_text())
+    assert parsed["particles"][0]["region"]["lo"] == [-0.05, -0.05, 0.0]
+    assert parsed["particles"][0]["region"]["hi"][2] == pytest.approx(0.144)
+    lift = tmp_path / "lift.toml"  # a second lift: the first lift's grains, then a fill above them
+    lift.write_text(tool._with_file_source(tool._bed_deck(0.1, 0.06, 1001, 2000, bottom=0.065), str(bed)))
+    assert pdem(["check", str(lift), "--deck-only"]) == 0
+    parsed = tomllib.loads(lift.read_text())
+    assert [p["source"] for p in parsed["particles"]] == ["file", "random_fill"]
+    assert parsed["particles"][1]["region"]["lo"][2] == 0.065
+    assert parsed["particles"][1]["region"]["hi"][2] == pytest.approx(0.065 + 0.144)
+    assert parsed["boundaries"]["box"]["hi"][2] == pytest.approx(0.065 + 0.18)
+    assert parsed["run"]["seed"] == 1001
+
+
+def test_a_bed_in_lifts_fills_each_lift_above_the_last(tmp_path):
+    """tools/drop_bed_size.py --lifts: a bed of two lifts is the first lift's settled grains with a
+    second, equal fill above them, settled again; each lift is kept once made."""
+    import drop_bed_size as tool
+
+    from pdem.sources import read_spheres
+
+    bed = tool.make_bed(tmp_path / "bed", 0.02, 0.004, 1, 3, lifts=2)
+    first = read_spheres(tmp_path / "bed" / "lift1" / "bed.txt")
+    both = read_spheres(bed)
+    n1 = len(first["radii"])
+    assert n1 > 10
+    assert len(both["radii"]) == 2 * n1  # the same fill volume twice
+    top1 = float(np.max(first["positions"][:, 2] + first["radii"]))
+    deck = (tmp_path / "bed" / "lift2" / "bed.toml").read_text()
+    assert f"{top1!r}]" in deck and "seed = 1003" in deck
+    assert float(np.max(both["positions"][:, 2])) > top1  # the second lift lies on the first
+    assert np.all(np.abs(both["positions"][:, :2]) <= 0.01 - tool.R_BEAD + 1e-6)
+    mtime = bed.stat().st_mtime_ns
+    assert tool.make_bed(tmp_path / "bed", 0.02, 0.004, 1, 3, lifts=2) == bed
+    assert bed.stat().st_mtime_ns == mtime
+
+
+def test_lifts_and_a_cut_are_refused_together(tmp_path, capsys):
+    import drop_bed_size as tool
+
+    with pytest.raises(SystemExit) as exc:
+        tool.main(["--lifts", "--carve", "2", "--out", str(tmp_path / "study")])
+    assert exc.value.code == 2
+    assert "--lifts" in capsys.readouterr().err
+    assert not (tmp_path / "study").exists()
 
 
 def test_a_cut_bed_is_settled_again_before_it_is_dropped_on(tmp_path):

@@ -3,7 +3,7 @@
 
     python tools/drop_bed_size.py [--width 0.1] [--depth 0.06] [--heights 0.02 0.05 0.1 0.3]
                                   [--ranks 2] [--out out/drop_bed] [--set KEY=VALUE ...]
-                                  [--beds 1 2]
+                                  [--beds 1 2] [--carve S [--cut W D] | --lifts]
 
 For each bed scale s in ``--beds`` (1: the given width and depth; 2: both doubled):
 
@@ -32,6 +32,12 @@ the power-law fits d = A (H + d)^n of each bed.
 ``--cut W D`` (with ``--carve S``) cuts a bed of another width and depth, e.g. one as deep as the
 large bed but narrower (only the walls differ) or as wide but shallower (only the floor differs),
 into ``OUT/bed_cut_<W>x<D>mm``; its table is ``OUT/bed_size_cut_<W>x<D>mm.csv``.
+
+``--lifts`` fills the bed of scale S in S lifts instead (``OUT/bed_s<S>_lifts``): each lift is
+filled as the first bed is, at 0.25 up to 2.4 × ``depth`` above the last lift's highest bead, and
+settled before the next, so that the top of every bed, where the ball stops, is made alike however
+deep the bed (a one-lift fill of a deeper bed drops its beads from higher). Its table is
+``OUT/bed_size_lifts.csv``.
 
 Extra ``--set``s go to the drops (e.g. ``contact.law=complementarity``).
 """
@@ -83,7 +89,7 @@ friction = 0.3
 [[particles]]
 source = "random_fill"
 material = "bead"
-region = {{ type = "box", lo = [{lo}, {lo}, 0.0], hi = [{hi}, {hi}, {fill_top}] }}
+region = {{ type = "box", lo = [{lo}, {lo}, {fill_bottom}], hi = [{hi}, {hi}, {fill_top}] }}
 sizes = {{ type = "single", radius = {r} }}
 volume_fraction = 0.25
 
@@ -144,32 +150,85 @@ def run(cmd: list[str], cwd: Path | None = None) -> None:
         raise SystemExit(f"drop_bed_size.py: the command above failed with exit code {code}")
 
 
-def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int) -> Path:
-    """The settled bed's packing file (made once)."""
+def _settle_run(out: Path, deck_name: str, packing: Path, ranks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Run ``out/deck_name`` (into ``out/run``) and write its settled grains as ``packing``."""
     from pdem.io.checkpoint import read_checkpoint
     from pdem.sources import write_spheres_text
 
-    packing = out / "bed.txt"
-    if packing.exists():
-        return packing
-    out.mkdir(parents=True, exist_ok=True)
-    half = width / 2.0
-    n_est = 0.6 * width * width * depth / (4.0 / 3.0 * math.pi * R_BEAD**3)
-    deck = BED_DECK.format(
-        width=width, depth=depth, seed=seed, lo=repr(-half), hi=repr(half), fill_top=repr(2.4 * depth),
-        box_top=repr(3.0 * depth), r=repr(R_BEAD), rest=repr(REST_ENERGY_PER_BEAD * n_est),
-    )  # fmt: skip
-    (out / "bed.toml").write_text(deck)
-    head = ["mpiexec", "-n", str(ranks)] if ranks > 1 else []
-    exe = str(Path(sys.executable).parent / "pdem")
-    if ranks > 1:
-        head[0] = str(Path(sys.executable).parent / "mpiexec")
-    run([*head, exe, str(out / "bed.toml"), "--output", str(out / "run"), "--overwrite"])
+    bin_dir = Path(sys.executable).parent
+    head = [str(bin_dir / "mpiexec"), "-n", str(ranks)] if ranks > 1 else []
+    run([*head, str(bin_dir / "pdem"), str(out / deck_name), "--output", str(out / "run"), "--overwrite"])
     state, _ = read_checkpoint(out / "run" / "checkpoints" / "latest.h5")
     x, r = state["particles/x"], state["particles/r"]
     tmp = packing.with_suffix(".tmp")
     write_spheres_text(tmp, x, r)
     tmp.replace(packing)
+    return x, r
+
+
+def _bed_deck(width: float, depth: float, seed: int, n: float, bottom: float = 0.0) -> str:
+    """The fill-and-settle deck of a ``width`` square bed: beads filled at 0.25 from ``bottom`` up to
+    ``bottom`` + 2.4 ``depth``, settled until their kinetic energy is below the rest threshold of
+    ``n`` beads."""
+    half = width / 2.0
+    return BED_DECK.format(
+        width=width, depth=depth, seed=seed, lo=repr(-half), hi=repr(half), fill_bottom=repr(bottom),
+        fill_top=repr(bottom + 2.4 * depth), box_top=repr(bottom + 3.0 * depth), r=repr(R_BEAD),
+        rest=repr(REST_ENERGY_PER_BEAD * n),
+    )  # fmt: skip
+
+
+def _with_file_source(deck: str, path: str, replace: bool = False) -> str:
+    """``deck`` with a file source of ``path`` before its particle tables (the file's grains are
+    source 0; the deck's own sources follow, each with the run's seed + its index), or instead of
+    them with ``replace``."""
+    start = deck.index("[[particles]]")
+    rest = deck.index("[boundaries.box]") if replace else start
+    table = f'[[particles]]\nsource = "file"\nmaterial = "bead"\npath = "{path}"\n\n'
+    return deck[:start] + table + deck[rest:]
+
+
+def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int, lifts: int = 1) -> Path:
+    """The settled bed's packing file (made once). With ``lifts`` > 1 the bed is filled in that
+    many lifts, each as the one-lift bed of ``depth`` is made (filled at 0.25 up to 2.4 ``depth``
+    above the last lift's highest bead, then settled), so that its top lift falls as far as a
+    one-lift bed's beads do whatever the bed's depth."""
+    packing = out / "bed.txt"
+    if packing.exists():
+        return packing
+    out.mkdir(parents=True, exist_ok=True)
+    n_lift = 0.6 * width * width * depth / (4.0 / 3.0 * math.pi * R_BEAD**3)
+    if lifts == 1:
+        (out / "bed.toml").write_text(_bed_deck(width, depth, seed, n_lift))
+        x, r = _settle_run(out, "bed.toml", packing, ranks)
+    else:
+        below: Path | None = None
+        for k in range(1, lifts + 1):
+            lift_dir = out / f"lift{k}"
+            lift = lift_dir / "bed.txt"
+            if not lift.exists():
+                lift_dir.mkdir(parents=True, exist_ok=True)
+                if below is None:
+                    deck = _bed_deck(width, depth, seed, n_lift)
+                else:
+                    from pdem.sources import read_spheres
+
+                    d = read_spheres(below)
+                    top = float(np.max(d["positions"][:, 2] + d["radii"]))
+                    # each lift its own random stream: the run's seed, offset per lift
+                    deck = _bed_deck(width, depth, seed + 1000 * (k - 1), k * n_lift, bottom=top)
+                    deck = _with_file_source(deck, str(below.resolve()))
+                (lift_dir / "bed.toml").write_text(deck)
+                _settle_run(lift_dir, "bed.toml", lift, ranks)
+            below = lift
+        assert below is not None
+        from pdem.sources import read_spheres
+
+        d = read_spheres(below)
+        x, r = d["positions"], d["radii"]
+        tmp = packing.with_suffix(".tmp")
+        tmp.write_bytes(below.read_bytes())
+        tmp.replace(packing)
     top = float(np.max(x[:, 2] + r))
     print(f"bed: {len(r)} beads, highest bead top {top:.4f} m", flush=True)
     return packing
@@ -179,29 +238,11 @@ def settle_packing(out: Path, cut: Path, width: float, depth: float, ranks: int)
     """``cut`` (a packing in ``out``) settled under gravity in its ``width`` box until its kinetic
     energy is below the beds' rest threshold (as :func:`make_bed` settles a fill), written as
     ``out/bed.txt``."""
-    from pdem.io.checkpoint import read_checkpoint
-    from pdem.sources import write_spheres_text
-
     packing = out / "bed.txt"
-    half = width / 2.0
-    n = bead_count(cut)
-    deck = BED_DECK.format(
-        width=width, depth=depth, seed=1, lo=repr(-half), hi=repr(half), fill_top=repr(2.4 * depth),
-        box_top=repr(3.0 * depth), r=repr(R_BEAD), rest=repr(REST_ENERGY_PER_BEAD * n),
-    )  # fmt: skip
-    start, end = deck.index("[[particles]]"), deck.index("[boundaries.box]")
-    table = f'[[particles]]\nsource = "file"\nmaterial = "bead"\npath = "{cut.name}"\n\n'
-    deck = deck[:start] + table + deck[end:]
+    deck = _with_file_source(_bed_deck(width, depth, 1, bead_count(cut)), cut.name, replace=True)
     deck = deck.replace("# A drop bed, made by", "# A drop bed cut from a larger one, settled again by", 1)
     (out / "settle.toml").write_text(deck)
-    bin_dir = Path(sys.executable).parent
-    head = [str(bin_dir / "mpiexec"), "-n", str(ranks)] if ranks > 1 else []
-    run([*head, str(bin_dir / "pdem"), str(out / "settle.toml"), "--output", str(out / "run"), "--overwrite"])
-    state, _ = read_checkpoint(out / "run" / "checkpoints" / "latest.h5")
-    x, r = state["particles/x"], state["particles/r"]
-    tmp = packing.with_suffix(".tmp")
-    write_spheres_text(tmp, x, r)
-    tmp.replace(packing)
+    x, r = _settle_run(out, "settle.toml", packing, ranks)
     print(f"cut bed settled: {len(r)} beads, highest bead top {float(np.max(x[:, 2] + r)):.4f} m", flush=True)
     return packing
 
@@ -252,7 +293,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --carve: cut a W wide, D deep bed [m] instead of the first bed's width "
                     "and depth (D larger than the source bed keeps its whole depth); written to "
                     "OUT/bed_cut_<W>x<D>mm")  # fmt: skip
+    ap.add_argument("--lifts", action="store_true",
+                    help="fill the bed of scale S in S lifts, each made as the first bed is (filled up "
+                    "to 2.4 times its depth above the last lift, then settled), so that every bed's top "
+                    "is made alike; written to OUT/bed_s<S>_lifts")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.lifts and args.carve is not None:
+        ap.error("--lifts and --carve: give one of them (a cut bed is not filled)")
+    if args.lifts and any(b < 1 for b in args.beds):
+        ap.error(f"--lifts: the bed scales {args.beds} must be whole numbers of lifts (1 or more)")
     if args.carve is not None and args.carve not in args.beds[1:]:
         ap.error(f"--carve {args.carve}: the scale to carve from must be one of the later --beds")
     if args.cut is not None:
@@ -276,6 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                 width, depth = args.cut
                 name = f"bed_{cut_tag}"
             bed = carve_bed(out / name, source, width, depth, args.ranks)
+        elif args.lifts and s > 1:
+            bed = make_bed(out / f"bed_s{s}_lifts", width, args.depth, args.ranks, args.seed, lifts=s)
         else:
             bed = make_bed(out / f"bed_s{s}", width, depth, args.ranks, args.seed)
         n = bead_count(bed)
@@ -302,6 +353,8 @@ def main(argv: list[str] | None = None) -> int:
                 row[f"change_s{s}"] = d / depths[first].get(round(h, 6), math.nan) - 1.0
         rows.append(row)
     stem = "bed_size" if cut_tag is None else f"bed_size_{cut_tag}"
+    if args.lifts:
+        stem = "bed_size_lifts"
     with open(out / f"{stem}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
