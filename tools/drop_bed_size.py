@@ -49,6 +49,7 @@ import csv
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -193,6 +194,8 @@ def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int, lifts
     many lifts, each as the one-lift bed of ``depth`` is made (filled at 0.25 up to 2.4 ``depth``
     above the last lift's highest bead, then settled), so that its top lift falls as far as a
     one-lift bed's beads do whatever the bed's depth."""
+    from pdem.sources import read_spheres
+
     packing = out / "bed.txt"
     if packing.exists():
         return packing
@@ -211,8 +214,6 @@ def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int, lifts
                 if below is None:
                     deck = _bed_deck(width, depth, seed, n_lift)
                 else:
-                    from pdem.sources import read_spheres
-
                     d = read_spheres(below)
                     top = float(np.max(d["positions"][:, 2] + d["radii"]))
                     # each lift its own random stream: the run's seed, offset per lift
@@ -222,12 +223,10 @@ def make_bed(out: Path, width: float, depth: float, ranks: int, seed: int, lifts
                 _settle_run(lift_dir, "bed.toml", lift, ranks)
             below = lift
         assert below is not None
-        from pdem.sources import read_spheres
-
         d = read_spheres(below)
         x, r = d["positions"], d["radii"]
         tmp = packing.with_suffix(".tmp")
-        tmp.write_bytes(below.read_bytes())
+        shutil.copyfile(below, tmp)
         tmp.replace(packing)
     top = float(np.max(x[:, 2] + r))
     print(f"bed: {len(r)} beads, highest bead top {top:.4f} m", flush=True)
